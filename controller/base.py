@@ -1,0 +1,100 @@
+"""The one interface every lateral controller offers: ``step(sample) -> (command, debug)``.
+
+Control math only: nothing here touches the bus, the clock or files. Solve times in the
+debug record come from the solvers' own statistics (OSQP ``info.solve_time``, IPOPT
+``t_wall_total``), so the law stays a pure function of its inputs and state.
+"""
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Physical steering limit of eq. 22 (rad); the contract's STEER_ANGLE_CMD limit too.
+STEER_LIMIT_RAD = 0.3
+
+
+class SolverStatus(enum.IntEnum):
+    """Solver outcome; values equal the CAN contract's CTRL_DIAG.QP_STATUS choices."""
+
+    SOLVED = 0
+    SOLVED_INACCURATE = 1
+    MAX_ITERATIONS = 2
+    INFEASIBLE = 3
+    NUMERICAL_ERROR = 4
+    NOT_RUN = 15
+
+
+@dataclass(frozen=True)
+class VehicleSample:
+    """One consistent measurement of the vehicle plus the planner's request.
+
+    Units: m/s, rad/s, m, rad, N m. ``yaw`` is wrapped to [-pi, pi).
+    """
+
+    vx: float
+    vy: float
+    yaw_rate: float
+    x: float
+    y: float
+    yaw: float
+    steer_angle: float
+    drive_torque: float
+    target_speed: float
+
+    def state(self) -> np.ndarray:
+        """Planar dynamic state [vx, vy, yaw_rate], shape (3,)."""
+        return np.array([self.vx, self.vy, self.yaw_rate])
+
+    def pose(self) -> np.ndarray:
+        """Global pose [x, y, yaw], shape (3,)."""
+        return np.array([self.x, self.y, self.yaw])
+
+
+@dataclass(frozen=True)
+class Command:
+    """Actuator request: front wheel angle (rad, left positive) and total torque (N m)."""
+
+    steer_angle: float
+    drive_torque: float
+
+
+@dataclass(frozen=True)
+class StepDebug:
+    """What one control step did, for CTRL_DIAG, logs and tests.
+
+    ``predicted_pose`` has shape (n_p, 3) ([x, y, yaw] over the horizon) and
+    ``predicted_state`` shape (n_p, 3) ([vx, vy, yaw_rate]); empty (0, 3) when not run.
+    """
+
+    status: SolverStatus
+    iterations: int = 0
+    solve_time_s: float = 0.0
+    cost: float = float("nan")
+    predicted_pose: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    predicted_state: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    fallback: bool = False
+    slack_max: float = 0.0
+    observer_reset: bool = False
+
+
+class Controller(ABC):
+    """Base of ESO-DKMPC, DKMPC, LMPC and NMPC (one file each, chosen by name)."""
+
+    #: Registry name, e.g. ``"eso-dkmpc"``.
+    name: str = ""
+
+    @abstractmethod
+    def set_path(self, path: "ReferencePath") -> None:  # noqa: F821 (controller.reference)
+        """Select the reference path to follow; resets progress along it."""
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Forget all internal state (warm starts, observer, progress)."""
+
+    @abstractmethod
+    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
+        """One control step at Ts = 0.025 s. Never raises for finite samples; the
+        returned command is always within the limits (fallback on solver failure)."""
