@@ -8,6 +8,8 @@ APT_STAMP := .venv/.apt-installed
 # Debian packages for the real SocketCAN path under user-mode Linux (see README).
 APT_PACKAGES := user-mode-linux kmod iproute2 can-utils
 
+.DEFAULT_GOAL := help
+
 CAN_INTERFACE ?= virtual
 CAN_CHANNEL ?= vcan0
 export CAN_INTERFACE CAN_CHANNEL
