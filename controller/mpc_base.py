@@ -1,0 +1,142 @@
+"""What the four steering MPCs share: reference, speed control, fallback, limits, debug.
+
+A subclass only plans: ``_plan(sample, drive_torque, reference) -> Plan``. This base turns
+the plan into a command or, when the plan failed (status not SOLVED / SOLVED_INACCURATE,
+or a non-finite value), into the defined fallback: the shifted previous solution
+(``steer[age]`` of the last good plan), else the previous command held. Non-finite samples
+give the fallback with status NOT_RUN. The last step always clips to the limits.
+"""
+from __future__ import annotations
+
+import math
+from abc import abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from controller.base import STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug, VehicleSample
+from controller.longitudinal import SpeedController
+from controller.reference import PathTracker, ReferencePath
+from controller.tuning import LongitudinalTuning, MpcTuning
+
+#: Control period of the paper and of the CAN contract (s).
+TS = 0.025
+_GOOD = (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One solver run: steer sequence (Nc,), predicted_pose / predicted_state (Np, 3)."""
+
+    status: SolverStatus
+    steer: np.ndarray
+    iterations: int
+    solve_time_s: float
+    cost: float
+    predicted_pose: np.ndarray
+    predicted_state: np.ndarray
+    slack_max: float = 0.0
+
+
+class SteeringMpc(Controller):
+    """Base of the steering MPCs: decoupled structure (P speed control + MPC steering)."""
+
+    def __init__(self, tuning: MpcTuning, longitudinal: LongitudinalTuning) -> None:
+        self.tuning = tuning
+        self.ts = TS
+        self._speed = SpeedController(longitudinal)
+        self._tracker: PathTracker | None = None
+        self._observer_reset = False
+        self.reset()
+
+    # -- interface ---------------------------------------------------------------------
+    def set_path(self, path: ReferencePath) -> None:
+        """Follow ``path`` from now on; progress is searched afresh on the next step."""
+        self._tracker = PathTracker(path)
+
+    def reset(self) -> None:
+        """Forget plans, previous command, progress (and, in subclasses, observers)."""
+        self._plan_steer: np.ndarray | None = None  # last good steer sequence (Nc,)
+        self._plan_age = 0  # steps since that plan was computed
+        self._last_command: Command | None = None
+        if self._tracker is not None:
+            self._tracker.reset()
+
+    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
+        """One control step (see ``Controller.step``)."""
+        values = (sample.vx, sample.vy, sample.yaw_rate, sample.x, sample.y, sample.yaw,
+                  sample.steer_angle, sample.drive_torque, sample.target_speed)
+        if self._tracker is None or not all(math.isfinite(v) for v in values):
+            return self._fallback(SolverStatus.NOT_RUN, torque=None)
+        torque = self._speed.torque(sample.vx, sample.target_speed)
+        projection = self._tracker.update(sample.x, sample.y, sample.yaw)
+        reference = self._tracker.horizon_reference(projection.progress, sample.vx,
+                                                    self.tuning.prediction_horizon, self.ts, sample.yaw)
+        self._observer_reset = False
+        plan = self._plan(sample, torque, reference)
+        if plan.status not in _GOOD or not (np.all(np.isfinite(plan.steer)) and math.isfinite(plan.cost)):
+            return self._fallback(plan.status, torque, plan, sample)
+        self._plan_steer = np.clip(plan.steer, -STEER_LIMIT_RAD, STEER_LIMIT_RAD)
+        self._plan_age = 0
+        command = self._finish(float(self._plan_steer[0]), torque)
+        self._after_command(sample, command)
+        return command, StepDebug(status=plan.status, iterations=plan.iterations,
+                                  solve_time_s=plan.solve_time_s, cost=plan.cost,
+                                  predicted_pose=plan.predicted_pose,
+                                  predicted_state=plan.predicted_state, fallback=False,
+                                  slack_max=plan.slack_max, observer_reset=self._observer_reset)
+
+    # -- for subclasses ------------------------------------------------------------------
+    @abstractmethod
+    def _plan(self, sample: VehicleSample, drive_torque: float, reference: np.ndarray) -> Plan:
+        """Solve the MPC for this sample; ``reference`` (Np, 3) poses at steps 1..Np."""
+
+    def _after_command(self, sample: VehicleSample, command: Command) -> None:
+        """Hook after a command was produced for a valid sample (observer update)."""
+
+    def previous_steer(self, sample: VehicleSample) -> float:
+        """u_{-1} of eq. 15: the last command, else (first step) the measured wheel angle."""
+        if self._last_command is not None:
+            return self._last_command.steer_angle
+        return float(np.clip(sample.steer_angle, -STEER_LIMIT_RAD, STEER_LIMIT_RAD))
+
+    def shifted_plan(self, sample: VehicleSample) -> np.ndarray:
+        """Warm start / linearisation point (Nc,): previous plan shifted by one step (last
+        value repeated), else the previous steer held over the horizon."""
+        n_ctrl = self.tuning.control_horizon
+        if self._plan_steer is None:
+            return np.full(n_ctrl, self.previous_steer(sample))
+        return np.concatenate((self._plan_steer[1:], self._plan_steer[-1:]))
+
+    # -- internals -------------------------------------------------------------------------
+    def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
+                  sample: VehicleSample | None = None) -> tuple[Command, StepDebug]:
+        """Shifted previous solution, else the previous command; flagged ``fallback``.
+
+        ``sample`` is given when it was valid (solver failure): hooks still see the command.
+        """
+        previous = self._last_command
+        if self._plan_steer is not None and self._plan_age + 1 < self._plan_steer.size:
+            self._plan_age += 1
+            steer = float(self._plan_steer[self._plan_age])
+        else:
+            self._plan_steer = None
+            steer = previous.steer_angle if previous is not None else 0.0
+        if torque is None:
+            torque = previous.drive_torque if previous is not None else 0.0
+        command = self._finish(steer, torque)
+        if sample is not None:
+            self._after_command(sample, command)
+        debug = StepDebug(status=status, fallback=True,
+                          iterations=plan.iterations if plan is not None else 0,
+                          solve_time_s=plan.solve_time_s if plan is not None else 0.0,
+                          observer_reset=self._observer_reset)
+        self._observer_reset = False
+        return command, debug
+
+    def _finish(self, steer: float, torque: float) -> Command:
+        """Final guard: finite and within the limits, whatever came before."""
+        steer = float(np.clip(steer, -STEER_LIMIT_RAD, STEER_LIMIT_RAD)) if math.isfinite(steer) else 0.0
+        torque = self._speed.clip(torque) if math.isfinite(torque) else 0.0
+        self._last_command = Command(steer_angle=steer, drive_torque=torque)
+        return self._last_command

@@ -1,0 +1,259 @@
+"""Reference paths and progress tracking along them.
+
+``ReferencePath`` holds the planner's path as arrays (x, y, yaw unwrapped, arc length s);
+``PathTracker`` follows the vehicle's progress along it without jumping to a far part of
+the path that passes close by (hairpins, crossings), and produces the pose reference over
+an MPC horizon plus the signed lateral and heading errors.
+
+Files are read and validated only when loaded (``ReferencePath.from_csv``); nothing here
+raises at step time for finite inputs.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from controller.errors import PathError
+
+#: Largest spacing allowed between consecutive path points (m).
+MAX_POINT_SPACING_M = 0.5
+#: Points closer than this count as duplicates (m): they would make the tangent undefined.
+MIN_POINT_SPACING_M = 1e-6
+CSV_HEADER = ("x", "y", "yaw")
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass(frozen=True, eq=False)
+class ReferencePath:
+    """A planar path: arrays of shape (n,) with x, y (m), yaw (rad, unwrapped) and s (m).
+
+    ``s`` is the cumulative chord length, starting at 0. Build with ``from_arrays``,
+    ``from_csv`` or ``double_lane_change``; they validate the points.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    s: np.ndarray
+    name: str = ""
+
+    @classmethod
+    def from_arrays(cls, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, name: str = "") -> "ReferencePath":
+        """Validate points (each shape (n,), n >= 2, finite, 0 < spacing <= 0.5 m)."""
+        where = name or "path"
+        arrays = [np.asarray(a, dtype=float) for a in (x, y, yaw)]
+        if any(a.ndim != 1 for a in arrays) or len({a.size for a in arrays}) != 1:
+            raise PathError(f"{where}: x, y, yaw must be 1-D arrays of equal length, got shapes "
+                            f"{[a.shape for a in arrays]}")
+        x_arr, y_arr, yaw_arr = arrays
+        if x_arr.size < 2:
+            raise PathError(f"{where}: needs at least 2 points, got {x_arr.size}")
+        for label, values in zip(CSV_HEADER, arrays):
+            bad = np.flatnonzero(~np.isfinite(values))
+            if bad.size:
+                raise PathError(f"{where}: point {bad[0]} has non-finite {label} = {values[bad[0]]}")
+        spacing = np.hypot(np.diff(x_arr), np.diff(y_arr))
+        too_far = np.flatnonzero(spacing > MAX_POINT_SPACING_M)
+        if too_far.size:
+            i = too_far[0]
+            raise PathError(f"{where}: points {i} and {i + 1} are {spacing[i]:.3f} m apart "
+                            f"(at most {MAX_POINT_SPACING_M} m allowed)")
+        duplicate = np.flatnonzero(spacing < MIN_POINT_SPACING_M)
+        if duplicate.size:
+            i = duplicate[0]
+            raise PathError(f"{where}: points {i} and {i + 1} coincide")
+        s = np.concatenate(([0.0], np.cumsum(spacing)))
+        # Unwrapped so interpolation between points never sweeps through +-pi.
+        return cls(x_arr, y_arr, np.unwrap(yaw_arr), s, name)
+
+    @classmethod
+    def from_csv(cls, path: str | Path) -> "ReferencePath":
+        """Load a CSV with header ``x,y,yaw`` (m, m, rad), one point per row."""
+        path = Path(path)
+        try:
+            with path.open(newline="") as handle:
+                rows = list(csv.reader(handle))
+        except FileNotFoundError as e:
+            raise PathError(f"{path}: path file not found") from e
+        except (OSError, UnicodeDecodeError) as e:
+            raise PathError(f"{path}: cannot read path file: {e}") from e
+        rows = [row for row in rows if row and any(cell.strip() for cell in row)]
+        if not rows:
+            raise PathError(f"{path}: empty file (expected header 'x,y,yaw')")
+        header = tuple(cell.strip() for cell in rows[0])
+        if header != CSV_HEADER:
+            raise PathError(f"{path}: header must be 'x,y,yaw', got {','.join(header)!r}")
+        values = np.empty((len(rows) - 1, 3))
+        for i, row in enumerate(rows[1:]):
+            line = i + 2
+            if len(row) != 3:
+                raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
+            for j, cell in enumerate(row):
+                try:
+                    values[i, j] = float(cell)
+                except ValueError as e:
+                    raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
+                                    f"not a number: {cell!r}") from e
+        return cls.from_arrays(values[:, 0], values[:, 1], values[:, 2], name=str(path))
+
+    @classmethod
+    def double_lane_change(cls, x_start: float = -20.0, x_end: float = 180.0,
+                           spacing: float = 0.25) -> "ReferencePath":
+        """The double lane change of the architecture spec (Section IV of the paper).
+
+        z1 = 2.4/25 (X - 27.19) - 1.2, z2 = 2.4/21.95 (X - 56.46) - 1.2,
+        Y = 4.05/2 (1 + tanh z1) - 5.7/2 (1 + tanh z2),
+        yaw = atan(4.05 sech^2(z1) 1.2/25 - 5.7 sech^2(z2) 1.2/21.95).
+        Sampled every ``spacing`` m in X from ``x_start`` to ``x_end``.
+        """
+        if not (0.0 < spacing <= MAX_POINT_SPACING_M / 1.5):
+            raise PathError(f"double_lane_change: spacing must be in (0, {MAX_POINT_SPACING_M / 1.5:.3f}] m, got {spacing}")
+        if not x_end > x_start:
+            raise PathError(f"double_lane_change: x_end ({x_end}) must be > x_start ({x_start})")
+        x = np.arange(x_start, x_end + 0.5 * spacing, spacing)
+        z1 = 2.4 / 25.0 * (x - 27.19) - 1.2
+        z2 = 2.4 / 21.95 * (x - 56.46) - 1.2
+        y = 4.05 / 2.0 * (1.0 + np.tanh(z1)) - 5.7 / 2.0 * (1.0 + np.tanh(z2))
+        yaw = np.arctan(4.05 / np.cosh(z1) ** 2 * (1.2 / 25.0)
+                        - 5.7 / np.cosh(z2) ** 2 * (1.2 / 21.95))
+        return cls.from_arrays(x, y, yaw, name="double_lane_change")
+
+    def to_csv(self, path: str | Path) -> None:
+        """Write the CSV that ``from_csv`` reads (yaw wrapped to [-pi, pi))."""
+        with Path(path).open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(CSV_HEADER)
+            for x, y, yaw in zip(self.x, self.y, wrap_angle(self.yaw)):
+                writer.writerow((f"{x:.6f}", f"{y:.6f}", f"{yaw:.8f}"))
+
+    @property
+    def length(self) -> float:
+        """Total arc length (m)."""
+        return float(self.s[-1])
+
+    def pose_at(self, s: np.ndarray) -> np.ndarray:
+        """Interpolated pose [x, y, yaw (unwrapped)] at arc lengths ``s`` (k,) -> (k, 3).
+
+        Beyond either end the path continues straight along its end tangent.
+        """
+        s = np.asarray(s, dtype=float)
+        out = np.empty(s.shape + (3,))
+        out[..., 0] = np.interp(s, self.s, self.x)
+        out[..., 1] = np.interp(s, self.s, self.y)
+        out[..., 2] = np.interp(s, self.s, self.yaw)
+        for mask, index, base in ((s > self.s[-1], -1, self.s[-1]), (s < 0.0, 0, 0.0)):
+            if np.any(mask):
+                extra = s[mask] - base
+                heading = self.yaw[index]
+                out[mask, 0] = self.x[index] + extra * math.cos(heading)
+                out[mask, 1] = self.y[index] + extra * math.sin(heading)
+        return out
+
+
+@dataclass(frozen=True)
+class PathProjection:
+    """The vehicle's foot point on the path.
+
+    ``progress`` (m of arc length), ``lateral_error`` (m, positive = vehicle left of the
+    path), ``heading_error`` (rad, vehicle yaw minus path yaw, wrapped), ``path_yaw``
+    (rad, unwrapped path yaw at the foot point).
+    """
+
+    progress: float
+    lateral_error: float
+    heading_error: float
+    path_yaw: float
+
+
+def _project(path: ReferencePath, x: float, y: float, first: int, last: int) -> tuple[float, float, int]:
+    """Nearest foot point on segments ``first .. last - 1``: (progress, signed distance, segment)."""
+    x0, y0 = path.x[first:last], path.y[first:last]
+    dx, dy = path.x[first + 1:last + 1] - x0, path.y[first + 1:last + 1] - y0
+    length_sq = dx * dx + dy * dy
+    t = np.clip(((x - x0) * dx + (y - y0) * dy) / length_sq, 0.0, 1.0)
+    ex, ey = x - (x0 + t * dx), y - (y0 + t * dy)
+    k = int(np.argmin(ex * ex + ey * ey))
+    seg_len = math.sqrt(length_sq[k])
+    # Cross product of the tangent with the offset: > 0 when the point is to the left.
+    signed = (dx[k] * ey[k] - dy[k] * ex[k]) / seg_len
+    return float(path.s[first + k] + t[k] * seg_len), float(signed), first + k
+
+
+def _projection_result(path: ReferencePath, x: float, y: float, yaw: float, first: int,
+                       last: int) -> PathProjection:
+    progress, signed, _ = _project(path, x, y, first, last)
+    path_yaw = float(np.interp(progress, path.s, path.yaw))
+    return PathProjection(progress, signed, float(wrap_angle(yaw - path_yaw)), path_yaw)
+
+
+def lateral_error(path: ReferencePath, x: float, y: float, yaw: float = 0.0) -> PathProjection:
+    """Foot point by a search over the WHOLE path (nearest segment).
+
+    For metrics on paths that never come back near themselves; a controller uses
+    ``PathTracker``, whose windowed search cannot jump.
+    """
+    return _projection_result(path, x, y, yaw, 0, path.x.size - 1)
+
+
+class PathTracker:
+    """Progress along a path, searched only in a window around the last progress.
+
+    The first ``update`` (after construction or ``reset``) searches the whole path; later
+    ones only the segments within ``window_behind_m`` behind and ``window_ahead_m`` ahead of
+    the last progress, so a part of the path that comes back close (hairpin, crossing) is
+    never picked while the vehicle follows the path.
+    """
+
+    def __init__(self, path: ReferencePath, window_ahead_m: float = 6.0, window_behind_m: float = 2.0) -> None:
+        if not (window_ahead_m > 0.0 and window_behind_m >= 0.0):
+            raise PathError(f"window_ahead_m ({window_ahead_m}) must be > 0 and window_behind_m "
+                            f"({window_behind_m}) >= 0")
+        self.path = path
+        self._ahead = window_ahead_m
+        self._behind = window_behind_m
+        self._progress: float | None = None
+
+    @property
+    def progress(self) -> float | None:
+        """Last progress along the path (m), None before the first update."""
+        return self._progress
+
+    def reset(self) -> None:
+        """Forget the progress; the next update searches the whole path."""
+        self._progress = None
+
+    def update(self, x: float, y: float, yaw: float) -> PathProjection:
+        """Project the vehicle position (m) onto the path and advance the progress."""
+        n_segments = self.path.x.size - 1
+        if self._progress is None:
+            first, last = 0, n_segments
+        else:
+            s = self.path.s
+            first = max(int(np.searchsorted(s, self._progress - self._behind, side="right")) - 1, 0)
+            last = min(int(np.searchsorted(s, self._progress + self._ahead, side="left")) + 1, n_segments)
+            last = max(last, first + 1)
+        result = _projection_result(self.path, x, y, yaw, first, last)
+        self._progress = result.progress
+        return result
+
+    def horizon_reference(self, progress: float, vx: float, n_steps: int, ts: float,
+                          vehicle_yaw: float) -> np.ndarray:
+        """Pose reference over the horizon, shape (n_steps, 3): [x, y, yaw] at steps 1..n_steps.
+
+        s_i = progress + vx * ts * i (vx clipped at 0: no reference behind the vehicle).
+        The yaw is shifted by a multiple of 2 pi so that it is continuous with the vehicle's
+        (wrapped) yaw: the yaw error never sees a 2 pi jump.
+        """
+        steps = np.arange(1, n_steps + 1)
+        reference = self.path.pose_at(progress + max(vx, 0.0) * ts * steps)
+        first_yaw = reference[0, 2]
+        reference[:, 2] -= 2.0 * math.pi * round((first_yaw - vehicle_yaw) / (2.0 * math.pi))
+        return reference

@@ -1,0 +1,174 @@
+"""The condensed steering QP of eq. 15 solved by OSQP (shared by LMPC, DKMPC, ESO-DKMPC).
+
+Decision variables v = [U (Nc steer angles), s (3 slacks, one per state of eq. 21)].
+The pose over the horizon is linearised in U (real-time iteration, see pose_kinematics),
+the dynamic states are affine in U, so eq. 15 becomes
+
+    min  sum_i ||pose_i(U) - ref_i||^2_Q + r ||U||^2 + p ||D U - d||^2 + l1 1's + l2 ||s||^2
+    s.t. -steer_limit <= U <= steer_limit                          (eq. 22)
+         s >= 0
+         x_min - s <= state_i(U) <= x_max + s,  i = 1..Np           (eq. 21, soft)
+
+D U - d are the increments U_j - U_{j-1} with U_{-1} = the previous command. The slack
+makes the QP always feasible; with the L1 weight large it is an exact penalty: the slack
+is zero whenever the hard constraints can be met.
+
+The sparsity pattern is built once. P's dense Nc x Nc upper triangle and A's dense
+state-gain block are written straight into preallocated data arrays (views), then passed
+to ``OSQP.update(Px=..., Ax=...)`` each step.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import osqp
+import scipy.sparse as sparse
+
+from controller.base import STEER_LIMIT_RAD, SolverStatus
+from controller.tuning import QpMpcTuning
+
+N_SOFT_STATES = 3  # vx, vy, yaw_rate
+
+_STATUS = {
+    osqp.SolverStatus.OSQP_SOLVED: SolverStatus.SOLVED,
+    osqp.SolverStatus.OSQP_SOLVED_INACCURATE: SolverStatus.SOLVED_INACCURATE,
+    osqp.SolverStatus.OSQP_MAX_ITER_REACHED: SolverStatus.MAX_ITERATIONS,
+    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE: SolverStatus.INFEASIBLE,
+    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE: SolverStatus.INFEASIBLE,
+    osqp.SolverStatus.OSQP_DUAL_INFEASIBLE: SolverStatus.INFEASIBLE,
+    osqp.SolverStatus.OSQP_DUAL_INFEASIBLE_INACCURATE: SolverStatus.INFEASIBLE,
+}
+
+
+@dataclass(frozen=True)
+class QpSolution:
+    """One QP solve: ``steer`` (Nc,), ``slack`` (3,) for [vx, vy, yaw_rate]; times from OSQP."""
+
+    status: SolverStatus
+    steer: np.ndarray
+    slack: np.ndarray
+    iterations: int
+    solve_time_s: float
+    cost: float
+
+
+class SteeringQp:
+    """OSQP problem of fixed size and sparsity for horizons (Np, Nc); updated in place."""
+
+    def __init__(self, tuning: QpMpcTuning, steer_limit: float = STEER_LIMIT_RAD) -> None:
+        n_pred, n_ctrl = tuning.prediction_horizon, tuning.control_horizon
+        self.n_pred, self.n_ctrl = n_pred, n_ctrl
+        self.tuning = tuning
+        n_soft_rows = 2 * N_SOFT_STATES * n_pred
+        self._n_var = n_ctrl + N_SOFT_STATES
+        n_con = n_ctrl + N_SOFT_STATES + n_soft_rows
+        # Pose weight per flattened (step, [X, Y, yaw]) entry.
+        self._pose_weight = np.tile([tuning.q_position, tuning.q_position, tuning.q_yaw], n_pred)
+        # Increment operator: (D U)_j = U_j - U_{j-1}; U_{-1} enters through the linear term.
+        difference = np.eye(n_ctrl) - np.eye(n_ctrl, k=-1)
+        self._fixed_hessian = tuning.r_steer * np.eye(n_ctrl) + tuning.p_steer_rate * difference.T @ difference
+
+        # P: dense upper triangle of the U block, then the slack diagonal (CSC, column order).
+        rows, cols = [], []
+        for j in range(n_ctrl):
+            rows.extend(range(j + 1))
+            cols.extend([j] * (j + 1))
+        self._triu_rows, self._triu_cols = np.array(rows), np.array(cols)
+        p_indptr = np.concatenate(([0], np.cumsum(np.arange(1, n_ctrl + 1)),
+                                   len(rows) + np.arange(1, N_SOFT_STATES + 1)))
+        p_indices = np.concatenate((self._triu_rows, n_ctrl + np.arange(N_SOFT_STATES)))
+        self._p_data = np.zeros(p_indices.size)
+        self._p_data[len(rows):] = 2.0 * tuning.slack_l2
+        self._p_upper = self._p_data[:len(rows)]  # view: the U block's values
+
+        # A, column by column. U column j: its bound row, then every soft row (dense block).
+        # Soft rows: ((step * 3 + state) * 2 + side), side 0 = upper (-s), 1 = lower (+s).
+        soft_first = n_ctrl + N_SOFT_STATES
+        u_col_len = 1 + n_soft_rows
+        indices, indptr = [], [0]
+        for j in range(n_ctrl):
+            indices.append(np.concatenate(([j], soft_first + np.arange(n_soft_rows))))
+            indptr.append(indptr[-1] + u_col_len)
+        slack_signs = []
+        for k in range(N_SOFT_STATES):
+            soft_rows = soft_first + (np.arange(n_pred) * N_SOFT_STATES + k) * 2
+            indices.append(np.concatenate(([n_ctrl + k], np.stack((soft_rows, soft_rows + 1), 1).ravel())))
+            indptr.append(indptr[-1] + 1 + 2 * n_pred)
+            slack_signs.append(np.concatenate(([1.0], np.tile([-1.0, 1.0], n_pred))))
+        a_indices = np.concatenate(indices)
+        self._a_data = np.concatenate((np.zeros(n_ctrl * u_col_len), *slack_signs))
+        u_block = self._a_data[:n_ctrl * u_col_len].reshape(n_ctrl, u_col_len)  # view
+        u_block[:, 0] = 1.0
+        self._a_gain = u_block[:, 1:].reshape(n_ctrl, n_pred * N_SOFT_STATES, 2)  # view
+
+        self._q = np.zeros(self._n_var)
+        self._q[n_ctrl:] = tuning.slack_l1
+        self._lower = np.full(n_con, -np.inf)
+        self._upper = np.full(n_con, np.inf)
+        self._lower[:n_ctrl], self._upper[:n_ctrl] = -steer_limit, steer_limit
+        self._lower[n_ctrl:soft_first] = 0.0
+        self._state_min = np.tile(tuning.state_min, n_pred)
+        self._state_max = np.tile(tuning.state_max, n_pred)
+        self._soft_upper = self._upper[soft_first::2]  # views, (Np * 3,)
+        self._soft_lower = self._lower[soft_first + 1::2]
+        self._soft_upper[:] = self._state_max
+        self._soft_lower[:] = self._state_min
+
+        self._p_upper[:] = self._fixed_hessian[self._triu_rows, self._triu_cols]
+        hessian = sparse.csc_matrix((self._p_data.copy(), p_indices, p_indptr),
+                                    shape=(self._n_var, self._n_var))
+        constraints = sparse.csc_matrix((self._a_data.copy(), a_indices, np.array(indptr)),
+                                        shape=(n_con, self._n_var))
+        self._solver = osqp.OSQP()
+        self._solver.setup(hessian, self._q.copy(), constraints, self._lower.copy(), self._upper.copy(),
+                           warm_starting=True, polish=False, verbose=False,
+                           eps_abs=tuning.osqp_eps_abs, eps_rel=tuning.osqp_eps_rel,
+                           max_iter=tuning.osqp_max_iter, check_termination=5,
+                           adaptive_rho_interval=25)
+        self._warm = np.zeros(self._n_var)
+        # Dual start: with the state constraints inactive (the usual case) the multipliers of
+        # s >= 0 equal the L1 weight. Starting them there instead of at 0 saves the hundreds
+        # of ADMM iterations it takes to build a large dual up from zero.
+        self._initial_dual = np.zeros(n_con)
+        self._initial_dual[n_ctrl:soft_first] = -tuning.slack_l1
+        self._solver.warm_start(x=self._warm, y=self._initial_dual)
+
+    def solve(self, pose_jacobian: np.ndarray, pose_offset: np.ndarray, previous_steer: float,
+              state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray) -> QpSolution:
+        """Update the data and solve.
+
+        pose_jacobian (Np, 3, Nc), pose_offset (Np, 3): linearised pose minus reference is
+        ``pose_jacobian @ U + pose_offset``. state_gain (Np, 3, Nc) and state_free (Np, 3):
+        the states at steps 1..Np are ``state_gain @ U + state_free``. warm_steer (Nc,).
+        """
+        n_ctrl = self.n_ctrl
+        jac = pose_jacobian.reshape(-1, n_ctrl)
+        offset = pose_offset.ravel()
+        weighted_jac = jac * self._pose_weight[:, None]
+        hessian = jac.T @ weighted_jac + self._fixed_hessian  # (Nc, Nc), half of OSQP's P
+        self._p_upper[:] = 2.0 * hessian[self._triu_rows, self._triu_cols]
+        self._q[:n_ctrl] = 2.0 * (offset @ weighted_jac)
+        self._q[0] -= 2.0 * self.tuning.p_steer_rate * previous_steer
+
+        gain = state_gain.reshape(-1, n_ctrl)  # (Np * 3, Nc)
+        self._a_gain[:] = gain.T[:, :, None]
+        free = state_free.ravel()
+        self._soft_upper[:] = self._state_max - free
+        self._soft_lower[:] = self._state_min - free
+
+        solver = self._solver
+        solver.update(q=self._q, l=self._lower, u=self._upper, Px=self._p_data, Ax=self._a_data)
+        self._warm[:n_ctrl] = warm_steer
+        solver.warm_start(x=self._warm)
+        result = solver.solve(raise_error=False)
+        info = result.info
+        status = _STATUS.get(info.status_val, SolverStatus.NUMERICAL_ERROR)
+        if status not in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE):
+            # Do not start the next solve from the failed iterate's multipliers.
+            solver.warm_start(y=self._initial_dual)
+        solution = np.array(result.x, dtype=float)
+        constant = float(offset @ (offset * self._pose_weight)) + self.tuning.p_steer_rate * previous_steer ** 2
+        return QpSolution(status=status, steer=solution[:n_ctrl], slack=solution[n_ctrl:],
+                          iterations=int(info.iter), solve_time_s=float(info.run_time),
+                          cost=float(info.obj_val) + constant)

@@ -1,0 +1,207 @@
+"""Controller tuning: frozen dataclasses loaded from ``controller/tuning.toml`` and validated.
+
+One TOML table per controller (``[eso-dkmpc]``, ``[dkmpc]``, ``[lmpc]``, ``[nmpc]``) plus
+``[longitudinal]`` for the P speed controller all four share. Every error names the table,
+the field and the offending value (``TuningError``). Loading happens at build time only.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Callable
+
+from controller.errors import TuningError
+
+DEFAULT_TUNING_PATH = Path(__file__).with_name("tuning.toml")
+
+#: Field name -> predicate on the (already type-checked) value, with the rule in words.
+_Rule = tuple[Callable[[Any], bool], str]
+_POSITIVE: _Rule = (lambda v: v > 0, "must be > 0")
+_NON_NEGATIVE: _Rule = (lambda v: v >= 0, "must be >= 0")
+
+
+@dataclass(frozen=True)
+class LongitudinalTuning:
+    """P speed controller: torque = speed_gain * (target_speed - vx), clipped to the limits."""
+
+    speed_gain: float
+    torque_min: float
+    torque_max: float
+
+    def __post_init__(self) -> None:
+        if self.torque_min >= self.torque_max:
+            raise TuningError(
+                f"[longitudinal] torque_min ({self.torque_min}) must be < torque_max ({self.torque_max})"
+            )
+
+
+@dataclass(frozen=True)
+class MpcTuning:
+    """Weights and horizons shared by the four steering MPCs (eq. 15).
+
+    ``state_min`` / ``state_max`` are eq. 21's bounds on [vx, vy, yaw_rate], enforced softly.
+    """
+
+    prediction_horizon: int
+    control_horizon: int
+    q_position: float
+    q_yaw: float
+    r_steer: float
+    p_steer_rate: float
+    state_min: tuple[float, float, float]
+    state_max: tuple[float, float, float]
+    slack_l1: float
+    slack_l2: float
+
+    def __post_init__(self) -> None:
+        if self.control_horizon > self.prediction_horizon:
+            raise TuningError(
+                f"control_horizon ({self.control_horizon}) must be <= prediction_horizon "
+                f"({self.prediction_horizon})"
+            )
+        for name, low, high in zip(("vx", "vy", "yaw_rate"), self.state_min, self.state_max):
+            if low >= high:
+                raise TuningError(f"state_min[{name}] ({low}) must be < state_max[{name}] ({high})")
+
+
+@dataclass(frozen=True)
+class QpMpcTuning(MpcTuning):
+    """MPC solved as one OSQP QP per step (LMPC, DKMPC)."""
+
+    osqp_max_iter: int
+    osqp_eps_abs: float
+    osqp_eps_rel: float
+
+
+@dataclass(frozen=True)
+class EsoDkmpcTuning(QpMpcTuning):
+    """ESO-DKMPC: the QP MPC plus the ESO error pole; the gains beta1, beta2 of eq. 13
+    (g1 = g2 = identity) follow from ``models.eso.design_gains(A, eso_pole)``."""
+
+    eso_pole: float
+
+
+@dataclass(frozen=True)
+class NmpcTuning(MpcTuning):
+    """NMPC solved to convergence by IPOPT."""
+
+    ipopt_max_iter: int
+    ipopt_tol: float
+
+
+@dataclass(frozen=True)
+class ControllerTuning:
+    """The whole tuning file."""
+
+    longitudinal: LongitudinalTuning
+    eso_dkmpc: EsoDkmpcTuning
+    dkmpc: QpMpcTuning
+    lmpc: QpMpcTuning
+    nmpc: NmpcTuning
+
+    def for_controller(self, name: str) -> MpcTuning:
+        """The table of registry name ``name`` (e.g. ``"eso-dkmpc"``)."""
+        table = {"eso-dkmpc": self.eso_dkmpc, "dkmpc": self.dkmpc, "lmpc": self.lmpc,
+                 "nmpc": self.nmpc}
+        if name not in table:
+            raise TuningError(f"no tuning table for controller {name!r}")
+        return table[name]
+
+
+_RULES: dict[str, _Rule] = {
+    "speed_gain": _POSITIVE,
+    "prediction_horizon": (lambda v: 2 <= v <= 200, "must be in [2, 200]"),
+    "control_horizon": (lambda v: 1 <= v <= 50, "must be in [1, 50]"),
+    "q_position": _NON_NEGATIVE,
+    "q_yaw": _NON_NEGATIVE,
+    "r_steer": _POSITIVE,
+    "p_steer_rate": _NON_NEGATIVE,
+    "slack_l1": _POSITIVE,
+    "slack_l2": _POSITIVE,
+    "osqp_max_iter": (lambda v: v >= 1, "must be >= 1"),
+    "osqp_eps_abs": _POSITIVE,
+    "osqp_eps_rel": _NON_NEGATIVE,
+    "ipopt_max_iter": (lambda v: v >= 1, "must be >= 1"),
+    "ipopt_tol": _POSITIVE,
+    "eso_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
+}
+
+
+def _convert(table: str, name: str, annotation: str, value: Any) -> Any:
+    """Type-check one TOML value against the dataclass annotation (as a string)."""
+    where = f"[{table}] {name}"
+    if annotation == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TuningError(f"{where} must be an integer, got {value!r}")
+        return value
+    if annotation == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise TuningError(f"{where} must be a finite number, got {value!r}")
+        return float(value)
+    if annotation.startswith("tuple[float"):
+        if (not isinstance(value, list) or len(value) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                           and math.isfinite(v) for v in value)):
+            raise TuningError(f"{where} must be a list of 3 finite numbers [vx, vy, yaw_rate], got {value!r}")
+        return tuple(float(v) for v in value)
+    raise TypeError(f"unsupported annotation {annotation}")  # programming error, not input
+
+
+def _build(cls: type, table_name: str, table: Any) -> Any:
+    """Build dataclass ``cls`` from TOML table ``table``: no missing, unknown or bad fields."""
+    if not isinstance(table, dict):
+        raise TuningError(f"[{table_name}] must be a table, got {table!r}")
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(set(table) - set(names))
+    if unknown:
+        raise TuningError(f"[{table_name}] unknown field(s) {unknown}; expected {names}")
+    missing = [n for n in names if n not in table]
+    if missing:
+        raise TuningError(f"[{table_name}] missing field(s) {missing}")
+    values = {}
+    for f in fields(cls):
+        value = _convert(table_name, f.name, str(f.type), table[f.name])
+        rule = _RULES.get(f.name)
+        if rule is not None and not rule[0](value):
+            raise TuningError(f"[{table_name}] {f.name} {rule[1]}, got {value!r}")
+        values[f.name] = value
+    try:
+        return cls(**values)
+    except TuningError as e:
+        raise TuningError(f"[{table_name}] {e}") from e
+
+
+def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
+    """Validate a parsed TOML document (dict) into ``ControllerTuning``."""
+    expected = {"longitudinal", "eso-dkmpc", "dkmpc", "lmpc", "nmpc"}
+    unknown = sorted(set(document) - expected)
+    if unknown:
+        raise TuningError(f"unknown table(s) {unknown}; expected {sorted(expected)}")
+    missing = sorted(expected - set(document))
+    if missing:
+        raise TuningError(f"missing table(s) {missing}")
+    return ControllerTuning(
+        longitudinal=_build(LongitudinalTuning, "longitudinal", document["longitudinal"]),
+        eso_dkmpc=_build(EsoDkmpcTuning, "eso-dkmpc", document["eso-dkmpc"]),
+        dkmpc=_build(QpMpcTuning, "dkmpc", document["dkmpc"]),
+        lmpc=_build(QpMpcTuning, "lmpc", document["lmpc"]),
+        nmpc=_build(NmpcTuning, "nmpc", document["nmpc"]),
+    )
+
+
+def load_tuning(path: str | Path | None = None) -> ControllerTuning:
+    """Load and validate the tuning TOML (default ``controller/tuning.toml``)."""
+    path = Path(path) if path is not None else DEFAULT_TUNING_PATH
+    try:
+        with path.open("rb") as handle:
+            document = tomllib.load(handle)
+    except FileNotFoundError as e:
+        raise TuningError(f"{path}: tuning file not found") from e
+    except tomllib.TOMLDecodeError as e:
+        raise TuningError(f"{path}: not valid TOML: {e}") from e
+    try:
+        return parse_tuning(document)
+    except TuningError as e:
+        raise TuningError(f"{path}: {e}") from e

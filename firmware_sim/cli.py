@@ -1,0 +1,159 @@
+"""Command line of the ECU (part of the CAN contract's tooling):
+
+    python -m firmware_sim --interface I --channel C --controller NAME \
+        --path ID=FILE.csv [--path ID=FILE.csv ...] (--lockstep | --realtime)
+
+``--interface`` / ``--channel`` default to python-can's configuration chain: the
+``CAN_INTERFACE`` / ``CAN_CHANNEL`` environment variables, then the python-can config file.
+Bad input prints ``error: ...`` on stderr and exits non-zero (2 for arguments, 1 for a bus
+that cannot be opened); tracebacks only with ``--debug``. SIGINT / SIGTERM send one last
+STEER_TORQUE_CMD with CMD_VALID = 0, close the bus and exit 0.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import FrameType
+
+import can
+
+from firmware_sim.errors import BusOpenError, EcuError, PathArgumentError
+
+#: The registry's names, repeated here so that ``--help`` needs no controller import; a
+#: test checks they equal ``controller.registry.CONTROLLER_NAMES``.
+CONTROLLER_CHOICES = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+EXIT_OK = 0
+EXIT_BUS = 1
+EXIT_USAGE = 2
+
+
+def parse_path_argument(text: str) -> tuple[int, Path]:
+    """``"ID=FILE.csv"`` -> (PATH_ID, file); the file must exist and be readable.
+
+    Raises:
+        PathArgumentError: no ``=``, an ID that is not an integer in 0..255, an empty file
+            name or a file that cannot be opened for reading.
+    """
+    path_id_text, separator, file_text = text.partition("=")
+    if not separator or not file_text:
+        raise PathArgumentError(f"--path {text!r}: expected ID=FILE.csv")
+    try:
+        path_id = int(path_id_text, 10)
+    except ValueError:
+        raise PathArgumentError(f"--path {text!r}: ID {path_id_text!r} is not an integer") from None
+    if not 0 <= path_id <= 255:
+        raise PathArgumentError(f"--path {text!r}: ID {path_id} outside 0..255 (PATH_ID is 8 bit)")
+    file = Path(file_text)
+    try:
+        with file.open("rb") as handle:
+            handle.read(1)
+    except OSError as error:
+        raise PathArgumentError(f"--path {text!r}: cannot read {file}: "
+                                f"{error.strerror or error}") from error
+    return path_id, file
+
+
+def parse_paths(items: Sequence[str]) -> dict[int, Path]:
+    """All ``--path`` arguments; a PATH_ID given twice is an error."""
+    paths: dict[int, Path] = {}
+    for item in items:
+        path_id, file = parse_path_argument(item)
+        if path_id in paths:
+            raise PathArgumentError(f"--path {item!r}: PATH_ID {path_id} given twice "
+                                    f"(already {paths[path_id]})")
+        paths[path_id] = file
+    return paths
+
+
+def open_bus(interface: str | None, channel: str | None, bitrate: int | None) -> can.BusABC:
+    """Open the bus; None falls back to python-can's configuration (environment, file).
+
+    Raises:
+        BusOpenError: python-can could not open it (the message names interface and channel).
+    """
+    kwargs: dict[str, object] = {}
+    if bitrate is not None:
+        kwargs["bitrate"] = bitrate
+    try:
+        return can.Bus(channel=channel, interface=interface, **kwargs)
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError, TypeError) as error:
+        raise BusOpenError(f"cannot open CAN bus (interface={interface or 'from config'}, "
+                           f"channel={channel or 'from config'}): {error}") from error
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Argument parser of ``python -m firmware_sim``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m firmware_sim",
+        description="ESO-DKMPC controller ECU on a CAN bus (contract: can-contract.md).")
+    parser.add_argument("--interface", default=None,
+                        help="python-can interface (default: CAN_INTERFACE, then python-can's config)")
+    parser.add_argument("--channel", default=None,
+                        help="python-can channel (default: CAN_CHANNEL, then python-can's config)")
+    parser.add_argument("--bitrate", type=int, default=None, help="bit rate, bit/s (interface dependent)")
+    parser.add_argument("--controller", required=True, choices=CONTROLLER_CHOICES,
+                        help="control law from the controller registry")
+    parser.add_argument("--path", action="append", required=True, metavar="ID=FILE.csv",
+                        help="reference path for PATH_ID (0..255), CSV header x,y,yaw; repeatable")
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--lockstep", action="store_true",
+                      help="virtual time from HIL_SYNC (deterministic HIL emulation)")
+    mode.add_argument("--realtime", action="store_true", help="monotonic wall clock")
+    parser.add_argument("--log-level", default="warning", type=str.lower, choices=LOG_LEVELS,
+                        help="logging level on stderr (default warning)")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    return parser
+
+
+def make_stop_handler(stop_event: threading.Event) -> Callable[[int, FrameType | None], None]:
+    """Signal handler that asks the ECU loop to stop (the loop then closes cleanly)."""
+    def handle(signum: int, frame: FrameType | None) -> None:
+        stop_event.set()
+    return handle
+
+
+def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None = None) -> int:
+    """Run the ECU until SIGINT / SIGTERM (or ``stop_event``); returns the exit status.
+
+    Signal handlers are installed only when called from the main thread; tests that run
+    ``main`` in a thread stop it through ``stop_event``.
+    """
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop_event = stop_event or threading.Event()
+    try:
+        paths = parse_paths(args.path)
+        bus = open_bus(args.interface, args.channel, args.bitrate)
+    except EcuError as error:
+        if args.debug:
+            raise
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BUS if isinstance(error, BusOpenError) else EXIT_USAGE
+
+    if threading.current_thread() is threading.main_thread():
+        handler = make_stop_handler(stop_event)
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+
+    from firmware_sim.ecu import Ecu  # after argument checks: keeps --help and errors fast
+    ecu = None
+    try:
+        ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep)
+        logging.getLogger("firmware_sim").info(
+            "ready: controller %s, PATH_IDs %s, %s, mode %s", args.controller,
+            sorted(paths), "lockstep" if args.lockstep else "real time", ecu.mode.name)
+        ecu.run(stop_event)
+    finally:
+        if ecu is not None:
+            ecu.close()
+        else:
+            bus.shutdown()
+    return EXIT_OK

@@ -1,0 +1,129 @@
+"""Time bases of the ECU: the lockstep TICK clock and the real-time release schedule.
+
+Both give task instants as integer nanoseconds so that comparisons against the contract's
+thresholds (20 ms, 100 ms) are exact; lockstep times are multiples of 1 ms.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Callable
+
+from can_defs.frames import HANDSHAKE_TICK
+
+from firmware_sim.config import NS_PER_MS, NS_PER_S
+
+__all__ = ["HANDSHAKE_TICK", "LockstepClock", "RealtimeSchedule", "TickAdvance", "TickKind",
+           "clock_ns"]
+
+MonotonicClock = Callable[[], float]
+
+
+def clock_ns(clock: MonotonicClock) -> int:
+    """Read a seconds clock as integer nanoseconds."""
+    return int(round(clock() * NS_PER_S))
+
+
+class TickKind(enum.Enum):
+    """How the ECU answers one HIL_SYNC."""
+
+    HANDSHAKE = "handshake"      # reset to before tick 0, ACK 0xFFFFFFFF
+    NEW = "new"                  # run the due tasks, then ACK
+    REPEATED = "repeated"        # ACK again, run nothing
+    NOT_SYNCHRONISED = "not synchronised"  # no handshake yet: ignored, no ACK
+    BACKWARDS = "backwards"      # older than the last tick: discarded, no ACK
+
+
+@dataclass(frozen=True)
+class TickAdvance:
+    """Result of one HIL_SYNC: the kind and the control task instants due, in ms."""
+
+    kind: TickKind
+    due_ms: tuple[int, ...] = ()
+    skipped: int = 0
+
+
+class LockstepClock:
+    """Virtual time from HIL_SYNC: every task of period P due in (previous TICK, TICK].
+
+    Before the handshake the clock is not synchronised; the handshake puts it "before
+    tick 0" so that the first TICK (normally 0) runs the task instants from 0 on.
+    """
+
+    def __init__(self, task_period_ms: int, max_catch_up_tasks: int) -> None:
+        self._period_ms = task_period_ms
+        self._max_catch_up = max_catch_up_tasks
+        self.synchronised = False
+        self.last_tick_ms: int | None = None
+
+    def handshake(self) -> TickAdvance:
+        """Reset to "before tick 0"."""
+        self.synchronised = True
+        self.last_tick_ms = None
+        return TickAdvance(TickKind.HANDSHAKE)
+
+    def advance(self, tick_ms: int) -> TickAdvance:
+        """Move virtual time to ``tick_ms`` and list the control task instants now due.
+
+        When more than ``max_catch_up_tasks`` instants fall in one step (the master skipped
+        ticks), only the newest ones are returned and the rest counted in ``skipped``.
+        """
+        if tick_ms == HANDSHAKE_TICK:
+            return self.handshake()
+        if not self.synchronised:
+            return TickAdvance(TickKind.NOT_SYNCHRONISED)
+        previous = self.last_tick_ms
+        if previous is not None and tick_ms == previous:
+            return TickAdvance(TickKind.REPEATED)
+        if previous is not None and tick_ms < previous:
+            return TickAdvance(TickKind.BACKWARDS)
+        after = -1 if previous is None else previous
+        first = (after // self._period_ms + 1) * self._period_ms
+        count = 0 if first > tick_ms else (tick_ms - first) // self._period_ms + 1
+        skipped = max(0, count - self._max_catch_up)
+        first += skipped * self._period_ms
+        due = tuple(range(first, tick_ms + 1, self._period_ms))
+        self.last_tick_ms = tick_ms
+        return TickAdvance(TickKind.NEW, due, skipped)
+
+    @staticmethod
+    def to_ns(tick_ms: int) -> int:
+        """Virtual time in ns."""
+        return tick_ms * NS_PER_MS
+
+
+class RealtimeSchedule:
+    """Absolute release times ``next += period`` on a monotonic clock (no drift).
+
+    When the loop falls behind by whole periods the missed releases are skipped (no burst
+    of catch-up tasks) and reported, so the caller can count them as overruns.
+    """
+
+    def __init__(self, period_ns: int) -> None:
+        self.period_ns = period_ns
+        self.next_release_ns: int | None = None
+
+    def start(self, now_ns: int) -> None:
+        """First release at ``now_ns``."""
+        self.next_release_ns = now_ns
+
+    def due(self, now_ns: int) -> bool:
+        """Whether the next release has come."""
+        return self.next_release_ns is not None and now_ns >= self.next_release_ns
+
+    def release(self, now_ns: int) -> tuple[int, int]:
+        """Consume the due release: returns (ideal release ns, releases skipped)."""
+        assert self.next_release_ns is not None, "start() first"
+        ideal = self.next_release_ns
+        self.next_release_ns = ideal + self.period_ns
+        skipped = 0
+        if now_ns >= self.next_release_ns:
+            skipped = (now_ns - self.next_release_ns) // self.period_ns + 1
+            self.next_release_ns += skipped * self.period_ns
+        return ideal, skipped
+
+    def seconds_until_next(self, now_ns: int) -> float:
+        """Time to wait before the next release (0 when due), s."""
+        if self.next_release_ns is None:
+            return 0.0
+        return max(0, self.next_release_ns - now_ns) / NS_PER_S

@@ -1,0 +1,85 @@
+"""Fixed settings of the ECU: contract thresholds and the safe-stop / guard limits.
+
+The thresholds marked *contract* come from ``can-contract.md`` and must not be tuned; the
+others are the ECU's own choice, documented in ``docs/readme/80-ecu.md``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from firmware_sim.errors import ConfigError
+
+#: Representable range of STEER_TORQUE_CMD.DRIVE_TORQUE_CMD (16 bit signed, 0.1 N m).
+DBC_DRIVE_TORQUE_MIN_NM = -3276.8
+DBC_DRIVE_TORQUE_MAX_NM = 3276.7
+#: Representable range of STEER_TORQUE_CMD.STEER_ANGLE_CMD (16 bit signed, 0.0001 rad).
+DBC_STEER_MIN_RAD = -3.2768
+DBC_STEER_MAX_RAD = 3.2767
+
+NS_PER_MS = 1_000_000
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class EcuConfig:
+    """Timing thresholds and actuator limits of the ECU (times in ms, SI otherwise).
+
+    Attributes:
+        control_period_ms: period of the control task (*contract*: 25 ms).
+        tick_ms: lockstep tick length (*contract*: 5 ms).
+        sample_stale_ms: a plant sample older than this at a control task -> DEGRADED
+            (*contract*: 20 ms).
+        sample_lost_ms: no good plant sample for longer than this -> SAFE_STOP
+            (*contract*: 100 ms).
+        planner_timeout_ms: PLANNER_REQ missing longer than this -> STANDBY
+            (*contract*: 100 ms).
+        steer_limit_rad: |STEER_ANGLE_CMD| limit (*contract*: 0.3 rad, eq. 22).
+        drive_torque_limit_nm: |DRIVE_TORQUE_CMD| limit enforced by the guard; at most the
+            DBC's representable range.
+        safe_stop_brake_torque_nm: braking torque (positive number, sent negative) in
+            SAFE_STOP until standstill.
+        safe_stop_steer_rate_rad_s: rate at which SAFE_STOP returns the steering to straight.
+        standstill_speed_mps: |vx| below which a fresh sample counts as standstill.
+        max_catch_up_tasks: most control task instants run for one TICK when the master
+            skips ticks (the newest ones are run, older ones are skipped and counted as
+            overruns) - bounds the work of one TICK.
+        timing_capacity: cycles kept by the timing ring buffer.
+    """
+
+    control_period_ms: int = 25
+    tick_ms: int = 5
+    sample_stale_ms: int = 20
+    sample_lost_ms: int = 100
+    planner_timeout_ms: int = 100
+    steer_limit_rad: float = 0.3
+    drive_torque_limit_nm: float = 3000.0
+    safe_stop_brake_torque_nm: float = 1500.0
+    safe_stop_steer_rate_rad_s: float = 0.2
+    standstill_speed_mps: float = 0.1
+    max_catch_up_tasks: int = 40
+    timing_capacity: int = 1 << 16
+
+    def __post_init__(self) -> None:
+        for name in ("control_period_ms", "tick_ms", "sample_stale_ms", "sample_lost_ms",
+                     "planner_timeout_ms", "max_catch_up_tasks", "timing_capacity"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+                raise ConfigError(f"EcuConfig.{name} must be a positive integer, got {value!r}")
+        for name in ("steer_limit_rad", "drive_torque_limit_nm", "safe_stop_brake_torque_nm",
+                     "safe_stop_steer_rate_rad_s", "standstill_speed_mps"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"EcuConfig.{name} must be a positive finite number, got {value!r}")
+        if self.steer_limit_rad > DBC_STEER_MAX_RAD:
+            raise ConfigError(f"EcuConfig.steer_limit_rad {self.steer_limit_rad} exceeds the DBC "
+                              f"range {DBC_STEER_MAX_RAD}")
+        if self.drive_torque_limit_nm > DBC_DRIVE_TORQUE_MAX_NM:
+            raise ConfigError(f"EcuConfig.drive_torque_limit_nm {self.drive_torque_limit_nm} exceeds "
+                              f"the DBC range {DBC_DRIVE_TORQUE_MAX_NM}")
+        if self.safe_stop_brake_torque_nm > self.drive_torque_limit_nm:
+            raise ConfigError(f"EcuConfig.safe_stop_brake_torque_nm {self.safe_stop_brake_torque_nm} "
+                              f"exceeds drive_torque_limit_nm {self.drive_torque_limit_nm}")
+        if self.control_period_ms % self.tick_ms:
+            raise ConfigError(f"EcuConfig.control_period_ms {self.control_period_ms} is not a "
+                              f"multiple of tick_ms {self.tick_ms}")

@@ -1,0 +1,404 @@
+"""The ECU node: a thin cyclic executive around the control law.
+
+Each control task (every 25 ms): inputs -> events -> mode transition -> compute (controller,
+dead reckoning or safe stop) -> guard -> TX STEER_TORQUE_CMD and CTRL_DIAG. The control law
+is the registry's `Controller`; this module holds no control math.
+
+Two time bases (``can-contract.md``, "Timing semantics"):
+
+- lockstep: HIL_SYNC.TICK is the clock. The handshake TICK 0xFFFFFFFF resets it to "before
+  tick 0"; each new TICK runs the control task instants in (previous TICK, TICK], sends
+  their frames and then HIL_SYNC_ACK; a repeated TICK is acknowledged again, nothing run.
+- real time: an injected monotonic clock with absolute release times (``next += period``).
+
+Nothing in `handle_message`, `poll` or `run` raises: faults become mode events and FAULTS
+bits, controller exceptions become a guarded fallback command.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import can
+from can_defs.frames import CtrlMode, QpStatus
+
+from controller.base import Command, Controller, StepDebug, VehicleSample
+from firmware_sim.clock import (HANDSHAKE_TICK, LockstepClock, MonotonicClock, RealtimeSchedule,
+                                TickKind, clock_ns)
+from firmware_sim.config import NS_PER_MS, NS_PER_S, EcuConfig
+from firmware_sim.errors import ConfigError
+from firmware_sim.guard import GuardLimits, guard_command
+from firmware_sim.modes import VALID_COMMAND_MODES, ModeEvents, transition
+from firmware_sim.rx import PlantMeasurement, RxKind, RxState
+from firmware_sim.safe_stop import safe_stop_command
+from firmware_sim.timing import TimingRecorder
+from firmware_sim.tx import DiagRecord, FaultBit, OVERRUNS_MAX, Transmitter
+
+_LOG = logging.getLogger(__name__)
+
+ControllerFactory = Callable[[str], Controller]
+PathLoader = Callable[[Path], Any]
+
+#: Wait of one `bus.recv` in `run`, s: bounds the reaction to ``stop_event``.
+RECV_TIMEOUT_S = 0.05
+
+
+def _default_controller_factory(name: str) -> Controller:
+    from controller.registry import create_controller  # lazy: loads only the named law
+    return create_controller(name)
+
+
+def _default_path_loader(path: Path) -> Any:
+    from controller.reference import ReferencePath
+    return ReferencePath.from_csv(path)
+
+
+def _vehicle_sample(measurement: PlantMeasurement, target_speed: float) -> VehicleSample:
+    return VehicleSample(vx=measurement.vx, vy=measurement.vy, yaw_rate=measurement.yaw_rate,
+                         x=measurement.x, y=measurement.y, yaw=measurement.yaw,
+                         steer_angle=measurement.steer_angle,
+                         drive_torque=measurement.drive_torque, target_speed=target_speed)
+
+
+class Ecu:
+    """The controller node on one python-can bus.
+
+    Args:
+        bus: an open python-can bus (the ECU shuts it down in `close`).
+        controller_name: registry name (``eso-dkmpc``, ``dkmpc``, ``lmpc``, ``nmpc``).
+        paths: PATH_ID (0..255) -> CSV file with header ``x,y,yaw``.
+        lockstep: HIL_SYNC drives time when True, else the monotonic ``clock``.
+        clock: monotonic clock in seconds (real-time mode; also stamps arrivals there).
+        config: thresholds and limits.
+        controller_factory / path_loader: injected for tests; default the registry and
+            ``ReferencePath.from_csv``.
+
+    A failure to create the controller (model load) or to load a path latches FAULT
+    (CMD_VALID = 0) instead of raising, as the contract requires. The lockstep handshake is
+    answered once loading has finished, also when it failed, so the master sees FAULT.
+
+    Raises:
+        ConfigError: a PATH_ID that is not an integer in 0..255.
+    """
+
+    def __init__(self, bus: can.BusABC, controller_name: str, paths: Mapping[int, Path],
+                 lockstep: bool = True, clock: MonotonicClock = time.monotonic, *,
+                 config: EcuConfig | None = None,
+                 controller_factory: ControllerFactory | None = None,
+                 path_loader: PathLoader | None = None) -> None:
+        self._bus = bus
+        self._config = config or EcuConfig()
+        self.lockstep = lockstep
+        self._clock = clock
+        self._limits = GuardLimits(self._config.steer_limit_rad, self._config.drive_torque_limit_nm)
+        self._period_ns = self._config.control_period_ms * NS_PER_MS
+        self._tx = Transmitter(bus)
+        self._rx = RxState()
+        self._lockstep_clock = LockstepClock(self._config.control_period_ms,
+                                             self._config.max_catch_up_tasks)
+        self._schedule = RealtimeSchedule(self._period_ns)
+        self.timing = TimingRecorder(self._config.timing_capacity)
+        self._closed = False
+        self._warned: set[str] = set()
+        for path_id in paths:
+            if not isinstance(path_id, int) or isinstance(path_id, bool) or not 0 <= path_id <= 255:
+                raise ConfigError(f"PATH_ID must be an integer in 0..255, got {path_id!r}")
+
+        self.load_error: str | None = None
+        self._controller: Controller | None = None
+        self._paths: dict[int, Any] = {}
+        try:
+            self._controller = (controller_factory or _default_controller_factory)(controller_name)
+        except Exception as error:  # any failure to build the model is a latched FAULT
+            self.load_error = f"controller {controller_name!r} failed to load: {error}"
+        loader = path_loader or _default_path_loader
+        for path_id, file in sorted(paths.items()):
+            try:
+                self._paths[path_id] = loader(Path(file))
+            except Exception as error:
+                self.load_error = self.load_error or f"PATH_ID {path_id} file {file}: {error}"
+        if self.load_error:
+            _LOG.error("FAULT latched: %s", self.load_error)
+        self._reset_run()
+        self.ready = True
+
+    # ---------------------------------------------------------------- state
+    def _reset_run(self) -> None:
+        """Start of a run (construction, lockstep handshake): no inputs, INIT (or FAULT)."""
+        self._rx.reset()
+        self._tx.reset_counters()
+        self.mode = CtrlMode.FAULT if self.load_error else CtrlMode.INIT
+        self._awaiting_disengage = False
+        self._previous_valid_steer = 0.0
+        self._active_path_id: int | None = None
+        self._controller_failing = False
+        self.overruns = 0
+        self.cycles = 0
+
+    @property
+    def rx_counts(self) -> dict[str, int]:
+        """Frames accepted / rejected, torn sets and samples since the last reset."""
+        return dict(self._rx.counts)
+
+    def _warn_once(self, key: str, message: str, *args: object) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            _LOG.warning(message, *args)
+
+    # ---------------------------------------------------------------- RX
+    def handle_message(self, msg: can.Message) -> None:
+        """Process one received frame; in lockstep a HIL_SYNC runs the due tasks. Never raises."""
+        try:
+            if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                return
+            arrival_ns = None if self.lockstep else clock_ns(self._clock)
+            outcome = self._rx.receive(msg.arbitration_id, bytes(msg.data), arrival_ns)
+            if outcome.kind is RxKind.SYNC and outcome.tick is not None:
+                if self.lockstep:
+                    self._on_tick(outcome.tick)
+                else:
+                    self._warn_once("sync-in-realtime", "HIL_SYNC ignored in real-time mode")
+        except Exception:  # a bug must not stop the node: log it and carry on
+            _LOG.exception("unexpected error while handling frame 0x%03X", msg.arbitration_id)
+
+    def _on_tick(self, tick: int) -> None:
+        started = time.perf_counter()
+        advance = self._lockstep_clock.advance(tick)
+        if advance.kind is TickKind.HANDSHAKE:
+            self._reset_run()
+            self._tx.send_ack(HANDSHAKE_TICK)
+            _LOG.info("lockstep handshake answered; before tick 0")
+            return
+        if advance.kind is TickKind.NOT_SYNCHRONISED:
+            self._warn_once("no-handshake", "HIL_SYNC TICK %d before the handshake ignored", tick)
+            return
+        if advance.kind is TickKind.BACKWARDS:
+            self._rx.e2e_error = True
+            _LOG.warning("HIL_SYNC TICK %d older than the last TICK %s: discarded", tick,
+                         self._lockstep_clock.last_tick_ms)
+            return
+        if advance.kind is TickKind.REPEATED:
+            self._tx.send_ack(tick)
+            return
+        now_ns = LockstepClock.to_ns(tick)
+        self._rx.stamp_pending(now_ns)
+        if advance.skipped:
+            _LOG.warning("TICK %d: %d control instants skipped (master jumped)", tick, advance.skipped)
+        for _ in advance.due_ms:
+            self._control_task(now_ns, release_jitter_s=math.nan)
+        self._tx.send_ack(tick)
+        if time.perf_counter() - started > self._config.control_period_ms / 1000.0:
+            self.overruns += 1
+
+    # ---------------------------------------------------------------- real time
+    def poll(self) -> None:
+        """Real-time mode: run the control task when its release time has come."""
+        if self.lockstep:
+            return
+        try:
+            now_ns = clock_ns(self._clock)
+            if self._schedule.next_release_ns is None:
+                self._schedule.start(now_ns)
+            if not self._schedule.due(now_ns):
+                return
+            ideal_ns, skipped = self._schedule.release(now_ns)
+            self.overruns += skipped
+            self._control_task(now_ns, release_jitter_s=(now_ns - ideal_ns) / NS_PER_S)
+            if clock_ns(self._clock) > ideal_ns + self._period_ns:
+                self.overruns += 1
+        except Exception:
+            _LOG.exception("unexpected error in the real-time schedule")
+
+    def run(self, stop_event: threading.Event) -> None:
+        """Blocking loop: receive (short timeout), handle, run due tasks, until ``stop_event``."""
+        while not stop_event.is_set() and not self._closed:
+            if self.lockstep:
+                timeout = RECV_TIMEOUT_S
+            else:
+                timeout = min(RECV_TIMEOUT_S,
+                              self._schedule.seconds_until_next(clock_ns(self._clock)))
+            try:
+                msg = self._bus.recv(timeout)
+            except (can.CanError, OSError, ValueError) as error:
+                if self._closed or getattr(self._bus, "_is_shutdown", False):
+                    break
+                self._warn_once("recv", "bus receive failed: %s", error)
+                time.sleep(RECV_TIMEOUT_S)
+                continue
+            if msg is not None:
+                self.handle_message(msg)
+            self.poll()
+
+    # ---------------------------------------------------------------- control task
+    def _mode_events(self, now_ns: int) -> tuple[ModeEvents, int | None]:
+        """Events of this control task and the newest sample's age (ns, None if none)."""
+        cfg = self._config
+        rx = self._rx
+        sample_age = (None if rx.newest_sample_arrival_ns is None
+                      else now_ns - rx.newest_sample_arrival_ns)
+        fresh = sample_age is not None and sample_age <= cfg.sample_stale_ms * NS_PER_MS
+        lost = sample_age is None or sample_age > cfg.sample_lost_ms * NS_PER_MS
+        planner = rx.newest_planner
+        planner_ok = (planner is not None and rx.newest_planner_arrival_ns is not None
+                      and now_ns - rx.newest_planner_arrival_ns <= cfg.planner_timeout_ms * NS_PER_MS)
+        if self._awaiting_disengage and rx.planner_disengaged_seen:
+            self._awaiting_disengage = False
+        standstill = (fresh and rx.newest_sample is not None
+                      and abs(rx.newest_sample.vx) < cfg.standstill_speed_mps)
+        events = ModeEvents(
+            load_failed=self.load_error is not None, sample_seen=rx.sample_seen,
+            sample_fresh=fresh, sample_lost=lost, planner_ok=planner_ok,
+            engage=planner is not None and planner.engage,
+            path_known=planner is not None and planner.path_id in self._paths,
+            rearmed=not self._awaiting_disengage, standstill=standstill)
+        return events, sample_age
+
+    def _select_path(self, path_id: int) -> bool:
+        """Reset the controller and give it the path (entering ACTIVE or a path change)."""
+        assert self._controller is not None
+        try:
+            self._controller.reset()
+            self._controller.set_path(self._paths[path_id])
+        except Exception as error:
+            self._active_path_id = None
+            _LOG.error("controller reset/set_path(PATH_ID %d) failed: %s", path_id, error)
+            return False
+        self._active_path_id = path_id
+        return True
+
+    def _step_controller(self, sample: VehicleSample) -> tuple[Command | None, StepDebug | None]:
+        assert self._controller is not None
+        try:
+            command, debug = self._controller.step(sample)
+        except Exception as error:
+            level = logging.DEBUG if self._controller_failing else logging.ERROR
+            _LOG.log(level, "controller step raised %s: %s; fallback command",
+                     type(error).__name__, error, exc_info=_LOG.isEnabledFor(logging.DEBUG))
+            self._controller_failing = True
+            return None, None
+        self._controller_failing = False
+        return command, debug
+
+    def _control_task(self, now_ns: int, release_jitter_s: float) -> None:
+        started = time.perf_counter()
+        cfg = self._config
+        rx = self._rx
+        self.cycles += 1
+        events, sample_age = self._mode_events(now_ns)
+        previous_mode = self.mode
+        self.mode, reasons = transition(previous_mode, events)
+        if self.mode is not previous_mode:
+            _LOG.info("%s -> %s (%s)", previous_mode.name, self.mode.name,
+                      ", ".join(reason.value for reason in reasons))
+            if self.mode is CtrlMode.SAFE_STOP:
+                self._awaiting_disengage = True
+                rx.clear_disengage_latch()
+
+        faults = 0
+        planner = rx.newest_planner
+        if (not events.sample_fresh or rx.torn or rx.stale or not events.planner_ok
+                or (planner is not None and not events.path_known)):
+            faults |= FaultBit.INPUT_TIMEOUT
+        if rx.e2e_error:
+            faults |= FaultBit.E2E_ERROR
+        rx.clear_cycle_flags()
+
+        qp_status = QpStatus.NOT_RUN
+        iterations = 0
+        solve_time_s = 0.0
+        steer: float = self._previous_valid_steer
+        torque: float = 0.0
+        if self.mode in (CtrlMode.ACTIVE, CtrlMode.DEGRADED):
+            assert planner is not None and rx.newest_sample is not None
+            command = debug = None
+            path_ready = (previous_mode in (CtrlMode.ACTIVE, CtrlMode.DEGRADED)
+                          and self._active_path_id == planner.path_id)
+            if not path_ready:
+                path_ready = self._select_path(planner.path_id)
+                faults |= FaultBit.MODEL_RESET
+            if path_ready:
+                sample = _vehicle_sample(rx.newest_sample, planner.target_speed)
+                if self.mode is CtrlMode.DEGRADED:
+                    sample = self._predict(sample, sample_age)
+                if sample is not None:
+                    command, debug = self._step_controller(sample)
+            if command is None or debug is None:
+                steer, torque = math.nan, math.nan  # refused by the guard -> fallback
+            else:
+                steer, torque = command.steer_angle, command.drive_torque
+                qp_status = self._qp_status(debug)
+                iterations = int(debug.iterations)
+                solve_time_s = float(debug.solve_time_s)
+                if debug.fallback:
+                    faults |= FaultBit.SOLVER_FALLBACK
+                if debug.observer_reset:
+                    faults |= FaultBit.MODEL_RESET
+        elif self.mode is CtrlMode.SAFE_STOP:
+            stop = safe_stop_command(self._previous_valid_steer, events.standstill,
+                                     cfg.control_period_ms / 1000.0,
+                                     cfg.safe_stop_steer_rate_rad_s, cfg.safe_stop_brake_torque_nm)
+            steer, torque = stop.steer_angle, stop.drive_torque
+
+        guarded = guard_command(steer, torque, self._limits, self._previous_valid_steer)
+        if guarded.refused is not None:
+            faults |= FaultBit.SOLVER_FALLBACK
+            if not (math.isnan(steer) and math.isnan(torque)):
+                _LOG.warning("guard refused the command: %s", guarded.refused)
+        self._previous_valid_steer = guarded.steer_angle
+        self._tx.send_command(self.mode, self.mode in VALID_COMMAND_MODES,
+                              guarded.steer_angle, guarded.drive_torque)
+        tx_ns = None if self.lockstep else clock_ns(self._clock)
+        cycle_time_s = time.perf_counter() - started
+        self._tx.send_diag(DiagRecord(qp_status=qp_status, solve_time_s=solve_time_s,
+                                      cycle_time_s=cycle_time_s, qp_iter=iterations,
+                                      overruns=min(self.overruns, OVERRUNS_MAX), faults=int(faults)))
+        self._record_timing(release_jitter_s, time.perf_counter() - started, solve_time_s,
+                            now_ns, tx_ns)
+
+    def _predict(self, sample: VehicleSample, sample_age_ns: int | None) -> VehicleSample | None:
+        from controller.dead_reckoning import predict_sample
+        try:
+            return predict_sample(sample, (sample_age_ns or 0) / NS_PER_S)
+        except ValueError as error:
+            _LOG.error("dead reckoning failed: %s", error)
+            return None
+
+    @staticmethod
+    def _qp_status(debug: StepDebug) -> QpStatus:
+        try:
+            return QpStatus(int(debug.status))
+        except (ValueError, TypeError):
+            return QpStatus.NUMERICAL_ERROR
+
+    def _record_timing(self, release_jitter_s: float, task_time_s: float, solve_time_s: float,
+                       now_ns: int, tx_ns: int | None) -> None:
+        arrival = self._rx.newest_sample_arrival_ns
+        if self.lockstep or arrival is None or tx_ns is None:
+            input_age = latency = math.nan
+        else:
+            input_age = (now_ns - arrival) / NS_PER_S
+            latency = (tx_ns - arrival) / NS_PER_S
+        self.timing.record(release_jitter_s, task_time_s, solve_time_s, input_age, latency,
+                           self.overruns)
+
+    # ---------------------------------------------------------------- shutdown
+    def close(self) -> None:
+        """Send one last STEER_TORQUE_CMD with CMD_VALID = 0, then shut the bus down.
+
+        The last frame reports STANDBY (FAULT when latched) with the held steering angle and
+        zero torque. Idempotent.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        mode = CtrlMode.FAULT if self.mode is CtrlMode.FAULT else CtrlMode.STANDBY
+        self._tx.send_command(mode, False, self._previous_valid_steer, 0.0)
+        try:
+            self._bus.shutdown()
+        except (can.CanError, OSError) as error:
+            _LOG.warning("bus shutdown failed: %s", error)

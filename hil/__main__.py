@@ -1,0 +1,69 @@
+"""``python -m hil <subcommand> ...``: the HIL's command line.
+
+Subcommands are modules under ``hil/commands/``, listed in :data:`SUBCOMMANDS`; each
+keeps its module-level imports light (argparse only) and imports its machinery in
+``main``, so building the parser stays cheap. A new subcommand is a new module plus one
+line in the table.
+
+Errors of the project (``HilError`` and the other packages' bases) print ``error: ...``
+on stderr and exit 1; ``--debug`` shows the traceback instead.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from types import ModuleType
+
+#: Subcommand name -> module implementing it (``HELP``, ``add_arguments``, ``main``).
+SUBCOMMANDS: dict[str, str] = {
+    "run": "hil.commands.run",
+}
+
+
+def _project_errors() -> tuple[type[BaseException], ...]:
+    """Base exceptions of the packages a subcommand may surface (imported lazily)."""
+    errors: list[type[BaseException]] = []
+    for module, name in (("hil.errors", "HilError"), ("can_defs.errors", "CanDefsError"),
+                         ("models.errors", "ModelError"), ("controller.errors", "ControllerError"),
+                         ("firmware_sim.errors", "EcuError")):
+        try:
+            errors.append(getattr(importlib.import_module(module), name))
+        except (ImportError, AttributeError):
+            continue
+    return tuple(errors)
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
+    """The top-level parser with every registered subcommand."""
+    parser = argparse.ArgumentParser(prog="python -m hil",
+                                     description="Hardware-in-the-loop emulation over CAN.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="SUBCOMMAND")
+    modules = {}
+    for name, module_name in SUBCOMMANDS.items():
+        module = importlib.import_module(module_name)
+        sub = subparsers.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(sub)
+        modules[name] = module
+    return parser, modules
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse ``argv`` and run the chosen subcommand; returns the exit status."""
+    parser, modules = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(modules[args.subcommand].main(args))
+    except _project_errors() as e:
+        if args.debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,29 @@
+"""Exceptions of the ``hil`` package: one base, :class:`HilError`, for everything outside
+the control loop (scenario files, path files, study runs, the HIL nodes).
+
+Third-party errors (``tomllib``, ``OSError``, numpy parsing) are wrapped with
+``raise ... from e`` so a CLI can print ``error: ...`` and exit non-zero.
+"""
+from __future__ import annotations
+
+
+class HilError(Exception):
+    """Base of every error raised by the ``hil`` package."""
+
+
+class ScenarioError(HilError):
+    """A scenario TOML file is missing, unreadable or has an invalid field (the message
+    names the file, the field and the value)."""
+
+
+class PathFileError(HilError):
+    """A reference path CSV is missing, malformed or violates the contract (header
+    ``x,y,yaw``, at most 0.5 m between points, driving order)."""
+
+
+class MetricsError(HilError):
+    """Inputs to a metric have the wrong shape or are not finite."""
+
+
+class StudyError(HilError):
+    """The closed-loop study could not run (unknown controller, missing plant, ...)."""

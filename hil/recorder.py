@@ -1,0 +1,141 @@
+"""Recording what is on the bus.
+
+- `BusRecorder`: every frame on the channel to a log file, through its own bus object (a
+  listener like any other node: on the virtual bus it hears all other bus objects, on
+  SocketCAN all other sockets) and a `can.Notifier` feeding `can.Logger`. The format
+  follows the file suffix as in python-can: ``.log`` candump (the default, readable by
+  can-utils' ``canplayer``), ``.asc``, ``.blf``, ``.csv``, ``.trc``, ... and ``.gz``
+  compressed variants.
+- `EcuFrameMonitor`: a node for the time master that keeps the ECU's frames with the
+  virtual tick they answered (STEER_TORQUE_CMD, CTRL_DIAG), for time series and metrics.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+
+from can_defs.codec import decode
+from can_defs.errors import CanDefsError
+from can_defs.frames import CtrlDiag, FrameId, SteerTorqueCmd
+from hil.errors import HilError
+
+#: Default log format: candump ``-L`` lines (``(timestamp) channel ID#DATA``).
+DEFAULT_LOG_SUFFIX = ".log"
+
+#: Columns of the ECU frame time series (one row per control cycle).
+ECU_TRACE_COLUMNS = ("time", "ctrl_mode", "cmd_valid", "steer_angle_cmd", "drive_torque_cmd",
+                     "qp_status", "solve_time_us", "cycle_time_us", "qp_iter", "overruns",
+                     "faults")
+
+
+class RecorderError(HilError):
+    """The log file cannot be written (unknown suffix, unwritable folder)."""
+
+
+class BusRecorder:
+    """Every frame on the bus to ``path`` (format by suffix), until `stop`.
+
+    Args:
+        bus: a bus object of its own (the recorder closes it on `stop`).
+        path: the log file; its folder is created.
+
+    Raises:
+        RecorderError: unknown suffix or the file cannot be created.
+    """
+
+    def __init__(self, bus: can.BusABC, path: str | Path) -> None:
+        self.path = Path(path)
+        self.bus = bus
+        self.count = 0
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = can.Logger(self.path)
+        except (ValueError, OSError) as e:
+            bus.shutdown()
+            raise RecorderError(f"cannot record to {self.path}: {e}") from e
+        self._notifier = can.Notifier(bus, [self._writer, self._count], timeout=0.05)
+        self._stopped = False
+
+    def _count(self, message: can.Message) -> None:
+        self.count += 1
+
+    def wait_for(self, n_frames: int, timeout_s: float = 5.0) -> bool:
+        """Wait until ``n_frames`` frames were recorded (the frames are in flight on the
+        receive thread when the run ends); True if reached within ``timeout_s``."""
+        give_up = time.monotonic() + timeout_s
+        while self.count < n_frames and time.monotonic() < give_up:
+            time.sleep(0.005)
+        return self.count >= n_frames
+
+    def stop(self) -> None:
+        """Stop listening, flush and close the log and the bus object (idempotent)."""
+        if self._stopped:
+            return
+        self._stopped = True
+        try:
+            self._notifier.stop()
+            self._writer.stop()
+        finally:
+            self.bus.shutdown()
+
+    def __enter__(self) -> "BusRecorder":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class EcuFrameMonitor:
+    """Time-master node that keeps the ECU's command and diagnosis frames per tick.
+
+    It checks nothing (the plant has its own E2E receiver); frames that do not decode are
+    counted in `undecodable`.
+    """
+
+    def __init__(self) -> None:
+        self.commands: list[tuple[int, SteerTorqueCmd]] = []
+        self.diags: list[tuple[int, CtrlDiag]] = []
+        self.raw: list[tuple[int, int, bytes]] = []
+        self.undecodable = 0
+
+    def frames_due(self, tick_ms: int) -> list[can.Message]:
+        """The monitor sends nothing."""
+        return []
+
+    def receive(self, message: can.Message, tick_ms: int) -> None:
+        """Keep STEER_TORQUE_CMD and CTRL_DIAG with the tick they were received in."""
+        if message.arbitration_id not in (FrameId.STEER_TORQUE_CMD, FrameId.CTRL_DIAG):
+            return
+        data = bytes(message.data)
+        self.raw.append((tick_ms, message.arbitration_id, data))
+        try:
+            frame = decode(message.arbitration_id, data).frame
+        except CanDefsError:
+            self.undecodable += 1
+            return
+        if isinstance(frame, SteerTorqueCmd):
+            self.commands.append((tick_ms, frame))
+        else:
+            self.diags.append((tick_ms, frame))
+
+    def advance(self, tick_ms: int, dt_s: float) -> None:
+        """No dynamics."""
+
+    def trace(self) -> dict[str, np.ndarray]:
+        """One row per control cycle that sent both frames: column -> array (n_cycles,)
+        (columns :data:`ECU_TRACE_COLUMNS`; time = the tick of reception, s)."""
+        diag_by_tick = {tick: diag for tick, diag in self.diags}
+        rows = []
+        for tick, cmd in self.commands:
+            diag = diag_by_tick.get(tick)
+            if diag is None:
+                continue
+            rows.append((tick / 1000.0, int(cmd.ctrl_mode), float(cmd.cmd_valid),
+                         cmd.steer_angle_cmd, cmd.drive_torque_cmd, int(diag.qp_status),
+                         diag.solve_time_us, diag.cycle_time_us, diag.qp_iter, diag.overruns,
+                         diag.faults))
+        table = np.array(rows, dtype=float).reshape(-1, len(ECU_TRACE_COLUMNS))
+        return {name: table[:, i].copy() for i, name in enumerate(ECU_TRACE_COLUMNS)}

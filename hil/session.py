@@ -1,0 +1,329 @@
+"""One HIL run over CAN: the ECU, the plant, the planner, a time master and a recorder on
+one bus, for one scenario and one controller.
+
+Where the ECU runs depends on the bus:
+
+- python-can's ``virtual`` interface exists only inside one process, so the ECU runs
+  in-process: its own bus object and ``firmware_sim.ecu.Ecu`` in a thread;
+- any other interface (SocketCAN ``vcan0``, a real adapter) gets the ECU as a separate
+  process through its CLI (``python -m firmware_sim ...``), stopped with SIGTERM at the
+  end. Only CAN frames pass between the two, as on a vehicle.
+
+Results: the plant's true time series (5 ms ticks), the ECU's frames per control cycle,
+the tracking metrics of hil/metrics.py on the true pose at the control instants (every
+25 ms, as hil/closed_loop.py computes them), and the frame log of the recorder.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from can_defs.frames import CtrlMode
+from hil.bus import BusConfig, open_bus, private_virtual_channel
+from hil.errors import HilError
+from hil.metrics import TrackingMetrics, path_errors, tracking_metrics
+from hil.plant_node import PlantNode
+from hil.planner_node import PlannerNode, engage_from_start
+from hil.recorder import BusRecorder, EcuFrameMonitor
+from hil.scenario import Scenario
+from hil.time_master import (DEFAULT_ACK_TIMEOUT_S, DEFAULT_HANDSHAKE_TIMEOUT_S,
+                             LockstepMaster, MasterStats, RealTimeMaster)
+
+#: Control period of the ECU (contract: 25 ms); metrics are sampled at these instants.
+CONTROL_PERIOD_MS = 25
+#: Wall-clock wait for a stopped ECU process before it is killed.
+ECU_STOP_TIMEOUT_S = 5.0
+#: Root of the checkout (the ECU process runs from here).
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+class SessionError(HilError):
+    """The HIL run could not be set up or its ECU failed."""
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run one scenario over CAN.
+
+    ``lockstep`` False runs on the wall clock. ``log_path`` None records nothing.
+    ``engage`` overrides the planner's engage schedule (virtual time s -> bool).
+    ``ecu_output`` is where a separate ECU process writes stdout/stderr (default: a
+    temporary file, shown in errors).
+    """
+
+    controller: str
+    bus: BusConfig
+    lockstep: bool = True
+    log_path: Path | None = None
+    handshake_timeout_s: float = DEFAULT_HANDSHAKE_TIMEOUT_S
+    ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S
+    engage: Callable[[float], bool] = engage_from_start
+    ecu_output: Path | None = None
+    ecu_extra_args: tuple[str, ...] = ()
+
+
+@dataclass
+class HilRunResult:
+    """Outcome of one run: time series (column -> array (n,)), metrics, run facts."""
+
+    scenario: str
+    controller: str
+    bus: str
+    mode: str
+    plant_trace: dict[str, np.ndarray]
+    ecu_trace: dict[str, np.ndarray]
+    tracking: TrackingMetrics
+    stats: MasterStats
+    wall_time_s: float
+    log_path: Path | None = None
+    frames_logged: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready facts and metrics of the run."""
+        ecu = self.ecu_trace
+        solve_us = ecu["solve_time_us"][ecu["qp_status"] != 15] if len(ecu["time"]) else []
+        active = ecu["ctrl_mode"] == int(CtrlMode.ACTIVE) if len(ecu["time"]) else []
+        return {
+            "scenario": self.scenario, "controller": self.controller, "bus": self.bus,
+            "mode": self.mode, "wall_time_s": round(self.wall_time_s, 3),
+            "ticks": self.stats.ticks, "frames_sent": self.stats.frames_sent,
+            "frames_received": self.stats.frames_received,
+            "realtime_overruns": self.stats.overruns,
+            "control_cycles": int(len(ecu["time"])),
+            "active_cycles": int(np.sum(active)),
+            "solve_time_us_median": float(np.median(solve_us)) if len(solve_us) else None,
+            "solve_time_us_max": float(np.max(solve_us)) if len(solve_us) else None,
+            "log": str(self.log_path) if self.log_path else None,
+            "frames_logged": self.frames_logged,
+            "tracking": self.tracking.as_dict(),
+        }
+
+    def write(self, out_dir: Path) -> list[Path]:
+        """Write ``plant.csv``, ``ecu.csv`` and ``summary.json`` to ``out_dir``."""
+        out_dir.mkdir(parents=True, exist_ok=True)
+        written = [_write_csv(out_dir / "plant.csv", self.plant_trace),
+                   _write_csv(out_dir / "ecu.csv", self.ecu_trace)]
+        summary = out_dir / "summary.json"
+        summary.write_text(json.dumps(self.summary(), indent=2) + "\n", encoding="utf-8")
+        written.append(summary)
+        return written
+
+
+def _write_csv(path: Path, columns: dict[str, np.ndarray]) -> Path:
+    names = list(columns)
+    with path.open("w", newline="", encoding="ascii") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(names)
+        for row in zip(*(columns[n] for n in names)):
+            writer.writerow([f"{v:.9g}" for v in row])
+    return path
+
+
+# --- the ECU, in-process or as a process -------------------------------------------------
+
+
+class _EcuRunner:
+    """Start / liveness / stop of the ECU, wherever it runs."""
+
+    def alive_problem(self) -> str | None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+
+class InProcessEcu(_EcuRunner):
+    """``firmware_sim.ecu.Ecu`` on its own virtual bus object, run in a thread."""
+
+    def __init__(self, scenario: Scenario, options: RunOptions) -> None:
+        from firmware_sim.ecu import Ecu  # the ECU package: only needed in-process
+
+        self._bus = open_bus(options.bus)
+        try:
+            self.ecu = Ecu(self._bus, options.controller, {scenario.path_id: scenario.path_file},
+                           lockstep=options.lockstep, clock=time.monotonic)
+        except Exception as e:
+            self._bus.shutdown()
+            raise SessionError(f"cannot start the ECU with controller "
+                               f"'{options.controller}': {e}") from e
+        if self.ecu.load_error:
+            # The ECU latches FAULT for this (contract); a run could only show CMD_VALID = 0.
+            self.ecu.close()
+            raise SessionError(f"the ECU latched FAULT at start-up: {self.ecu.load_error}")
+        self._stop_event = threading.Event()
+        self._failure: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="ecu", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.ecu.run(self._stop_event)
+        except BaseException as e:  # noqa: BLE001 - reported to the master via alive_problem
+            self._failure = e
+
+    def alive_problem(self) -> str | None:
+        if self._failure is not None:
+            return f"ECU thread raised {self._failure!r}"
+        if not self._thread.is_alive():
+            return "ECU thread ended"
+        return None
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self._thread.join(timeout=ECU_STOP_TIMEOUT_S)
+        try:
+            self.ecu.close()
+        finally:
+            self._bus.shutdown()
+
+
+def ecu_command(scenario: Scenario, options: RunOptions) -> list[str]:
+    """Command line of the ECU process for this run (firmware_sim's CLI)."""
+    return [sys.executable, "-m", "firmware_sim",
+            "--interface", options.bus.interface, "--channel", options.bus.channel,
+            "--controller", options.controller,
+            "--path", f"{scenario.path_id}={scenario.path_file}",
+            "--lockstep" if options.lockstep else "--realtime", *options.ecu_extra_args]
+
+
+class EcuProcess(_EcuRunner):
+    """The ECU as a separate process through its CLI; stopped with SIGTERM."""
+
+    def __init__(self, scenario: Scenario, options: RunOptions) -> None:
+        self.command = ecu_command(scenario, options)
+        if options.ecu_output is not None:
+            self.output_path = options.ecu_output
+            self.output_path.parent.mkdir(parents=True, exist_ok=True)
+        else:
+            handle, name = tempfile.mkstemp(prefix="ecu-", suffix=".txt")
+            os.close(handle)
+            self.output_path = Path(name)
+        self._output = self.output_path.open("wb")
+        try:
+            self.process = subprocess.Popen(self.command, cwd=REPO_ROOT, stdin=subprocess.DEVNULL,
+                                            stdout=self._output, stderr=subprocess.STDOUT)
+        except OSError as e:
+            self._output.close()
+            raise SessionError(f"cannot start the ECU process {self.command}: {e}") from e
+
+    def output_tail(self, n_chars: int = 1500) -> str:
+        """Last characters the ECU process printed."""
+        try:
+            return self.output_path.read_text(errors="replace")[-n_chars:]
+        except OSError:
+            return ""
+
+    def alive_problem(self) -> str | None:
+        code = self.process.poll()
+        if code is None:
+            return None
+        return f"ECU process exited with status {code}; its output:\n{self.output_tail()}"
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=ECU_STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._output.close()
+
+
+# --- one run -------------------------------------------------------------------------------
+
+
+def run_hil(scenario: Scenario, options: RunOptions,
+            on_tick: Callable[[int], None] | None = None) -> HilRunResult:
+    """Run ``scenario`` with ``options.controller`` over CAN (see the module docstring).
+
+    Raises:
+        SessionError: the ECU could not start or stopped.
+        hil.bus.BusOpenError, hil.recorder.RecorderError, hil.time_master.TimeMasterError.
+    """
+    plant = PlantNode(scenario)
+    planner = PlannerNode(scenario, engage=options.engage)
+    monitor = EcuFrameMonitor()
+    recorder = None
+    ecu: _EcuRunner | None = None
+    master_bus = open_bus(options.bus)
+    started = time.monotonic()
+    try:
+        if options.log_path is not None:
+            recorder = BusRecorder(open_bus(options.bus), options.log_path)
+        ecu = InProcessEcu(scenario, options) if options.bus.is_virtual \
+            else EcuProcess(scenario, options)
+        nodes = [plant, planner, monitor]
+        if options.lockstep:
+            master: LockstepMaster | RealTimeMaster = LockstepMaster(
+                master_bus, nodes, handshake_timeout_s=options.handshake_timeout_s,
+                ack_timeout_s=options.ack_timeout_s, peer_alive=ecu.alive_problem)
+        else:
+            master = RealTimeMaster(master_bus, nodes)
+        stats = master.run(scenario.duration_s, on_tick=on_tick)
+        if recorder is not None:
+            # Every frame the master sent or received is on the bus: let the recorder
+            # catch up, so the log is complete.
+            recorder.wait_for(stats.frames_sent + stats.frames_received)
+    finally:
+        try:
+            if ecu is not None:
+                ecu.stop()
+        finally:
+            if recorder is not None:
+                recorder.stop()
+            master_bus.shutdown()
+    wall = time.monotonic() - started
+    plant_trace = plant.trace()
+    return HilRunResult(
+        scenario=scenario.name, controller=options.controller, bus=options.bus.describe(),
+        mode="lockstep" if options.lockstep else "realtime",
+        plant_trace=plant_trace, ecu_trace=monitor.trace(),
+        tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
+        stats=stats, wall_time_s=wall,
+        log_path=options.log_path, frames_logged=recorder.count if recorder else 0,
+        extra={"plant_commands_rejected": plant.commands_rejected,
+               "ecu_frames_undecodable": monitor.undecodable},
+    )
+
+
+def reference_path(scenario: Scenario) -> Any:
+    """The scenario's ``controller.reference.ReferencePath`` (what e_Y is measured to)."""
+    from controller.reference import ReferencePath
+
+    return ReferencePath.from_csv(scenario.path_file)
+
+
+def control_instant_metrics(plant_trace: dict[str, np.ndarray], path: Any) -> TrackingMetrics:
+    """e_Y and heading-error statistics of the true pose at t = 0, 25, 50, ... ms.
+
+    Args:
+        plant_trace: the plant node's trace (``time``, ``x``, ``y``, ``yaw``: (n_ticks,)).
+        path: the reference path (``controller.reference.ReferencePath``).
+    """
+    time_ms = np.round(plant_trace["time"] * 1000.0).astype(np.int64)
+    at_control = time_ms % CONTROL_PERIOD_MS == 0
+    pose = np.column_stack([plant_trace["x"][at_control], plant_trace["y"][at_control],
+                            plant_trace["yaw"][at_control]])
+    errors = path_errors(pose, path)
+    return tracking_metrics(errors.lateral_error, errors.heading_error)
+
+
+def default_options(controller: str, bus: BusConfig | None = None, **kwargs: Any) -> RunOptions:
+    """Options for a run on a private virtual channel (tests, ``make run``)."""
+    bus = bus or BusConfig("virtual", private_virtual_channel())
+    return RunOptions(controller=controller, bus=bus, **kwargs)

@@ -1,0 +1,12 @@
+# Extended state observer (models/eso.py, models/eso_dk.py) and the Fig. 7 robustness study.
+.PHONY: fig7 test-eso
+
+# DK vs ESO-DK along a 60 s drive under nominal, mu 0.55 and +200 kg conditions:
+# results/fig7_<case>.png, results/fig7_rmse.md, results/fig7_gain_sweep.md.
+# Needs the trained artefact models/artifacts/dk_d5.npz (make train); drives are cached in
+# results/fig7_drives.npz (add FIG7_ARGS=--resimulate to rerun the plant).
+fig7: setup
+	$(PY) -m models.fig7 $(FIG7_ARGS)
+
+test-eso: setup
+	$(PY) -m pytest -q tests/test_eso.py tests/test_eso_dk.py tests/test_eso_fig7.py

@@ -1,0 +1,380 @@
+"""Fig. 7: accuracy and robustness of DK against ESO-DK (paper Sec. IV-A).
+
+A drive starting at 40 km/h with mixed steering and speed changes is run on the four-wheel
+plant (``models.vehicle``) under three conditions: (a) nominal (1648 kg, mu 0.85), (b) mu
+0.55, (c) mass + 200 kg. The deep Koopman model was trained on nominal conditions only.
+At every sample k both predictors start from the measured state x[k] and the known inputs
+u[k..k+H-1]:
+
+- DK:      z[k+i+1|k] = A z[k+i|k] + B u[k+i] + offset
+- ESO-DK:  the same plus w_hat, the ESO estimate after seeing x[0..k] (eq. 13), held over
+           the horizon as eq. 15 does.
+
+Outputs (``make fig7``): ``results/fig7_<case>.png`` (true vs DK vs ESO-DK one-step
+predictions of Vx, Vy, yaw rate), ``results/fig7_rmse.md`` (one-step and 10-step RMSE per
+condition and state, and the improvement), ``results/fig7_gain_sweep.md`` (RMSE against
+the observer pole, the basis of the gain choice). The simulated drives are cached in
+``results/fig7_drives.npz`` (keyed by the drive and plant settings).
+
+CLI: ``python -m models.fig7 [--artifact PATH] [--pole P] [--out DIR] [--resimulate]``.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from models.errors import ModelError
+from models.eso import EsoParams, design_gains
+from models.eso_dk import EsoDkPredictor, rollout_lifted
+from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
+from models.vehicle import VehicleBatch
+from models.vehicle_params import VehicleParams, load_vehicle_params
+
+TS = 0.025
+KMH = 1.0 / 3.6
+STATE_LABELS = ("Vx (m/s)", "Vy (m/s)", "yaw rate (rad/s)")
+STATE_KEYS = ("vx", "vy", "yaw_rate")
+#: Multi-step horizon of the table (10 steps = 0.25 s).
+HORIZON = 10
+#: Default observer pole (both error poles of eq. 24); chosen from the gain sweep, see
+#: docs/readme/50-eso.md.
+DEFAULT_POLE = 0.5
+#: Poles of the gain sweep.
+SWEEP_POLES = (0.0, 0.2, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One column of Fig. 7: a name and the plant overrides."""
+
+    key: str
+    title: str
+    mu: float
+    mass: float
+
+
+CONDITIONS = (
+    Condition("a_nominal", "(a) 1648 kg, mu 0.85 (nominal)", 0.85, 1648.0),
+    Condition("b_low_mu", "(b) 1648 kg, mu 0.55", 0.55, 1648.0),
+    Condition("c_mass", "(c) 1848 kg, mu 0.85", 0.85, 1848.0),
+)
+
+
+@dataclass(frozen=True)
+class DriveSettings:
+    """The test drive: duration, start speed, seed of the manoeuvre sequence."""
+
+    duration_s: float = 60.0
+    start_speed: float = 40.0 * KMH
+    seed: int = 7
+    #: Speed P controller gain (N m per m/s) of the decoupled structure (Fig. 4).
+    speed_gain: float = 400.0
+    max_steer: float = 0.08
+
+
+def drive_profile(settings: DriveSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Target speed (n,) m/s and front-wheel steer command (n,) rad of the drive.
+
+    A sequence of 6-12 s manoeuvres: straight, sine steer (0.2-1.2 Hz), step-and-hold,
+    lane-change pulses; speed targets between 30 and 60 km/h, ramps of 10 s (60 s drive), so Vx, Vy and
+    yaw rate are all excited, in the linear range at mu 0.85 and near the limit at 0.55.
+    """
+    rng = np.random.default_rng(settings.seed)
+    n = int(round(settings.duration_s / TS))
+    t = np.arange(n) * TS
+    steer = np.zeros(n)
+    start = int(3.0 / TS)  # 3 s straight at 40 km/h first
+    kinds = ("sine", "step", "lane_change", "straight", "sine", "chirp")
+    index = 0
+    while start < n:
+        length = int(rng.uniform(6.0, 12.0) / TS)
+        stop = min(n, start + length)
+        tau = t[start:stop] - t[start]
+        amplitude = rng.uniform(0.3, 1.0) * settings.max_steer
+        kind = kinds[index % len(kinds)]
+        if kind == "sine":
+            steer[start:stop] = amplitude * np.sin(2 * np.pi * rng.uniform(0.2, 1.2) * tau)
+        elif kind == "chirp":
+            f0, f1 = 0.1, 1.5
+            steer[start:stop] = amplitude * np.sin(2 * np.pi * (f0 * tau + (f1 - f0) * tau**2 / (2 * tau[-1])))
+        elif kind == "step":
+            hold = min(len(tau), int(3.0 / TS))
+            sign = rng.choice((-1.0, 1.0))
+            steer[start : start + hold] = sign * amplitude * 0.6
+        elif kind == "lane_change":
+            period = rng.uniform(2.0, 4.0)
+            pulse = np.sin(2 * np.pi * tau / period) * (tau < period)
+            steer[start:stop] = amplitude * pulse
+        index += 1
+        start = stop
+    # Smooth the manoeuvre edges (a driver, not a square wave): 0.2 s moving average.
+    width = int(0.2 / TS)
+    steer = np.convolve(steer, np.ones(width) / width, mode="same")
+    levels = np.array([40.0, 50.0, 35.0, 55.0, 30.0, 60.0, 40.0]) * KMH
+    knots = np.linspace(0.0, t[-1], levels.size)
+    target_speed = np.interp(t, knots, levels)
+    return target_speed, steer
+
+
+def _drive_torque(params: VehicleParams, vx: np.ndarray, target: float, gain: float) -> np.ndarray:
+    """Speed P control plus drag / rolling feed-forward: total torque (N m), (batch,)."""
+    drag = 0.5 * params.air_density * params.drag_coefficient * params.frontal_area * vx**2
+    rolling = params.rolling_resistance * params.mass * params.gravity
+    return gain * (target - vx) + (drag + rolling) * params.radius
+
+
+def simulate_drive(
+    params: VehicleParams, mus: np.ndarray, settings: DriveSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run the drive on ``len(mus)`` plants with ``params`` at once.
+
+    Returns states (batch, n + 1, 3) [vx, vy, yaw_rate] and applied commands
+    (batch, n, 2) [torque, steer]; command k is held over [t_k, t_k+1).
+    """
+    target_speed, steer = drive_profile(settings)
+    n = steer.size
+    plants = VehicleBatch(params, len(mus), mu=np.asarray(mus, dtype=float))
+    plants.reset(np.full(len(mus), settings.start_speed))
+    states = np.empty((len(mus), n + 1, 3))
+    inputs = np.empty((len(mus), n, 2))
+    states[:, 0] = plants.state[:, :3]
+    for k in range(n):
+        torque = _drive_torque(params, plants.state[:, 0], target_speed[k], settings.speed_gain)
+        torque = np.clip(torque, -params.max_brake_torque, params.max_drive_torque)
+        steer_cmd = np.full(len(mus), steer[k])
+        plants.step(steer_cmd, torque, TS)
+        if not np.all(np.isfinite(plants.state)):
+            raise ModelError(f"fig7 drive diverged at t = {k * TS:.2f} s")
+        inputs[:, k, 0] = torque
+        inputs[:, k, 1] = steer_cmd
+        states[:, k + 1] = plants.state[:, :3]
+    return states, inputs
+
+
+def _cache_key(settings: DriveSettings) -> str:
+    nominal = load_vehicle_params()
+    payload = json.dumps({"drive": asdict(settings), "plant": asdict(nominal),
+                          "conditions": [asdict(c) for c in CONDITIONS]}, sort_keys=True, default=str)
+    return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+
+def load_or_simulate(settings: DriveSettings, cache: Path, resimulate: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """States (n + 1, 3) and inputs (n, 2) per condition key, from the cache when it matches."""
+    key = _cache_key(settings)
+    if cache.is_file() and not resimulate:
+        with np.load(cache) as stored:
+            if str(stored["key"]) == key:
+                return {c.key: (stored[f"{c.key}_states"], stored[f"{c.key}_inputs"]) for c in CONDITIONS}
+    drives: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    # Conditions that share the plant parameters (all but mu) run as one batch.
+    by_mass: dict[float, list[Condition]] = {}
+    for condition in CONDITIONS:
+        by_mass.setdefault(condition.mass, []).append(condition)
+    for mass, group in by_mass.items():
+        print(f"simulating {', '.join(c.key for c in group)} ({settings.duration_s:.0f} s drive)", flush=True)
+        params = load_vehicle_params(mass=mass)
+        states, inputs = simulate_drive(params, np.array([c.mu for c in group]), settings)
+        for i, condition in enumerate(group):
+            drives[condition.key] = (states[i], inputs[i])
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {f"{k}_{part}": v[j] for k, v in drives.items() for j, part in enumerate(("states", "inputs"))}
+    np.savez(cache, key=np.array(key), **arrays)
+    return drives
+
+
+@dataclass(frozen=True)
+class Predictions:
+    """Predictions along one drive, aligned with the truth.
+
+    ``truth`` (n, 3): x[k+1]; ``one_step_*`` (n, 3): x[k+1|k]; ``multi_*``
+    (n - H + 1, H, 3): x[k+1..k+H|k]; ``multi_truth`` the same shape.
+    """
+
+    truth: np.ndarray
+    one_step_dk: np.ndarray
+    one_step_eso: np.ndarray
+    multi_truth: np.ndarray
+    multi_dk: np.ndarray
+    multi_eso: np.ndarray
+
+
+def predict_along(
+    model: KoopmanModel, params: EsoParams, states: np.ndarray, inputs: np.ndarray, horizon: int = HORIZON
+) -> Predictions:
+    """DK and ESO-DK predictions from every sample; states (n + 1, 3), inputs (n, 2)."""
+    n = inputs.shape[0]
+    predictor = EsoDkPredictor(model, params)
+    predictor.reset(states[0])
+    disturbances = np.empty((n, model.n_z))
+    for k in range(n):
+        # Causal: w_hat used from x[k] has seen x[0..k] only (u[k] does not enter it).
+        predictor.observe(states[k], inputs[k])
+        disturbances[k] = predictor.disturbance_estimate
+    starts = n - horizon + 1
+    windows = np.lib.stride_tricks.sliding_window_view(inputs, horizon, axis=0)  # (starts, 2, H)
+    windows = np.ascontiguousarray(np.moveaxis(windows, -1, 1))  # (starts, H, 2)
+    lifted = model.lift(states[:starts])
+    c_t = model.C_P.T
+    multi_dk = rollout_lifted(model, lifted, windows) @ c_t
+    multi_eso = rollout_lifted(model, lifted, windows, disturbances[:starts]) @ c_t
+    multi_truth = np.lib.stride_tricks.sliding_window_view(states[1:], horizon, axis=0)
+    multi_truth = np.moveaxis(multi_truth, -1, 1)
+    lifted_all = model.lift(states[:n])
+    one_dk = rollout_lifted(model, lifted_all, inputs[:, None, :])[:, 0] @ c_t
+    one_eso = rollout_lifted(model, lifted_all, inputs[:, None, :], disturbances)[:, 0] @ c_t
+    return Predictions(states[1:], one_dk, one_eso, multi_truth, multi_dk, multi_eso)
+
+
+def rmse(error: np.ndarray) -> np.ndarray:
+    """Root mean square over all but the last axis: (..., 3) -> (3,)."""
+    return np.sqrt(np.mean(error.reshape(-1, error.shape[-1]) ** 2, axis=0))
+
+
+def prediction_rmse(p: Predictions) -> dict[str, np.ndarray]:
+    """RMSE (3,) per state for one-step and H-step (the H-th step of each window) predictions."""
+    return {
+        "one_dk": rmse(p.one_step_dk - p.truth),
+        "one_eso": rmse(p.one_step_eso - p.truth),
+        "multi_dk": rmse(p.multi_dk[:, -1] - p.multi_truth[:, -1]),
+        "multi_eso": rmse(p.multi_eso[:, -1] - p.multi_truth[:, -1]),
+    }
+
+
+def observer_params(model: KoopmanModel, pole: float) -> EsoParams:
+    """ESO on the model's A, B, offset with matrix gains placing both error poles at ``pole``."""
+    gains = design_gains(model.A, pole)
+    return EsoParams(model.A, model.B, model.offset, gains.beta1, gains.beta2)
+
+
+def rmse_table(results: dict[str, dict[str, np.ndarray]], pole: float, artifact: str) -> str:
+    """Markdown table of one-step and 10-step RMSE per condition and state."""
+    lines = [
+        "# Fig. 7: DK vs ESO-DK prediction RMSE",
+        "",
+        f"Model `{artifact}` (trained on nominal conditions only); ESO matrix gains with both "
+        f"error poles of eq. 24 at {pole} (spectral radius {pole}; error bandwidth "
+        f"{-math.log(max(pole, 1e-12)) / (2 * math.pi * TS):.1f} Hz). "
+        f"One-step: x[k+1|k]; {HORIZON}-step: x[k+{HORIZON}|k] with w_hat held. "
+        "Improvement = (DK - ESO-DK) / DK. Generated by `make fig7`.",
+        "",
+        f"| condition | state | 1-step DK | 1-step ESO-DK | 1-step impr. | {HORIZON}-step DK | "
+        f"{HORIZON}-step ESO-DK | {HORIZON}-step impr. |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for condition in CONDITIONS:
+        r = results[condition.key]
+        for i, label in enumerate(STATE_LABELS):
+            one = 100.0 * (r["one_dk"][i] - r["one_eso"][i]) / r["one_dk"][i]
+            multi = 100.0 * (r["multi_dk"][i] - r["multi_eso"][i]) / r["multi_dk"][i]
+            lines.append(
+                f"| {condition.title} | {label} | {r['one_dk'][i]:.4f} | {r['one_eso'][i]:.4f} | "
+                f"{one:+.1f} % | {r['multi_dk'][i]:.4f} | {r['multi_eso'][i]:.4f} | {multi:+.1f} % |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot_condition(p: Predictions, condition: Condition, path: Path) -> None:
+    """Fig. 7 style: true vs DK vs ESO-DK one-step predictions of the three states."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = (np.arange(p.truth.shape[0]) + 1) * TS
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    for i, (ax, label) in enumerate(zip(axes, STATE_LABELS)):
+        ax.plot(t, p.truth[:, i], color="black", lw=1.6, label="true")
+        ax.plot(t, p.one_step_dk[:, i], color="tab:blue", lw=1.0, ls="--", label="DK")
+        ax.plot(t, p.one_step_eso[:, i], color="tab:red", lw=1.0, ls=":", label="ESO-DK")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", ncol=3)
+    axes[0].set_title(f"Fig. 7 {condition.title}: one-step predictions")
+    axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def gain_sweep(model: KoopmanModel, drives: dict[str, tuple[np.ndarray, np.ndarray]]) -> str:
+    """RMSE of Vy and yaw rate (1-step and H-step) against the observer pole, all conditions."""
+    lines = [
+        "# ESO gain sweep (Fig. 7 drives)",
+        "",
+        "Both error poles of eq. 24 at the value shown (matrix gains from `design_gains`); "
+        "pole 0 is dead-beat. RMSE summed over the three conditions; DK row for reference. "
+        "Generated by `make fig7`.",
+        "",
+        f"| pole | bandwidth (Hz) | 1-step Vy | 1-step r | {HORIZON}-step Vy | {HORIZON}-step r | "
+        f"1-step Vx | {HORIZON}-step Vx |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    dk_row = None
+    for pole in SWEEP_POLES:
+        total = {"one": np.zeros(3), "multi": np.zeros(3), "one_dk": np.zeros(3), "multi_dk": np.zeros(3)}
+        for states, inputs in drives.values():
+            r = prediction_rmse(predict_along(model, observer_params(model, pole), states, inputs))
+            total["one"] += r["one_eso"]
+            total["multi"] += r["multi_eso"]
+            total["one_dk"] += r["one_dk"]
+            total["multi_dk"] += r["multi_dk"]
+        bandwidth = "inf" if pole == 0 else f"{-math.log(pole) / (2 * math.pi * TS):.1f}"
+        lines.append(
+            f"| {pole} | {bandwidth} | {total['one'][1]:.4f} | {total['one'][2]:.4f} | {total['multi'][1]:.4f} | "
+            f"{total['multi'][2]:.4f} | {total['one'][0]:.4f} | {total['multi'][0]:.4f} |"
+        )
+        dk_row = total
+    assert dk_row is not None
+    lines.append(
+        f"| DK (no ESO) | - | {dk_row['one_dk'][1]:.4f} | {dk_row['one_dk'][2]:.4f} | {dk_row['multi_dk'][1]:.4f} | "
+        f"{dk_row['multi_dk'][2]:.4f} | {dk_row['one_dk'][0]:.4f} | {dk_row['multi_dk'][0]:.4f} |"
+    )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m models.fig7", description=__doc__.splitlines()[0])
+    parser.add_argument("--artifact", default=str(DEFAULT_ARTIFACT), help="Koopman artefact (.npz)")
+    parser.add_argument("--pole", type=float, default=DEFAULT_POLE, help="observer error pole in [0, 1)")
+    parser.add_argument("--out", default="results", help="output directory")
+    parser.add_argument("--duration", type=float, default=DriveSettings.duration_s, help="drive length (s)")
+    parser.add_argument("--resimulate", action="store_true", help="ignore the cached drives")
+    parser.add_argument("--no-sweep", action="store_true", help="skip the gain sweep table")
+    args = parser.parse_args(argv)
+    try:
+        if not 0.0 <= args.pole < 1.0:
+            raise ModelError(f"--pole must be in [0, 1), got {args.pole}")
+        model = KoopmanModel.load(args.artifact)
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        settings = DriveSettings(duration_s=args.duration)
+        drives = load_or_simulate(settings, out / "fig7_drives.npz", args.resimulate)
+        params = observer_params(model, args.pole)
+        results = {}
+        for condition in CONDITIONS:
+            states, inputs = drives[condition.key]
+            predictions = predict_along(model, params, states, inputs)
+            results[condition.key] = prediction_rmse(predictions)
+            plot_condition(predictions, condition, out / f"fig7_{condition.key}.png")
+        table = rmse_table(results, args.pole, Path(args.artifact).name)
+        (out / "fig7_rmse.md").write_text(table)
+        print(table)
+        if not args.no_sweep:
+            sweep = gain_sweep(model, drives)
+            (out / "fig7_gain_sweep.md").write_text(sweep)
+            print(sweep)
+    except ModelError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

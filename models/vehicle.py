@@ -1,0 +1,351 @@
+"""Four-wheel planar vehicle plant (paper eqs. 16-17) with Magic Formula tyres.
+
+Model (body frame at the CG, x forward, y left, yaw counter-clockwise):
+
+- Newton-Euler planar motion of eq. 16 in continuous time, wheels 1 FL, 2 FR, 3 RL, 4 RR
+  (the paper's numbering: 1 and 3 on the left, so their longitudinal forces give a
+  negative yaw moment -w_B/2 F_x), plus aerodynamic drag and rolling resistance.
+- Tyre forces (eq. 17) from ``models.tyre`` with combined slip, road friction ``mu`` and
+  normal loads with static and dynamic (longitudinal and lateral) load transfer. The
+  accelerations that drive the load transfer go through a first-order filter (suspension
+  lag), which also removes the algebraic loop loads -> forces -> accelerations.
+- Wheel spin dynamics J dw/dt = T_i - R F_x,i driven by in-wheel motor torques: the total
+  torque T is split front/rear (separate drive and brake splits), equally left/right.
+  Negative torque brakes: it opposes the wheel's rotation (fades below a small wheel
+  speed) and never drives the car backwards.
+- Steering actuator: rate-limited first-order lag on the front wheel angle, the command
+  saturated at +-steer_limit; torque actuator: first-order lag, saturated.
+
+Why the wheel dynamics stay non-stiff: with the slip computed algebraically as
+(wR - v)/v, the wheel mode has an eigenvalue ~ R^2 K_x / (J v), about 7000/v 1/s, which
+RK4 at 1 ms cannot integrate below ~2.5 m/s. Here the slip ratio is a state with the
+tyre's relaxation length sigma (Pacejka's transient slip model):
+
+    sigma dkappa/dt = (w R - v_long) - v_ref kappa,   v_ref = sqrt(v_long^2 + v_floor^2)
+
+whose steady state is the (regularised) slip ratio. Wheel and slip then form a
+spring-mass pair with a speed-independent frequency sqrt(R^2 K_x / (J sigma)) ~ 130
+rad/s, damped by v_ref/sigma and a low-speed damping force c (wR - v_long - v_ref kappa);
+RK4 at 1 ms resolves it (h * lambda ~ 0.2; see tests/test_vehicle_stiffness.py).
+Lateral slips use the same regularised denominator, and below ~2 m/s the lateral
+states are blended to the kinematic bicycle, so standstill gives no NaN and no chatter.
+
+Everything is vectorised over a leading batch dimension: ``VehicleBatch`` integrates
+(n_batch, N_STATE) states at once (the data set generator), ``FourWheelVehicle`` is one
+vehicle (the HIL plant node).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.errors import VehicleCommandError, VehicleDivergedError
+from models.tyre import tyre_forces
+from models.vehicle_params import VehicleParams, load_vehicle_params
+
+# State layout of one vehicle (columns of the (n_batch, N_STATE) state array).
+VX, VY, YAW_RATE, POS_X, POS_Y, YAW = 0, 1, 2, 3, 4, 5
+WHEEL_SPEED = slice(6, 10)      # w_i (rad/s), wheels FL, FR, RL, RR
+SLIP_RATIO = slice(10, 14)      # relaxed slip ratio kappa_i (-)
+STEER = 14                       # actual front wheel angle (rad)
+TORQUE = 15                      # actual total wheel torque (N m)
+ACCEL_X_FILT, ACCEL_Y_FILT = 16, 17  # filtered body accelerations for load transfer (m/s^2)
+N_STATE = 18
+
+#: Wheel names in state order.
+WHEEL_NAMES = ("FL", "FR", "RL", "RR")
+
+#: Width (m/s) of the tanh that fades rolling resistance through zero speed.
+_ROLLING_FADE_SPEED = 0.2
+#: Smallest normal load (N) a tyre is given (a lifted wheel keeps a tiny load, no 0/0).
+_MIN_NORMAL_LOAD = 50.0
+
+
+@dataclass(frozen=True)
+class VehicleCommand:
+    """Actuator command: total drive torque (N m, negative brakes), front wheel angle (rad)."""
+
+    drive_torque: float
+    steer_angle: float
+
+
+@dataclass(frozen=True)
+class VehicleOutputs:
+    """What the CAN contract carries. Yaw wrapped to [-pi, pi); steer and torque measured."""
+
+    vx: float
+    vy: float
+    yaw_rate: float
+    x: float
+    y: float
+    yaw: float
+    steer_angle: float
+    drive_torque: float
+
+
+@dataclass(frozen=True)
+class VehicleDiagnostics:
+    """Per-wheel quantities (arrays of shape (4,), order FL, FR, RL, RR), for diagnosis.
+
+    Forces are in the wheel frame; ``slip_angle`` is alpha in rad (positive gives a
+    leftward force); ``slip_ratio`` the relaxed kappa.
+    """
+
+    slip_ratio: np.ndarray
+    slip_angle: np.ndarray
+    longitudinal_force: np.ndarray
+    lateral_force: np.ndarray
+    normal_load: np.ndarray
+    wheel_speed: np.ndarray
+
+
+@dataclass(frozen=True)
+class _WheelForces:
+    """Intermediate per-wheel quantities of one derivative evaluation, (n_batch, 4) each."""
+
+    slip_ratio: np.ndarray
+    lateral_slip: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    fz: np.ndarray
+
+
+class PlantModel:
+    """Continuous-time plant derivative for a batch, with constants precomputed from params."""
+
+    def __init__(self, params: VehicleParams) -> None:
+        self.params = params
+        p = params
+        half_track = 0.5 * p.track
+        self.wheel_x = np.array([p.lf, p.lf, -p.lr, -p.lr])
+        self.wheel_y = np.array([half_track, -half_track, half_track, -half_track])
+        self.is_front = np.array([1.0, 1.0, 0.0, 0.0])
+        static_front = p.mass * p.gravity * p.lr / p.wheelbase / 2.0
+        static_rear = p.mass * p.gravity * p.lf / p.wheelbase / 2.0
+        self.static_load = np.array([static_front, static_front, static_rear, static_rear])
+        # Load change per unit filtered acceleration: pitch (ax) and roll (ay) transfer.
+        pitch = p.mass * p.cg_height / p.wheelbase / 2.0
+        roll = p.mass * p.cg_height / p.track
+        self.load_per_ax = np.array([-pitch, -pitch, pitch, pitch])
+        self.load_per_ay = np.array([
+            -roll * p.roll_stiffness_front, roll * p.roll_stiffness_front,
+            -roll * (1.0 - p.roll_stiffness_front), roll * (1.0 - p.roll_stiffness_front)])
+        self.drive_share = np.array([p.drive_split_front / 2, p.drive_split_front / 2,
+                                     (1 - p.drive_split_front) / 2, (1 - p.drive_split_front) / 2])
+        self.brake_share = np.array([p.brake_split_front / 2, p.brake_split_front / 2,
+                                     (1 - p.brake_split_front) / 2, (1 - p.brake_split_front) / 2])
+        self.drag_factor = 0.5 * p.air_density * p.drag_coefficient * p.frontal_area
+
+    def initial_state(self, vx: np.ndarray) -> np.ndarray:
+        """Straight rolling at speed ``vx`` (n_batch,), origin pose: (n_batch, N_STATE)."""
+        vx = np.asarray(vx, dtype=float)
+        state = np.zeros((vx.shape[0], N_STATE))
+        state[:, VX] = vx
+        state[:, WHEEL_SPEED] = vx[:, None] / self.params.radius
+        return state
+
+    def wheel_forces(self, state: np.ndarray, mu: np.ndarray) -> tuple[_WheelForces, np.ndarray, np.ndarray, np.ndarray]:
+        """Tyre quantities at ``state`` (n_batch, N_STATE) and friction ``mu`` (n_batch,).
+
+        Returns (wheel forces, slip speed residual (n,4), cos of wheel angle (n,4),
+        sin of wheel angle (n,4)).
+        """
+        p = self.params
+        vx = state[:, VX:VX + 1]
+        vy = state[:, VY:VY + 1]
+        yaw_rate = state[:, YAW_RATE:YAW_RATE + 1]
+        wheel_angle = state[:, STEER:STEER + 1] * self.is_front
+        cos_w = np.cos(wheel_angle)
+        sin_w = np.sin(wheel_angle)
+        fz = (self.static_load + state[:, ACCEL_X_FILT:ACCEL_X_FILT + 1] * self.load_per_ax
+              + state[:, ACCEL_Y_FILT:ACCEL_Y_FILT + 1] * self.load_per_ay)
+        fz = np.maximum(fz, _MIN_NORMAL_LOAD)
+        # Contact point velocities in the body frame, then in each wheel's frame.
+        v_body_x = vx - self.wheel_y * yaw_rate
+        v_body_y = vy + self.wheel_x * yaw_rate
+        v_long = v_body_x * cos_w + v_body_y * sin_w
+        v_lat = -v_body_x * sin_w + v_body_y * cos_w
+        v_ref = np.sqrt(v_long * v_long + p.slip_speed_floor ** 2)
+        lateral_slip = -v_lat / v_ref
+        slip_ratio = state[:, SLIP_RATIO]
+        fx, fy = tyre_forces(slip_ratio, lateral_slip, fz, mu[:, None], p)
+        residual = state[:, WHEEL_SPEED] * p.radius - v_long - v_ref * slip_ratio
+        fx = fx + p.slip_damping * residual
+        return _WheelForces(slip_ratio, lateral_slip, fx, fy, fz), residual, cos_w, sin_w
+
+    def derivatives(self, state: np.ndarray, steer_cmd: np.ndarray, torque_cmd: np.ndarray,
+                    mu: np.ndarray) -> np.ndarray:
+        """d(state)/dt, shape (n_batch, N_STATE).
+
+        Args: ``state`` (n_batch, N_STATE); ``steer_cmd``, ``torque_cmd``, ``mu`` (n_batch,).
+        """
+        p = self.params
+        forces, residual, cos_w, sin_w = self.wheel_forces(state, mu)
+        vx = state[:, VX]
+        vy = state[:, VY]
+        yaw_rate = state[:, YAW_RATE]
+        yaw = state[:, YAW]
+        steer = state[:, STEER]
+        torque = state[:, TORQUE]
+
+        fx_body = forces.fx * cos_w - forces.fy * sin_w
+        fy_body = forces.fx * sin_w + forces.fy * cos_w
+        force_x = fx_body.sum(axis=1)
+        force_y = fy_body.sum(axis=1)
+        yaw_moment = (self.wheel_x * fy_body - self.wheel_y * fx_body).sum(axis=1)
+        resistance = (self.drag_factor * vx * np.abs(vx)
+                      + p.rolling_resistance * p.mass * p.gravity * np.tanh(vx / _ROLLING_FADE_SPEED))
+        accel_x = (force_x - resistance) / p.mass
+        accel_y = force_y / p.mass
+
+        deriv = np.empty_like(state)
+        deriv[:, VX] = yaw_rate * vy + accel_x
+        vy_dot = -yaw_rate * vx + accel_y
+        yaw_acc = yaw_moment / p.yaw_inertia
+        # Low-speed blend: below blend_speed_low the lateral states relax to the kinematic
+        # bicycle (no slip), where the tyre model has no meaning; smoothstep in between.
+        blend = np.clip((np.abs(vx) - p.blend_speed_low) / (p.blend_speed_high - p.blend_speed_low), 0.0, 1.0)
+        blend = blend * blend * (3.0 - 2.0 * blend)
+        yaw_rate_kin = vx * np.tan(steer) / p.wheelbase
+        vy_kin = p.lr * yaw_rate_kin
+        deriv[:, VY] = blend * vy_dot + (1.0 - blend) * (vy_kin - vy) / p.kinematic_time_constant
+        deriv[:, YAW_RATE] = blend * yaw_acc + (1.0 - blend) * (yaw_rate_kin - yaw_rate) / p.kinematic_time_constant
+        cos_yaw = np.cos(yaw)
+        sin_yaw = np.sin(yaw)
+        deriv[:, POS_X] = vx * cos_yaw - vy * sin_yaw
+        deriv[:, POS_Y] = vx * sin_yaw + vy * cos_yaw
+        deriv[:, YAW] = yaw_rate
+
+        wheel_speed = state[:, WHEEL_SPEED]
+        drive = np.maximum(torque, 0.0)[:, None] * self.drive_share
+        brake = (np.minimum(torque, 0.0)[:, None] * self.brake_share
+                 * np.tanh(wheel_speed / p.brake_fade_speed))
+        deriv[:, WHEEL_SPEED] = (drive + brake - p.radius * forces.fx) / p.spin_inertia
+        deriv[:, SLIP_RATIO] = residual / p.relaxation_length
+
+        steer_target = np.clip(steer_cmd, -p.steer_limit, p.steer_limit)
+        deriv[:, STEER] = np.clip((steer_target - steer) / p.steer_time_constant,
+                                  -p.steer_rate_limit, p.steer_rate_limit)
+        torque_target = np.clip(torque_cmd, -p.max_brake_torque, p.max_drive_torque)
+        deriv[:, TORQUE] = (torque_target - torque) / p.torque_time_constant
+        tau = p.load_transfer_time_constant
+        deriv[:, ACCEL_X_FILT] = (accel_x - state[:, ACCEL_X_FILT]) / tau
+        deriv[:, ACCEL_Y_FILT] = (accel_y - state[:, ACCEL_Y_FILT]) / tau
+        return deriv
+
+    def rk4_step(self, state: np.ndarray, steer_cmd: np.ndarray, torque_cmd: np.ndarray,
+                 mu: np.ndarray, h: float) -> np.ndarray:
+        """One classical RK4 step of size ``h`` with the commands held; (n_batch, N_STATE)."""
+        k1 = self.derivatives(state, steer_cmd, torque_cmd, mu)
+        k2 = self.derivatives(state + 0.5 * h * k1, steer_cmd, torque_cmd, mu)
+        k3 = self.derivatives(state + 0.5 * h * k2, steer_cmd, torque_cmd, mu)
+        k4 = self.derivatives(state + h * k3, steer_cmd, torque_cmd, mu)
+        return state + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def substeps(dt: float, max_step: float) -> tuple[int, float]:
+    """Number of RK4 steps and their size so that each is <= ``max_step``."""
+    if not (math.isfinite(dt) and dt > 0.0):
+        raise VehicleCommandError(f"dt: must be finite and > 0, got {dt!r}")
+    count = max(1, math.ceil(dt / max_step - 1e-9))
+    return count, dt / count
+
+
+class VehicleBatch:
+    """``n_batch`` independent plants integrated together (same params, own mu each)."""
+
+    def __init__(self, params: VehicleParams, n_batch: int, mu: float | np.ndarray | None = None) -> None:
+        self.model = PlantModel(params)
+        self.params = params
+        self.n_batch = int(n_batch)
+        self.mu = np.broadcast_to(np.asarray(params.mu if mu is None else mu, dtype=float),
+                                  (self.n_batch,)).copy()
+        self.state = self.model.initial_state(np.zeros(self.n_batch))
+
+    def reset(self, vx: np.ndarray) -> None:
+        """Straight rolling at ``vx`` (n_batch,) from the origin."""
+        self.state = self.model.initial_state(np.broadcast_to(vx, (self.n_batch,)))
+
+    def step(self, steer_cmd: np.ndarray, torque_cmd: np.ndarray, dt: float) -> np.ndarray:
+        """Advance by ``dt`` with commands (n_batch,) held; returns the new state."""
+        count, h = substeps(dt, self.params.integration_step)
+        steer_cmd = np.asarray(steer_cmd, dtype=float)
+        torque_cmd = np.asarray(torque_cmd, dtype=float)
+        state = self.state
+        for _ in range(count):
+            state = self.model.rk4_step(state, steer_cmd, torque_cmd, self.mu, h)
+        self.state = state
+        return state
+
+
+class FourWheelVehicle:
+    """One four-wheel plant: the HIL plant node's vehicle.
+
+    ``params`` defaults to ``models/vehicle.toml``; ``mu`` and ``mass`` override the
+    file's values (mass + 200 kg case: ``FourWheelVehicle(mass=1848.0)``).
+    """
+
+    def __init__(self, params: VehicleParams | None = None, *, mu: float | None = None,
+                 mass: float | None = None) -> None:
+        params = params if params is not None else load_vehicle_params()
+        if mass is not None:
+            params = dataclasses.replace(params, mass=mass)
+        if mu is not None:
+            params = dataclasses.replace(params, mu=mu)
+        self.params = params
+        self._batch = VehicleBatch(params, 1)
+        self.reset()
+
+    @property
+    def mu(self) -> float:
+        """Current road friction coefficient."""
+        return float(self._batch.mu[0])
+
+    def set_friction(self, mu: float) -> None:
+        """Change the road friction from now on (mid-run mu step)."""
+        if not (math.isfinite(mu) and 0.0 < mu <= 2.0):
+            raise VehicleCommandError(f"mu: must be in (0, 2], got {mu!r}")
+        self._batch.mu[0] = mu
+
+    @property
+    def state(self) -> np.ndarray:
+        """Full internal state, shape (N_STATE,) (a copy)."""
+        return self._batch.state[0].copy()
+
+    def reset(self, vx: float = 0.0, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> None:
+        """Straight rolling at ``vx`` at pose (x, y, yaw), actuators at rest."""
+        self._batch.reset(np.array([vx], dtype=float))
+        self._batch.state[0, POS_X] = x
+        self._batch.state[0, POS_Y] = y
+        self._batch.state[0, YAW] = yaw
+
+    def step(self, command: VehicleCommand, dt: float) -> VehicleOutputs:
+        """Hold ``command`` for ``dt`` seconds (RK4 at <= integration_step); new outputs."""
+        if not (math.isfinite(command.steer_angle) and math.isfinite(command.drive_torque)):
+            raise VehicleCommandError(f"command: must be finite, got {command!r}")
+        state = self._batch.step(np.array([command.steer_angle]), np.array([command.drive_torque]), dt)
+        if not np.all(np.isfinite(state)):
+            raise VehicleDivergedError(f"plant state became non-finite: {state[0]!r}")
+        return self.outputs()
+
+    def outputs(self) -> VehicleOutputs:
+        """The signals of VEH_DYN / VEH_POSE_*: yaw wrapped to [-pi, pi)."""
+        s = self._batch.state[0]
+        yaw = (s[YAW] + math.pi) % (2.0 * math.pi) - math.pi
+        return VehicleOutputs(vx=float(s[VX]), vy=float(s[VY]), yaw_rate=float(s[YAW_RATE]),
+                              x=float(s[POS_X]), y=float(s[POS_Y]), yaw=float(yaw),
+                              steer_angle=float(s[STEER]), drive_torque=float(s[TORQUE]))
+
+    def diagnostics(self) -> VehicleDiagnostics:
+        """Slips, forces and loads of the four wheels at the current state."""
+        forces, _, _, _ = self._batch.model.wheel_forces(self._batch.state, self._batch.mu)
+        return VehicleDiagnostics(
+            slip_ratio=forces.slip_ratio[0].copy(),
+            slip_angle=np.arctan(forces.lateral_slip[0]),
+            longitudinal_force=forces.fx[0].copy(),
+            lateral_force=forces.fy[0].copy(),
+            normal_load=forces.fz[0].copy(),
+            wheel_speed=self._batch.state[0, WHEEL_SPEED].copy())
