@@ -24,7 +24,9 @@ DEFAULT_TS = 0.025
 
 
 def wrap_angle(angle: float) -> float:
-    """Wrap to [-pi, pi)."""
+    """Wrap to [-pi, pi); an angle already inside is returned unchanged (no rounding)."""
+    if -math.pi <= angle < math.pi:
+        return angle
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 

@@ -150,8 +150,16 @@ def acceptance_checks(runs: Sequence[Mapping[str, Any]], scenarios: Sequence[str
 
 
 def machine_description() -> str:
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
-            f"Python {platform.python_version()}, {platform.system()}")
+    """CPU model, logical CPU count and Python version, for the compute-time table."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass  # not Linux: keep platform's answer
+    return f"{cpu}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}"
 
 
 def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Path,

@@ -107,7 +107,7 @@ def read_run_csv(path: Path, columns: Iterable[str] = RUN_COLUMNS) -> Run:
     bad = np.flatnonzero(steps <= 0.0)
     if bad.size:
         raise DatasetError(f"{path}: column 'time': not strictly increasing at row {bad[0] + 2} "
-                           f"({data['time'][bad[0]]!r} -> {data['time'][bad[0] + 1]!r})")
+                           f"({float(data['time'][bad[0]])!r} -> {float(data['time'][bad[0] + 1])!r})")
     median = float(np.median(steps))
     gaps = np.flatnonzero(steps > GAP_FACTOR * median)
     if gaps.size:

@@ -1,0 +1,10 @@
+# Issue 6, part 4: the closed-loop double-lane-change study without CAN (paper Tables II/III,
+# Figs 8/9, compute time). See docs/readme/70-study.md.
+.PHONY: tables dlc-path
+
+tables: setup
+	$(PY) -m hil.study --out results
+
+# Regenerates hil/paths/dlc.csv from the architecture's double-lane-change formula.
+dlc-path: setup
+	$(PY) -m hil.path_files
