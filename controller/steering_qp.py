@@ -85,6 +85,7 @@ class SteeringQp:
         # A, column by column. U column j: its bound row, then every soft row (dense block).
         # Soft rows: ((step * 3 + state) * 2 + side), side 0 = upper (-s), 1 = lower (+s).
         soft_first = n_ctrl + N_SOFT_STATES
+        self._soft_first = soft_first
         u_col_len = 1 + n_soft_rows
         indices, indptr = [], [0]
         for j in range(n_ctrl):
@@ -122,7 +123,7 @@ class SteeringQp:
                                         shape=(n_con, self._n_var))
         self._solver = osqp.OSQP()
         self._solver.setup(hessian, self._q.copy(), constraints, self._lower.copy(), self._upper.copy(),
-                           warm_starting=True, polish=False, verbose=False,
+                           warm_starting=True, polishing=False, verbose=False,
                            eps_abs=tuning.osqp_eps_abs, eps_rel=tuning.osqp_eps_rel,
                            max_iter=tuning.osqp_max_iter, check_termination=5,
                            adaptive_rho_interval=25)
@@ -133,6 +134,7 @@ class SteeringQp:
         self._initial_dual = np.zeros(n_con)
         self._initial_dual[n_ctrl:soft_first] = -tuning.slack_l1
         self._solver.warm_start(x=self._warm, y=self._initial_dual)
+        self._constraints_were_active = False
 
     def solve(self, pose_jacobian: np.ndarray, pose_offset: np.ndarray, previous_steer: float,
               state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray) -> QpSolution:
@@ -160,14 +162,22 @@ class SteeringQp:
         solver = self._solver
         solver.update(q=self._q, l=self._lower, u=self._upper, Px=self._p_data, Ax=self._a_data)
         self._warm[:n_ctrl] = warm_steer
-        solver.warm_start(x=self._warm)
+        if self._constraints_were_active:
+            solver.warm_start(x=self._warm)  # keep the multipliers of the active set
+        else:
+            solver.warm_start(x=self._warm, y=self._initial_dual)
         result = solver.solve(raise_error=False)
         info = result.info
         status = _STATUS.get(info.status_val, SolverStatus.NUMERICAL_ERROR)
-        if status not in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE):
+        solution = np.array(result.x, dtype=float)
+        if status in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE):
+            # Measured: restarting the multipliers at the inactive-constraint values halves the
+            # iterations while no state constraint is active, and doubles them while one is.
+            self._constraints_were_active = bool(np.max(np.abs(result.y[self._soft_first:])) > 1.0)
+        else:
             # Do not start the next solve from the failed iterate's multipliers.
             solver.warm_start(y=self._initial_dual)
-        solution = np.array(result.x, dtype=float)
+            self._constraints_were_active = False
         constant = float(offset @ (offset * self._pose_weight)) + self.tuning.p_steer_rate * previous_steer ** 2
         return QpSolution(status=status, steer=solution[:n_ctrl], slack=solution[n_ctrl:],
                           iterations=int(info.iter), solve_time_s=float(info.run_time),

@@ -1,1 +1,8 @@
-"""firmware_sim package."""
+"""The ESO-DKMPC controller ECU on a CAN bus (``can-contract.md``).
+
+Modules: `ecu` (the node: cyclic executive), `rx` / `tx` (frames in and out), `modes`
+(mode state machine), `guard` (last check of every command), `safe_stop`, `clock`
+(lockstep TICK clock and real-time schedule), `timing` (per-cycle timing record),
+`config`, `errors`, `cli` (``python -m firmware_sim``), `overhead` (cost measurement) and
+`testing` (helpers for tests). Importing the package imports nothing heavy (no torch).
+"""

@@ -19,6 +19,7 @@ import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
+from typing import NoReturn
 
 import can
 
@@ -88,9 +89,17 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None) ->
                            f"channel={channel or 'from config'}): {error}") from error
 
 
+class _ArgumentParser(argparse.ArgumentParser):
+    """argparse with the project's ``error: ...`` line (after the usage line), exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_USAGE, f"error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``python -m firmware_sim``."""
-    parser = argparse.ArgumentParser(
+    parser = _ArgumentParser(
         prog="python -m firmware_sim",
         description="ESO-DKMPC controller ECU on a CAN bus (contract: can-contract.md).")
     parser.add_argument("--interface", default=None,

@@ -21,6 +21,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,23 @@ def _vehicle_sample(measurement: PlantMeasurement, target_speed: float) -> Vehic
                          x=measurement.x, y=measurement.y, yaw=measurement.yaw,
                          steer_angle=measurement.steer_angle,
                          drive_torque=measurement.drive_torque, target_speed=target_speed)
+
+
+@dataclass(frozen=True)
+class _Request:
+    """Actuator request of one cycle before the guard, with what CTRL_DIAG reports of it.
+
+    ``failed``: the law could not give a command (exception, dead reckoning or path error);
+    the NaN request is then refused by the guard, which sends the fallback.
+    """
+
+    steer_angle: float
+    drive_torque: float
+    qp_status: QpStatus = QpStatus.NOT_RUN
+    iterations: int = 0
+    solve_time_s: float = 0.0
+    faults: int = 0
+    failed: bool = False
 
 
 class Ecu:
@@ -137,6 +155,7 @@ class Ecu:
         self._previous_valid_steer = 0.0
         self._active_path_id: int | None = None
         self._controller_failing = False
+        self._guard_refusing = False
         self.overruns = 0
         self.cycles = 0
 
@@ -182,11 +201,11 @@ class Ecu:
             _LOG.warning("HIL_SYNC TICK %d older than the last TICK %s: discarded", tick,
                          self._lockstep_clock.last_tick_ms)
             return
+        now_ns = LockstepClock.to_ns(tick)
+        self._rx.stamp_pending(now_ns)
         if advance.kind is TickKind.REPEATED:
             self._tx.send_ack(tick)
             return
-        now_ns = LockstepClock.to_ns(tick)
-        self._rx.stamp_pending(now_ns)
         if advance.skipped:
             _LOG.warning("TICK %d: %d control instants skipped (master jumped)", tick, advance.skipped)
         for _ in advance.due_ms:
@@ -285,80 +304,90 @@ class Ecu:
         return command, debug
 
     def _control_task(self, now_ns: int, release_jitter_s: float) -> None:
+        """One control cycle: events -> mode -> request -> guard -> TX (never raises)."""
         started = time.perf_counter()
-        cfg = self._config
-        rx = self._rx
         self.cycles += 1
         events, sample_age = self._mode_events(now_ns)
+        previous_mode = self._update_mode(events)
+        faults = self._input_faults(events)
+        request = self._request(previous_mode, events, sample_age)
+        faults |= request.faults
+        guarded = guard_command(request.steer_angle, request.drive_torque, self._limits,
+                                self._previous_valid_steer)
+        if guarded.refused is not None:
+            faults |= FaultBit.SOLVER_FALLBACK
+            if not request.failed:  # a failed law was logged already
+                # warn once per run of refusals, not every 25 ms
+                level = logging.DEBUG if self._guard_refusing else logging.WARNING
+                _LOG.log(level, "guard refused the command: %s", guarded.refused)
+        self._guard_refusing = guarded.refused is not None
+        self._previous_valid_steer = guarded.steer_angle
+        self._tx.send_command(self.mode, self.mode in VALID_COMMAND_MODES,
+                              guarded.steer_angle, guarded.drive_torque)
+        tx_ns = None if self.lockstep else clock_ns(self._clock)
+        self._tx.send_diag(DiagRecord(
+            qp_status=request.qp_status, solve_time_s=request.solve_time_s,
+            cycle_time_s=time.perf_counter() - started, qp_iter=request.iterations,
+            overruns=min(self.overruns, OVERRUNS_MAX), faults=int(faults)))
+        self._record_timing(release_jitter_s, time.perf_counter() - started,
+                            request.solve_time_s, now_ns, tx_ns)
+
+    def _update_mode(self, events: ModeEvents) -> CtrlMode:
+        """Apply the transition; returns the previous mode."""
         previous_mode = self.mode
         self.mode, reasons = transition(previous_mode, events)
         if self.mode is not previous_mode:
             _LOG.info("%s -> %s (%s)", previous_mode.name, self.mode.name,
                       ", ".join(reason.value for reason in reasons))
             if self.mode is CtrlMode.SAFE_STOP:
+                # ACTIVE again only after an ENGAGE = 0 received from now on
                 self._awaiting_disengage = True
-                rx.clear_disengage_latch()
+                self._rx.clear_disengage_latch()
+        return previous_mode
 
+    def _input_faults(self, events: ModeEvents) -> int:
+        """FAULTS bits 0 and 1 of this cycle; starts collecting the next cycle's RX flags."""
+        rx = self._rx
         faults = 0
-        planner = rx.newest_planner
-        if (not events.sample_fresh or rx.torn or rx.stale or not events.planner_ok
-                or (planner is not None and not events.path_known)):
+        unknown_path = rx.newest_planner is not None and not events.path_known
+        if not events.sample_fresh or rx.torn or rx.stale or not events.planner_ok or unknown_path:
             faults |= FaultBit.INPUT_TIMEOUT
         if rx.e2e_error:
             faults |= FaultBit.E2E_ERROR
         rx.clear_cycle_flags()
+        return faults
 
-        qp_status = QpStatus.NOT_RUN
-        iterations = 0
-        solve_time_s = 0.0
-        steer: float = self._previous_valid_steer
-        torque: float = 0.0
-        if self.mode in (CtrlMode.ACTIVE, CtrlMode.DEGRADED):
-            assert planner is not None and rx.newest_sample is not None
-            command = debug = None
-            path_ready = (previous_mode in (CtrlMode.ACTIVE, CtrlMode.DEGRADED)
-                          and self._active_path_id == planner.path_id)
-            if not path_ready:
-                path_ready = self._select_path(planner.path_id)
-                faults |= FaultBit.MODEL_RESET
-            if path_ready:
-                sample = _vehicle_sample(rx.newest_sample, planner.target_speed)
-                if self.mode is CtrlMode.DEGRADED:
-                    sample = self._predict(sample, sample_age)
-                if sample is not None:
-                    command, debug = self._step_controller(sample)
-            if command is None or debug is None:
-                steer, torque = math.nan, math.nan  # refused by the guard -> fallback
-            else:
-                steer, torque = command.steer_angle, command.drive_torque
-                qp_status = self._qp_status(debug)
-                iterations = int(debug.iterations)
-                solve_time_s = float(debug.solve_time_s)
-                if debug.fallback:
-                    faults |= FaultBit.SOLVER_FALLBACK
-                if debug.observer_reset:
-                    faults |= FaultBit.MODEL_RESET
-        elif self.mode is CtrlMode.SAFE_STOP:
+    def _request(self, previous_mode: CtrlMode, events: ModeEvents,
+                 sample_age_ns: int | None) -> _Request:
+        """The actuator request of the current mode, before the guard."""
+        if self.mode is CtrlMode.SAFE_STOP:
+            cfg = self._config
             stop = safe_stop_command(self._previous_valid_steer, events.standstill,
                                      cfg.control_period_ms / 1000.0,
                                      cfg.safe_stop_steer_rate_rad_s, cfg.safe_stop_brake_torque_nm)
-            steer, torque = stop.steer_angle, stop.drive_torque
-
-        guarded = guard_command(steer, torque, self._limits, self._previous_valid_steer)
-        if guarded.refused is not None:
+            return _Request(stop.steer_angle, stop.drive_torque)
+        if self.mode not in (CtrlMode.ACTIVE, CtrlMode.DEGRADED):
+            return _Request(self._previous_valid_steer, 0.0)  # CMD_VALID = 0: hold, no torque
+        planner, measurement = self._rx.newest_planner, self._rx.newest_sample
+        assert planner is not None and measurement is not None  # guaranteed by the modes
+        faults = 0
+        if previous_mode not in (CtrlMode.ACTIVE, CtrlMode.DEGRADED) \
+                or self._active_path_id != planner.path_id:
+            faults |= FaultBit.MODEL_RESET
+            if not self._select_path(planner.path_id):
+                return _Request(math.nan, math.nan, faults=faults, failed=True)
+        sample: VehicleSample | None = _vehicle_sample(measurement, planner.target_speed)
+        if self.mode is CtrlMode.DEGRADED:
+            sample = self._predict(sample, sample_age_ns)
+        command, debug = self._step_controller(sample) if sample is not None else (None, None)
+        if command is None or debug is None:
+            return _Request(math.nan, math.nan, faults=faults, failed=True)  # guard -> fallback
+        if debug.fallback:
             faults |= FaultBit.SOLVER_FALLBACK
-            if not (math.isnan(steer) and math.isnan(torque)):
-                _LOG.warning("guard refused the command: %s", guarded.refused)
-        self._previous_valid_steer = guarded.steer_angle
-        self._tx.send_command(self.mode, self.mode in VALID_COMMAND_MODES,
-                              guarded.steer_angle, guarded.drive_torque)
-        tx_ns = None if self.lockstep else clock_ns(self._clock)
-        cycle_time_s = time.perf_counter() - started
-        self._tx.send_diag(DiagRecord(qp_status=qp_status, solve_time_s=solve_time_s,
-                                      cycle_time_s=cycle_time_s, qp_iter=iterations,
-                                      overruns=min(self.overruns, OVERRUNS_MAX), faults=int(faults)))
-        self._record_timing(release_jitter_s, time.perf_counter() - started, solve_time_s,
-                            now_ns, tx_ns)
+        if debug.observer_reset:
+            faults |= FaultBit.MODEL_RESET
+        return _Request(command.steer_angle, command.drive_torque, self._qp_status(debug),
+                        int(debug.iterations), float(debug.solve_time_s), faults)
 
     def _predict(self, sample: VehicleSample, sample_age_ns: int | None) -> VehicleSample | None:
         from controller.dead_reckoning import predict_sample

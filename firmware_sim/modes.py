@@ -7,9 +7,10 @@ one transition per evaluation:
 - INIT -> STANDBY once the first consistent plant sample has arrived.
 - STANDBY -> ACTIVE when ENGAGE = 1, the PATH_ID is loaded, PLANNER_REQ is on time, the
   plant sample is fresh and, after a SAFE_STOP, ENGAGE has been 0 in between (``rearmed``).
-- ACTIVE / DEGRADED -> STANDBY on ENGAGE = 0, an unknown PATH_ID or a PLANNER_REQ timeout;
-  otherwise -> SAFE_STOP when no good sample for > 100 ms, -> DEGRADED when the sample is
-  older than 20 ms, -> ACTIVE when it is fresh again.
+- ACTIVE / DEGRADED -> SAFE_STOP when no good sample for > 100 ms (this wins over the
+  planner's reasons: SAFE_STOP is not left by ENGAGE = 0 while moving either); otherwise
+  -> STANDBY on ENGAGE = 0, an unknown PATH_ID or a PLANNER_REQ timeout; otherwise
+  -> DEGRADED when the sample is older than 20 ms, -> ACTIVE when it is fresh again.
 - SAFE_STOP -> STANDBY only at standstill and on ENGAGE = 0, an unknown PATH_ID or a
   PLANNER_REQ timeout; fresh samples alone never leave SAFE_STOP.
 """
@@ -98,11 +99,12 @@ def transition(mode: CtrlMode, events: ModeEvents) -> tuple[CtrlMode, tuple[Reas
         if disengage and events.standstill:
             return CtrlMode.STANDBY, disengage + (Reason.STANDSTILL,)
         return mode, ()
-    # ACTIVE or DEGRADED
-    if disengage:
-        return CtrlMode.STANDBY, disengage
+    # ACTIVE or DEGRADED. A lost sample goes first: SAFE_STOP is not left on ENGAGE = 0
+    # while moving, so disengaging must not bypass it when both happen in one cycle.
     if events.sample_lost:
         return CtrlMode.SAFE_STOP, (Reason.SAMPLE_LOST,)
+    if disengage:
+        return CtrlMode.STANDBY, disengage
     if not events.sample_fresh:
         if mode is CtrlMode.DEGRADED:
             return mode, ()

@@ -177,8 +177,7 @@ def run_closed_loop(
     Returns:
         The :class:`ClosedLoopResult`. A run that stops early (non-finite or diverged plant
         state, non-finite command, an exception from the controller, |e_Y| too large) is
-        returned with
-        ``completed`` False and the trace up to that point; it is not raised.
+        returned with ``completed`` False and the trace up to that point; it is not raised.
     """
     if plant is None:
         plant, default_command = default_plant(scenario)
@@ -234,7 +233,7 @@ def run_closed_loop(
             plant.step(command_type(drive_torque=applied.drive_torque,
                                     steer_angle=applied.steer_angle), TICK_MS / 1000.0)
         except Exception as e:  # noqa: BLE001 - e.g. models' VehicleDivergedError
-            failure = f"plant failed at t = {t_ms / 1000:.3f} s: {e}"
+            failure = f"plant failed at t = {t_ms / 1000:.3f} s: {e!r}"
             break
     return _result(scenario, controller, rows, failure)
 

@@ -70,11 +70,18 @@ class BusRecorder:
             time.sleep(0.005)
         return self.count >= n_frames
 
-    def stop(self) -> None:
-        """Stop listening, flush and close the log and the bus object (idempotent)."""
+    def stop(self, settle_s: float = 0.1, max_wait_s: float = 1.0) -> None:
+        """Stop listening once the bus has been quiet for ``settle_s`` (frames sent just
+        before, e.g. the ECU's last command on shutdown, are still recorded; at most
+        ``max_wait_s``), then flush and close the log and the bus object (idempotent)."""
         if self._stopped:
             return
         self._stopped = True
+        give_up = time.monotonic() + max_wait_s
+        seen = -1
+        while self.count != seen and time.monotonic() < give_up:
+            seen = self.count
+            time.sleep(settle_s)
         try:
             self._notifier.stop()
             self._writer.stop()

@@ -163,8 +163,12 @@ def plot_scenario(traces: Mapping[str, ClosedLoopTrace], path_xy: np.ndarray, ti
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(True, alpha=0.3)
-    ax_speed.legend(fontsize=8)
-    ax_path.legend(fontsize=8)
+    if traces:
+        ax_speed.legend(fontsize=8)
+        ax_path.legend(fontsize=8)
+    else:
+        ax_path.text(0.5, 0.5, "no run completed a single step", transform=ax_path.transAxes,
+                     ha="center")
     fig.suptitle(title)
     fig.savefig(file, dpi=110)
     plt.close(fig)

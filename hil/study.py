@@ -163,8 +163,11 @@ def machine_description() -> str:
 
 
 def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Path,
-              *, show_progress: bool = True) -> dict[str, Any]:
+              *, show_progress: bool = True, debug: bool = False) -> dict[str, Any]:
     """Run every controller on every scenario and write tables, figures, JSON and traces.
+
+    A run whose controller or plant cannot be built is recorded with its ``error`` and
+    the study goes on; ``debug`` prints its traceback.
 
     Returns:
         The document written to ``study_metrics.json``.
@@ -181,13 +184,17 @@ def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Pa
         outer.set_postfix_str(f"{name} on {scenario.name}")
         try:
             controller = create_controller(name)
+            with tqdm(total=control_steps(scenario), desc=f"{name}/{scenario.name}",
+                      unit="step", leave=False, disable=not show_progress) as inner:
+                result = run_closed_loop(scenario, controller,
+                                         on_control_step=lambda _k: inner.update(1))
         except Exception as e:  # noqa: BLE001 - reported per run; the others still run
+            # Building the controller or the plant failed (missing artefact, bad parameter
+            # file): the run never started. Failures during a run are in the result instead.
+            if debug:
+                traceback.print_exc()
             runs.append(failed_summary(scenario, name, f"{type(e).__name__}: {e}"))
             continue
-        with tqdm(total=control_steps(scenario), desc=f"{name}/{scenario.name}", unit="step",
-                  leave=False, disable=not show_progress) as inner:
-            result = run_closed_loop(scenario, controller,
-                                     on_control_step=lambda _k: inner.update(1))
         result.save_npz(out / "traces" / f"{scenario.name}__{name}.npz")
         traces[scenario.name][name] = result.trace
         runs.append(run_summary(result))
@@ -256,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenarios = [load_scenario(name) for name in args.scenarios]
         document = run_study(scenarios, args.controllers, args.out,
-                             show_progress=not args.no_progress)
+                             show_progress=not args.no_progress, debug=args.debug)
     except (HilError, OSError) as e:
         if args.debug:
             traceback.print_exc()

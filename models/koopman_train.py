@@ -20,8 +20,10 @@ divided by their number of terms):
 Optimiser: Adam with an exponential learning-rate decay per epoch (the paper says steepest
 descent; Adam is our choice). Runs are split into train / validation / test BY RUN, never by
 sample; early stopping on the validation loss keeps the best weights. Deterministic for a
-seed: ``torch.manual_seed``, ``use_deterministic_algorithms``, 2 threads, a seeded batch
-sampler, and a fixed number of steps per epoch (never a wall-clock budget).
+seed: ``torch.manual_seed``, ``use_deterministic_algorithms``, a fixed torch thread count
+(``threads``, default 1: on the shared 2-core machine two torch threads ran 5x slower than
+one, 2 it/s vs 9 it/s at load ~6), a seeded batch sampler, and a fixed number of steps per
+epoch (never a wall-clock budget).
 
 CLI: ``python -m models.koopman_train --data data/nominal --out models/artifacts/dk_d5``;
 ``--states/--inputs/--ts`` train on any named-column CSV data set.
@@ -75,6 +77,8 @@ class TrainingSettings:
     test_fraction: float = 0.15
     val_windows: int = 4096
     seed: int = 0
+    threads: int = 1
+    warm_start: bool = True
     device: str = "auto"
 
     def __post_init__(self) -> None:
@@ -88,6 +92,7 @@ class TrainingSettings:
             "max_epochs": self.max_epochs >= 1,
             "steps_per_epoch": self.steps_per_epoch >= 1,
             "patience": self.patience >= 1,
+            "threads": self.threads >= 1,
             "recon_weight": self.recon_weight >= 0,
             "lifted_weight": self.lifted_weight >= 0,
             "val_fraction": 0 < self.val_fraction < 0.5,
@@ -130,6 +135,18 @@ class KoopmanNet(nn.Module):
             # Start near "nothing moves in 25 ms": a stable, well-conditioned first guess.
             self.A.weight.copy_(torch.eye(self.n_z) + 0.01 * self.A.weight)
             self.B.weight.mul_(0.1)
+
+    @torch.no_grad()
+    def warm_start(self, a_xx: np.ndarray, b_x: np.ndarray) -> None:
+        """Start the state rows of A, B from a linear least-squares fit (normalised units).
+
+        a_xx (n_x, n_x), b_x (n_x, n_u). The features start with no influence on x, so the
+        first rollouts are those of the best linear model; training only has to add what the
+        features explain.
+        """
+        self.A.weight[: self.n_x, : self.n_x] = torch.as_tensor(a_xx, dtype=self.A.weight.dtype)
+        self.A.weight[: self.n_x, self.n_x :] = 0.0
+        self.B.weight[: self.n_x] = torch.as_tensor(b_x, dtype=self.B.weight.dtype)
 
     def lift(self, x_n: torch.Tensor) -> torch.Tensor:
         """x_n (..., n_x) -> z_n (..., n_z) = [x_n; Phi(x_n)] (eq. 6)."""
@@ -218,6 +235,19 @@ def fit_scaling(runs: Sequence[Trajectory]) -> tuple[MinMaxScaling, MinMaxScalin
     return scalings[0], scalings[1]
 
 
+def _linear_fit(
+    runs: Sequence[Trajectory], state_scaling: MinMaxScaling, input_scaling: MinMaxScaling
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bias-free least squares x_n+ = A x_n + B u_n over the runs -> (A (n_x, n_x), B (n_x, n_u))."""
+    regressors = np.concatenate(
+        [np.hstack([state_scaling.normalise(r.states[:-1]), input_scaling.normalise(r.inputs[:-1])]) for r in runs]
+    )
+    targets = np.concatenate([state_scaling.normalise(r.states[1:]) for r in runs])
+    coef, *_ = np.linalg.lstsq(regressors, targets, rcond=None)
+    n_x = targets.shape[1]
+    return coef[:n_x].T, coef[n_x:].T
+
+
 class SequenceSet:
     """All length-p windows of a set of runs, gathered on the fly from one flat tensor."""
 
@@ -268,12 +298,16 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def seed_everything(seed: int) -> None:
-    """Deterministic torch for this process (2 threads: the machine's budget)."""
+def seed_everything(seed: int, threads: int = 1) -> None:
+    """Deterministic torch for this process.
+
+    The thread count is part of the result (float32 sums split differently), so it is a
+    recorded setting.
+    """
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
     torch.manual_seed(seed)
     torch.use_deterministic_algorithms(True)
-    torch.set_num_threads(2)
+    torch.set_num_threads(threads)
 
 
 def _total(losses: dict[str, torch.Tensor], settings: TrainingSettings) -> torch.Tensor:
@@ -303,7 +337,7 @@ def train(
     for run in runs:
         if run.state_names != state_names or run.input_names != input_names:
             raise KoopmanError(f"run {run.name}: columns differ from run {runs[0].name}")
-    seed_everything(settings.seed)
+    seed_everything(settings.seed, settings.threads)
     device = pick_device(settings.device)
     train_runs, val_runs, test_runs = split_runs(runs, settings)
     state_scaling, input_scaling = fit_scaling(train_runs)
@@ -315,7 +349,10 @@ def train(
         device=device,
     )
 
-    net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden).to(device)
+    net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden)
+    if settings.warm_start:
+        net.warm_start(*_linear_fit(train_runs, state_scaling, input_scaling))
+    net = net.to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=settings.lr_decay)
     sampler = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -372,7 +409,7 @@ def train(
         state_names=list(state_names),
         input_names=list(input_names),
         seed=settings.seed,
-        settings=_settings_json(settings),
+        settings=settings_json(settings),
         optimiser="Adam (paper: steepest descent), exponential lr decay per epoch",
         split={"train": [r.name for r in train_runs], "validation": [r.name for r in val_runs],
                "test": [r.name for r in test_runs]},
@@ -408,7 +445,7 @@ def _validation_loss(net: KoopmanNet, val_set: SequenceSet, index: torch.Tensor,
     return total / count
 
 
-def _settings_json(settings: TrainingSettings) -> dict:
+def settings_json(settings: TrainingSettings) -> dict:
     out = asdict(settings)
     out["hidden"] = list(settings.hidden)
     return out
@@ -433,9 +470,9 @@ def dataset_hash(directory: str | Path) -> str:
             content = json.loads(manifest.read_text())
         except json.JSONDecodeError:
             content = {}
-        for key in ("data_hash", "sha256", "hash"):
+        for key in ("content_sha256", "data_hash", "sha256", "hash"):
             if isinstance(content, dict) and isinstance(content.get(key), str):
-                return content[key]
+                return "sha256:" + content[key] if key == "content_sha256" else content[key]
         return "sha256:" + hashlib.sha256(manifest.read_bytes()).hexdigest()
     digest = hashlib.sha256()
     for path in sorted(directory.glob("*.csv")):
@@ -484,7 +521,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hidden layer widths, comma-separated")
     p.add_argument("--lifted-weight", type=float, default=defaults.lifted_weight)
     p.add_argument("--seed", type=int, default=defaults.seed)
+    p.add_argument("--threads", type=int, default=defaults.threads, help="torch CPU threads (part of the result)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=defaults.device)
+    p.add_argument("--compare-with", type=Path, default=None,
+                   help="artefact JSON whose test errors this run must reproduce within 10%% (exit 3 if not)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     return p
@@ -496,7 +536,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         settings = TrainingSettings(
             n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
             max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,
-            seed=args.seed, device=args.device,
+            seed=args.seed, threads=args.threads, device=args.device,
         )
         data_dir = Path(args.data)
         if not data_dir.is_dir():
@@ -517,7 +557,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"  test {name:>10}: one-step max/avg/rmse {figures['one_step_max']:.4f} / "
               f"{figures['one_step_avg']:.4f} / {figures['one_step_rmse']:.4f}, "
               f"{OPEN_LOOP_STEPS}-step rmse {figures['open_loop_rmse']:.4f}")
+    if args.compare_with is not None:
+        return 0 if compare_test_errors(meta["test_errors"], args.compare_with) else 3
     return 0
+
+
+def compare_test_errors(test_errors: dict, reference_json: Path, tolerance: float = 0.10) -> bool:
+    """Print the relative change of every test figure against a reference artefact JSON.
+
+    Returns True when all are within ``tolerance`` (relative).
+    """
+    reference = json.loads(Path(reference_json).read_text())["test_errors"]
+    worst = 0.0
+    for name, figures in test_errors.items():
+        for key, value in figures.items():
+            ref = reference[name][key]
+            change = abs(value - ref) / max(abs(ref), 1e-12)
+            worst = max(worst, change)
+            print(f"  {name:>10} {key:<21} {value:.5f} vs {ref:.5f} ({100 * change:+.1f} %)")
+    ok = worst <= tolerance
+    print(f"largest relative change vs {reference_json}: {100 * worst:.1f} % "
+          f"({'within' if ok else 'OUTSIDE'} {100 * tolerance:.0f} %)")
+    return ok
 
 
 def _is_input_error(e: Exception) -> bool:

@@ -51,7 +51,7 @@ class VehicleParams:
     shape_longitudinal: float
     curvature_longitudinal: float
     relaxation_length: float
-    slip_damping: float
+    slip_damping_time: float
     # [actuators]
     steer_limit: float
     steer_time_constant: float
@@ -109,7 +109,7 @@ _BOUNDS: dict[str, tuple[float, float, bool]] = {
     "steer_limit": (0.0, 0.6, True),
     "integration_step": (0.0, 0.001, True),
     "rolling_resistance": (0.0, 0.1, False),
-    "slip_damping": (0.0, math.inf, False),
+    "slip_damping_time": (0.0, 1.0, False),
 }
 
 

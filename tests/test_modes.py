@@ -29,10 +29,10 @@ def contract_oracle(mode: CtrlMode, e: ModeEvents) -> CtrlMode:
         return CtrlMode.ACTIVE if ok else CtrlMode.STANDBY
     if mode is CtrlMode.SAFE_STOP:                      # left only through STANDBY at standstill
         return CtrlMode.STANDBY if (not request_stands and e.standstill) else CtrlMode.SAFE_STOP
+    if e.sample_lost:                                   # > 100 ms without a good sample
+        return CtrlMode.SAFE_STOP                       # (SAFE_STOP dominates disengaging)
     if not request_stands:                              # ENGAGE=0 / unknown path / timeout
         return CtrlMode.STANDBY
-    if e.sample_lost:                                   # > 100 ms without a good sample
-        return CtrlMode.SAFE_STOP
     return CtrlMode.ACTIVE if e.sample_fresh else CtrlMode.DEGRADED
 
 
@@ -79,6 +79,9 @@ def test_named_transitions_give_their_reasons():
     assert transition(CtrlMode.DEGRADED, ModeEvents()) == (CtrlMode.ACTIVE, (Reason.SAMPLE_RECOVERED,))
     assert transition(CtrlMode.ACTIVE, ModeEvents(path_known=False)) == (CtrlMode.STANDBY, (Reason.UNKNOWN_PATH,))
     assert transition(CtrlMode.ACTIVE, ModeEvents(planner_ok=False)) == (CtrlMode.STANDBY, (Reason.PLANNER_TIMEOUT,))
+    # both inputs gone in one cycle: the safe reaction, not a silent CMD_VALID = 0
+    assert transition(CtrlMode.DEGRADED, ModeEvents(planner_ok=False, sample_fresh=False, sample_lost=True)) == \
+        (CtrlMode.SAFE_STOP, (Reason.SAMPLE_LOST,))
     assert transition(CtrlMode.SAFE_STOP, ModeEvents(engage=False, standstill=True)) == \
         (CtrlMode.STANDBY, (Reason.DISENGAGED, Reason.STANDSTILL))
     # moving, or still engaged: stays in SAFE_STOP

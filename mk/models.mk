@@ -1,0 +1,18 @@
+# Vehicle plant, baseline models and data set (models/): make data, make handling.
+.PHONY: data handling
+
+DATA_DIR ?= data/nominal
+DATA_HOURS ?= 2
+DATA_SEED ?= 0
+
+# The nominal data set for the Koopman training; generated only when missing (READY is
+# written last, so an interrupted run is regenerated).
+data: setup
+	@if [ -f $(DATA_DIR)/READY ]; then echo "$(DATA_DIR) is up (delete it to regenerate)"; \
+	else $(PY) -m models.data generate --out $(DATA_DIR) --hours $(DATA_HOURS) --seed $(DATA_SEED); fi
+
+# Steady-state handling diagram (PNGs + JSON) and the parameter table, into results/.
+handling: setup
+	$(PY) -m models.handling diagram --out results
+	$(PY) -m models.handling table > results/vehicle_params.md
+	@echo "wrote results/vehicle_params.md"

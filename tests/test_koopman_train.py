@@ -1,0 +1,124 @@
+"""Deep Koopman training (torch): numpy/torch agreement, determinism, split, bad input, CLI."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.koopman import KoopmanError, KoopmanModel  # noqa: E402
+from models.koopman_metrics import Trajectory  # noqa: E402
+from models.koopman_train import (  # noqa: E402
+    TrainingSettings,
+    fit_scaling,
+    main,
+    split_runs,
+    train,
+    write_artifact,
+)
+from test_koopman_synthetic import INPUTS, STATES, synthetic_runs  # noqa: E402
+
+TINY = TrainingSettings(n_features=3, hidden=(16, 16, 16), seq_len=6, batch_size=32, max_epochs=2,
+                        steps_per_epoch=15, patience=2, val_windows=256, threads=1)
+
+
+@pytest.fixture(scope="module")
+def runs() -> list[Trajectory]:
+    return synthetic_runs(n_runs=5, n_samples=160, seed=3)
+
+
+@pytest.fixture(scope="module")
+def tiny_result(runs):
+    return train(runs, 0.025, TINY, progress=False)
+
+
+def test_numpy_run_time_agrees_with_torch(tiny_result, runs) -> None:
+    """Lift and a 40-step rollout: torch (float64, normalised units) vs the numpy model."""
+    net = tiny_result.net.double()
+    model = tiny_result.model
+    sx, su = tiny_result.learned.state_scaling, tiny_result.learned.input_scaling
+    rng = np.random.default_rng(0)
+    states = np.concatenate([r.states for r in runs])
+    inputs = np.concatenate([r.inputs for r in runs])
+    x0 = rng.uniform(states.min(0), states.max(0), (64, 3))
+    u = rng.uniform(inputs.min(0), inputs.max(0), (64, 40, 2))
+    with torch.no_grad():
+        z_n = net.lift(torch.as_tensor(sx.normalise(x0)))
+        rolled = net.rollout(z_n, torch.as_tensor(su.normalise(u))).numpy()
+    torch_features = z_n.numpy()[:, 3:]
+    torch_states = rolled[..., :3] * (sx.high - sx.low) + sx.low
+    err_lift = np.abs(model.lift(x0)[:, 3:] - torch_features).max()
+    err_pred = np.abs(model.predict(x0, u) - torch_states).max()
+    print(f"max |numpy - torch|: lift {err_lift:.2e}, 40-step prediction {err_pred:.2e}")
+    assert err_lift < 1e-6 and err_pred < 1e-6
+
+
+def test_same_seed_gives_identical_weights(runs, tiny_result) -> None:
+    again = train(runs, 0.025, TINY, progress=False)
+    other = train(runs, 0.025, TrainingSettings(**{**TINY.__dict__, "seed": 1}), progress=False)
+    first, second = tiny_result.learned, again.learned
+    diffs = [np.abs(a[0] - b[0]).max() for a, b in zip(first.encoder, second.encoder)]
+    diffs.append(np.abs(first.A_n - second.A_n).max())
+    print(f"max weight difference, same seed: {max(diffs):.1e}; "
+          f"other seed: {np.abs(first.A_n - other.learned.A_n).max():.1e}")
+    assert max(diffs) == 0.0
+    assert np.array_equal(first.B_n, second.B_n)
+    assert not np.array_equal(first.A_n, other.learned.A_n)
+
+
+def test_split_is_by_run_and_scaling_from_training_runs(runs, tiny_result) -> None:
+    train_runs, val_runs, test_runs = split_runs(runs, TINY)
+    names = [{r.name for r in part} for part in (train_runs, val_runs, test_runs)]
+    assert all(names) and not (names[0] & names[1] or names[0] & names[2] or names[1] & names[2])
+    assert set().union(*names) == {r.name for r in runs}
+    assert tiny_result.test_runs == [r.name for r in test_runs]
+    state_scaling, _ = fit_scaling(train_runs)
+    np.testing.assert_array_equal(tiny_result.learned.state_scaling.low, state_scaling.low)
+
+
+def test_metadata_holds_what_the_artifact_needs(tiny_result, tmp_path: Path) -> None:
+    npz_path, json_path = write_artifact(tiny_result, tmp_path / "dk_tiny")
+    meta = json.loads(json_path.read_text())
+    for key in ("d", "ts", "state_min", "state_max", "input_min", "input_max", "state_names", "input_names",
+                "settings", "seed", "test_errors", "split", "spectral_radius_A"):
+        assert key in meta, key
+    assert set(meta["test_errors"]) == set(STATES)
+    loaded = KoopmanModel.load(npz_path)
+    np.testing.assert_array_equal(loaded.A, tiny_result.model.A)
+
+
+def test_learning_beats_the_initial_model(runs) -> None:
+    """A few hundred steps must lower the validation loss well below the first epoch's."""
+    settings = TrainingSettings(**{**TINY.__dict__, "max_epochs": 6, "steps_per_epoch": 30, "patience": 6})
+    result = train(runs, 0.025, settings, progress=False)
+    losses = [h["val"] for h in result.history]
+    print("validation loss per epoch:", ", ".join(f"{v:.2e}" for v in losses))
+    assert min(losses) < 0.7 * losses[0]
+
+
+def test_too_few_runs_or_too_short_runs_are_refused(runs) -> None:
+    with pytest.raises(KoopmanError, match="at least 3 runs"):
+        train(runs[:2], 0.025, TINY, progress=False)
+    short = [Trajectory(r.name, r.states[:5], r.inputs[:5], STATES, INPUTS) for r in runs]
+    with pytest.raises(KoopmanError, match=r"too short for sequences of length p=6"):
+        train(short, 0.025, TINY, progress=False)
+
+
+def test_nan_rows_are_refused_naming_run_column_and_row(runs) -> None:
+    states = runs[0].states.copy()
+    states[17, 1] = np.nan
+    with pytest.raises(KoopmanError, match=r"run synthetic_00: non-finite value in column 'vy' at row 17"):
+        Trajectory(runs[0].name, states, runs[0].inputs, STATES, INPUTS)
+
+
+def test_bad_settings_name_the_field() -> None:
+    with pytest.raises(KoopmanError, match="seq_len=1"):
+        TrainingSettings(seq_len=1)
+
+
+def test_cli_reports_a_missing_directory(tmp_path: Path, capsys) -> None:
+    assert main(["--data", str(tmp_path / "absent"), "--out", str(tmp_path / "m"), "--no-progress"]) == 2
+    assert "error: data directory not found" in capsys.readouterr().err
