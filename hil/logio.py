@@ -19,11 +19,11 @@
 """
 from __future__ import annotations
 
-import gzip
 import io
 import json
 import math
 import re
+import zlib
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
@@ -170,28 +170,42 @@ def read_log(path: str | Path) -> LogContents:
     return contents
 
 
-def _open_text(path: Path) -> str:
-    """Whole text of a (possibly gzip-compressed) candump file; a truncated gzip stream
-    yields what decompressed before the damage."""
+def _open_text(path: Path) -> tuple[str, str | None]:
+    """Text of a (possibly gzip-compressed) candump file and what was wrong with the
+    compression, if anything. A truncated or damaged gzip stream yields the text that
+    decompressed before the damage."""
+    raw = path.read_bytes()
     if path.suffix.lower() != ".gz":
-        return path.read_bytes().decode("ascii", errors="replace")
-    chunks = []
-    with gzip.open(path, "rb") as handle:
-        try:
-            while chunk := handle.read(1 << 16):
-                chunks.append(chunk)
-        except (EOFError, OSError, gzip.BadGzipFile) as error:
-            chunks.append(b"\n#truncated-gzip " + str(error).encode("ascii", "replace"))
-    return b"".join(chunks).decode("ascii", errors="replace")
+        return raw.decode("ascii", errors="replace"), None
+    inflater = zlib.decompressobj(wbits=31)  # 31: gzip header and trailer
+    chunks: list[bytes] = []
+    problem = None
+    step = 1 << 16
+    try:
+        for start in range(0, len(raw), step):
+            chunks.append(inflater.decompress(raw[start:start + step]))
+            if inflater.eof:
+                break
+        if not inflater.eof:
+            problem = "the gzip stream is truncated"
+    except zlib.error as error:
+        problem = f"the gzip stream is corrupt ({error})"
+    text = b"".join(chunks).decode("ascii", errors="replace")
+    if problem is not None and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]  # the last line is cut: drop it
+    return text, problem
 
 
 def _read_candump(path: Path, contents: LogContents) -> None:
     """candump ``-L`` lines: keep the well-formed ones, count and quote the others, then
     parse the kept lines with python-can's `CanutilsLogReader`."""
     try:
-        text = _open_text(path)
+        text, problem = _open_text(path)
     except OSError as error:
         raise LogReadError(f"{path}: cannot read: {error}") from error
+    if problem is not None:
+        contents.complete = False
+        contents.warnings.append(f"{problem}: the frames before the damage are kept")
     good: list[str] = []
     damaged: list[int] = []
     for number, line in enumerate(text.splitlines(), start=1):
