@@ -13,6 +13,9 @@ APT_PACKAGES := user-mode-linux kmod iproute2 can-utils
 CAN_INTERFACE ?= virtual
 CAN_CHANNEL ?= vcan0
 export CAN_INTERFACE CAN_CHANNEL
+# Tiny matrices in the control loop: BLAS threads only add latency on 2 cores.
+export OPENBLAS_NUM_THREADS ?= 1
+export OMP_NUM_THREADS ?= 1
 
 .PHONY: setup apt-deps test test-fast clean help
 

@@ -1,8 +1,13 @@
 """DKMPC: the deep Koopman MPC without the observer (w_hat = 0), paper Section IV-B 4)."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from controller.lifted_mpc import LiftedMpc
 from controller.tuning import ControllerTuning, LongitudinalTuning, QpMpcTuning
+
+if TYPE_CHECKING:
+    from models.koopman import KoopmanModel
 
 
 class Dkmpc(LiftedMpc):
@@ -17,5 +22,5 @@ class Dkmpc(LiftedMpc):
 
         return cls(KoopmanModel.load(), tuning.dkmpc, tuning.longitudinal)
 
-    def __init__(self, model, tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
+    def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
         super().__init__(model, tuning, longitudinal)

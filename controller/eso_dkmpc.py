@@ -11,11 +11,18 @@ observer advances with the fallback command, which is what the vehicle received.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from controller.base import Command, VehicleSample
+from controller.base import Command, SolverStatus, StepDebug, VehicleSample
 from controller.lifted_mpc import LiftedMpc
+from controller.mpc_base import Plan
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
+from models.eso import EsoParams, ExtendedStateObserver, design_gains, innovated_disturbance
+
+if TYPE_CHECKING:
+    from models.koopman import KoopmanModel
 
 
 class EsoDkmpc(LiftedMpc):
@@ -30,9 +37,7 @@ class EsoDkmpc(LiftedMpc):
 
         return cls(KoopmanModel.load(), tuning.eso_dkmpc, tuning.longitudinal)
 
-    def __init__(self, model, tuning: EsoDkmpcTuning, longitudinal: LongitudinalTuning) -> None:
-        from models.eso import EsoParams, ExtendedStateObserver, design_gains
-
+    def __init__(self, model: "KoopmanModel", tuning: EsoDkmpcTuning, longitudinal: LongitudinalTuning) -> None:
         gains = design_gains(model.A, tuning.eso_pole, structure="matrix")
         self.observer = ExtendedStateObserver(
             EsoParams(model.A, model.B, model.offset, gains.beta1, gains.beta2))
@@ -45,8 +50,7 @@ class EsoDkmpc(LiftedMpc):
         super().reset()
 
     def disturbance(self, lifted_state: np.ndarray) -> np.ndarray:
-        from models.eso import innovated_disturbance
-
+        """w_hat (n_z,) including the measurement z_k; restarts the observer when needed."""
         if not self._observer_running:
             self.observer.reset(lifted_state)
             self._observer_running = True
@@ -59,7 +63,8 @@ class EsoDkmpc(LiftedMpc):
         if not accepted:
             self._observer_running = False
 
-    def _fallback(self, status, torque, plan=None, sample=None):
+    def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
+                  sample: VehicleSample | None = None) -> tuple[Command, StepDebug]:
         if sample is None:  # no valid measurement this step: restart on the next good one
             self._observer_running = False
         return super()._fallback(status, torque, plan, sample)

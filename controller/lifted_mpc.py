@@ -11,11 +11,16 @@ so a step costs two small matrix-vector products besides the lift and the QP.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from controller.base import VehicleSample
 from controller.qp_mpc import QpSteeringMpc
 from controller.tuning import LongitudinalTuning, QpMpcTuning
+
+if TYPE_CHECKING:
+    from models.koopman import KoopmanModel
 
 TORQUE, STEER = 0, 1  # input order [torque, steer]
 
@@ -23,7 +28,7 @@ TORQUE, STEER = 0, 1  # input order [torque, steer]
 class LiftedMpc(QpSteeringMpc):
     """Steering MPC on a ``KoopmanModel`` (A, B, offset, C_P, lift). DKMPC as is."""
 
-    def __init__(self, model, tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
+    def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
         self.model = model
         super().__init__(tuning, longitudinal)
         n_pred, n_z = tuning.prediction_horizon, model.n_z

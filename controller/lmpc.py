@@ -46,8 +46,6 @@ class Lmpc(QpSteeringMpc):
         inputs = np.arange(n_pred)[None, :]
         # Markov index of input j seen at step i: i - 1 - j for j < i, else the zero row Np.
         self._markov_index = np.where(inputs < steps, steps - 1 - inputs, n_pred)  # (Np, Np)
-        self._gain = np.zeros((n_pred + 1, 3, tuning.control_horizon))
-        self._free = np.zeros((n_pred + 1, 3))
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     @classmethod
@@ -57,31 +55,33 @@ class Lmpc(QpSteeringMpc):
 
         return cls(LinearBicycle(), tuning.lmpc, tuning.longitudinal)
 
-    def _discrete_matrices(self, vx: float) -> tuple[np.ndarray, np.ndarray]:
-        """(A (2, 2), b (2,)) at vx rounded to SPEED_QUANTUM, cached."""
+    def _prediction_maps(self, vx: float) -> tuple[np.ndarray, np.ndarray]:
+        """Lateral free-response map (Np + 1, 2, 2) = A^i and steer gain (Np + 1, 3, Nc) at vx
+        rounded to SPEED_QUANTUM, cached (so a step is two small products at steady speed)."""
         key = round(max(vx, MIN_MODEL_SPEED) / SPEED_QUANTUM)
         cached = self._cache.get(key)
-        if cached is None:
-            a, b = self.bicycle.discrete_matrices(key * SPEED_QUANTUM, self.ts)
-            if len(self._cache) >= _CACHE_SIZE:
-                self._cache.clear()
-            cached = self._cache[key] = (np.asarray(a, dtype=float), np.asarray(b, dtype=float).reshape(2))
-        return cached
+        if cached is not None:
+            return cached
+        n_pred = self.tuning.prediction_horizon
+        a, b = self.bicycle.discrete_matrices(key * SPEED_QUANTUM, self.ts)
+        b = np.asarray(b, dtype=float).reshape(2)
+        powers = np.empty((n_pred + 1, 2, 2))
+        powers[0] = np.eye(2)
+        markov = np.zeros((n_pred + 1, 2))  # A^k b, k = 0..Np-1, then a zero row
+        for k in range(n_pred):
+            markov[k] = powers[k] @ b
+            powers[k + 1] = a @ powers[k]
+        gain = np.zeros((n_pred + 1, 3, self.tuning.control_horizon))  # vx row stays 0
+        gain[1:, 1:, :] = np.einsum("ijs,jc->isc", markov[self._markov_index], self.hold)
+        if len(self._cache) >= _CACHE_SIZE:
+            self._cache.clear()
+        self._cache[key] = (powers, gain)
+        return powers, gain
 
     def predict_states(self, sample: VehicleSample, drive_torque: float) -> tuple[np.ndarray, np.ndarray]:
         """free (Np + 1, 3), gain (Np + 1, 3, Nc); vx stays the measured value."""
-        n_pred = self.tuning.prediction_horizon
-        a, b = self._discrete_matrices(sample.vx)
-        lateral = np.array([sample.vy, sample.yaw_rate])
-        markov = np.zeros((n_pred + 1, 2))  # A^k b, k = 0..Np-1, then a zero row
-        free = self._free
+        powers, gain = self._prediction_maps(sample.vx)
+        free = np.empty((powers.shape[0], 3))
         free[:, 0] = sample.vx
-        free[0, 1:] = lateral
-        for k in range(n_pred):
-            markov[k] = b
-            b = a @ b
-            lateral = a @ lateral
-            free[k + 1, 1:] = lateral
-        toeplitz = markov[self._markov_index]  # (Np, Np, 2)
-        self._gain[1:, 1:, :] = np.einsum("ijs,jc->isc", toeplitz, self.hold)
-        return free.copy(), self._gain.copy()
+        free[:, 1:] = powers @ np.array([sample.vy, sample.yaw_rate])
+        return free, gain

@@ -74,7 +74,7 @@ class SteeringMpc(Controller):
                                                     self.tuning.prediction_horizon, self.ts, sample.yaw)
         self._observer_reset = False
         plan = self._plan(sample, torque, reference)
-        if plan.status not in _GOOD or not (np.all(np.isfinite(plan.steer)) and math.isfinite(plan.cost)):
+        if plan.status not in _GOOD or not (math.isfinite(plan.steer.sum()) and math.isfinite(plan.cost)):
             return self._fallback(plan.status, torque, plan, sample)
         self._plan_steer = np.clip(plan.steer, -STEER_LIMIT_RAD, STEER_LIMIT_RAD)
         self._plan_age = 0
@@ -98,15 +98,16 @@ class SteeringMpc(Controller):
         """u_{-1} of eq. 15: the last command, else (first step) the measured wheel angle."""
         if self._last_command is not None:
             return self._last_command.steer_angle
-        return float(np.clip(sample.steer_angle, -STEER_LIMIT_RAD, STEER_LIMIT_RAD))
+        return min(max(sample.steer_angle, -STEER_LIMIT_RAD), STEER_LIMIT_RAD)
 
     def shifted_plan(self, sample: VehicleSample) -> np.ndarray:
-        """Warm start / linearisation point (Nc,): previous plan shifted by one step (last
-        value repeated), else the previous steer held over the horizon."""
+        """Warm start / linearisation point (Nc,): the last good plan shifted to now (by one
+        step, more after fallbacks; last value repeated), else the previous steer held."""
         n_ctrl = self.tuning.control_horizon
         if self._plan_steer is None:
             return np.full(n_ctrl, self.previous_steer(sample))
-        return np.concatenate((self._plan_steer[1:], self._plan_steer[-1:]))
+        remaining = self._plan_steer[self._plan_age + 1:]
+        return np.concatenate((remaining, np.full(n_ctrl - remaining.size, self._plan_steer[-1])))
 
     # -- internals -------------------------------------------------------------------------
     def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
@@ -136,7 +137,7 @@ class SteeringMpc(Controller):
 
     def _finish(self, steer: float, torque: float) -> Command:
         """Final guard: finite and within the limits, whatever came before."""
-        steer = float(np.clip(steer, -STEER_LIMIT_RAD, STEER_LIMIT_RAD)) if math.isfinite(steer) else 0.0
+        steer = min(max(float(steer), -STEER_LIMIT_RAD), STEER_LIMIT_RAD) if math.isfinite(steer) else 0.0
         torque = self._speed.clip(torque) if math.isfinite(torque) else 0.0
         self._last_command = Command(steer_angle=steer, drive_torque=torque)
         return self._last_command

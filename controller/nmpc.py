@@ -11,6 +11,7 @@ multipliers. The solve time reported is IPOPT's wall time from the solver statis
 """
 from __future__ import annotations
 
+import math
 from typing import Any, Callable
 
 import casadi as ca
@@ -144,6 +145,8 @@ class Nmpc(SteeringMpc):
         else:
             states_guess = self._warm["states"].copy()
             states_guess[:, :-1] = states_guess[:, 1:]  # shift by one step
+            # The measured yaw is wrapped: keep the guess on the same branch.
+            states_guess[5] += 2.0 * math.pi * round((initial[5] - states_guess[5, 0]) / (2.0 * math.pi))
             states_guess[:, 0] = initial
             lam_x, lam_g = self._warm["lam_x"], self._warm["lam_g"]
         guess = np.concatenate((states_guess.ravel(order="F"), guess_steer, np.zeros(3)))

@@ -33,19 +33,33 @@ def linearise_pose(pose0: np.ndarray, nominal_states: np.ndarray, state_gain: np
 
     pose0: (3,); nominal_states: (n, 3) states at steps 0..n-1 for the nominal U;
     state_gain: (n, 3, n_u) d states / d U. Returns (nominal poses (n, 3) at steps 1..n,
-    jacobian (n, 3, n_u)).
+    jacobian (n, 3, n_u)). Same arithmetic as ``rollout_pose`` (kept separate: this runs
+    every control step, so it shares the cos/sin and velocity terms with the Jacobian).
     """
-    poses = rollout_pose(pose0, nominal_states, ts)
-    yaw_steps = np.concatenate(([pose0[2]], poses[:-1, 2]))  # yaw at steps 0..n-1
-    cos_yaw, sin_yaw = np.cos(yaw_steps)[:, None], np.sin(yaw_steps)[:, None]
-    vx, vy = nominal_states[:, 0:1], nominal_states[:, 1:2]
-    gain_vx, gain_vy, gain_rate = state_gain[:, 0, :], state_gain[:, 1, :], state_gain[:, 2, :]
-    d_yaw_next = ts * np.cumsum(gain_rate, axis=0)  # d yaw_{i+1} / dU, i = 0..n-1
-    d_yaw = np.vstack((np.zeros((1, state_gain.shape[2])), d_yaw_next[:-1]))  # steps 0..n-1
+    n = nominal_states.shape[0]
+    yaw = np.empty(n + 1)
+    yaw[0] = 0.0
+    np.cumsum(nominal_states[:, 2], out=yaw[1:])
+    yaw *= ts
+    yaw += pose0[2]
+    cos_yaw, sin_yaw = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+    vx, vy = nominal_states[:, 0], nominal_states[:, 1]
+    x_rate = vx * cos_yaw - vy * sin_yaw  # dX/dt at steps 0..n-1
+    y_rate = vx * sin_yaw + vy * cos_yaw
+    poses = np.empty((n, 3))
+    poses[:, 0] = pose0[0] + ts * np.cumsum(x_rate)
+    poses[:, 1] = pose0[1] + ts * np.cumsum(y_rate)
+    poses[:, 2] = yaw[1:]
+    # d yaw_j / dU at steps j = 0..n-1 (step 0 is measured: zero), and at steps 1..n.
+    d_yaw = np.zeros((n + 1, state_gain.shape[2]))
+    np.cumsum(state_gain[:, 2, :], axis=0, out=d_yaw[1:])
+    d_yaw *= ts
     jacobian = np.empty_like(state_gain)
-    jacobian[:, 0, :] = ts * np.cumsum(cos_yaw * gain_vx - sin_yaw * gain_vy
-                                       - (vx * sin_yaw + vy * cos_yaw) * d_yaw, axis=0)
-    jacobian[:, 1, :] = ts * np.cumsum(sin_yaw * gain_vx + cos_yaw * gain_vy
-                                       + (vx * cos_yaw - vy * sin_yaw) * d_yaw, axis=0)
-    jacobian[:, 2, :] = d_yaw_next
+    cos_col, sin_col = cos_yaw[:, None], sin_yaw[:, None]
+    gain_vx, gain_vy = state_gain[:, 0, :], state_gain[:, 1, :]
+    # d(x_rate) = cos dvx - sin dvy - y_rate dyaw;  d(y_rate) = sin dvx + cos dvy + x_rate dyaw
+    np.cumsum(cos_col * gain_vx - sin_col * gain_vy - y_rate[:, None] * d_yaw[:-1], axis=0, out=jacobian[:, 0, :])
+    np.cumsum(sin_col * gain_vx + cos_col * gain_vy + x_rate[:, None] * d_yaw[:-1], axis=0, out=jacobian[:, 1, :])
+    jacobian[:, :2, :] *= ts
+    jacobian[:, 2, :] = d_yaw[1:]
     return poses, jacobian

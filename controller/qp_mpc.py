@@ -8,6 +8,7 @@ one QP per step, no re-linearisation within the step) and solves ``SteeringQp``.
 """
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 
 import numpy as np
@@ -39,7 +40,8 @@ class QpSteeringMpc(SteeringMpc):
         nominal = self.shifted_plan(sample)
         n_pred = self.tuning.prediction_horizon
         empty = np.zeros((0, 3))
-        if not (np.all(np.isfinite(free)) and np.all(np.isfinite(gain))):
+        # A sum is finite iff every entry is (or it overflowed: rejected too, rightly).
+        if not (math.isfinite(free.sum()) and math.isfinite(gain.sum())):
             return Plan(SolverStatus.NUMERICAL_ERROR, nominal, 0, 0.0, float("nan"), empty, empty)
         nominal_states = free + gain @ nominal  # (Np + 1, 3)
         pose_nominal, jacobian = linearise_pose(sample.pose(), nominal_states[:n_pred], gain[:n_pred], self.ts)

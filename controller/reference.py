@@ -72,7 +72,10 @@ class ReferencePath:
             raise PathError(f"{where}: points {i} and {i + 1} coincide")
         s = np.concatenate(([0.0], np.cumsum(spacing)))
         # Unwrapped so interpolation between points never sweeps through +-pi.
-        return cls(x_arr, y_arr, np.unwrap(yaw_arr), s, name)
+        arrays = [x_arr.copy(), y_arr.copy(), np.unwrap(yaw_arr), s]
+        for array in arrays:
+            array.setflags(write=False)  # a path is shared by tracker and metrics: read-only
+        return cls(*arrays, name)
 
     @classmethod
     def from_csv(cls, path: str | Path) -> "ReferencePath":

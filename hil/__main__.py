@@ -10,14 +10,23 @@ on stderr and exit 1; ``--debug`` shows the traceback instead.
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import sys
+import os
+
+# Before numpy loads (see firmware_sim/__main__.py): single-threaded BLAS.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import sys  # noqa: E402
 from types import ModuleType
 
 #: Subcommand name -> module implementing it (``HELP``, ``add_arguments``, ``main``).
 SUBCOMMANDS: dict[str, str] = {
     "run": "hil.commands.run",
+    "replay": "hil.commands.replay",
+    "decode": "hil.commands.decode",
+    "play": "hil.commands.play",
 }
 
 

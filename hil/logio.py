@@ -45,6 +45,9 @@ ECU_OUTPUT_IDS: frozenset[int] = frozenset(
 #: Version of the sidecar JSON layout.
 SIDECAR_VERSION = 1
 
+#: Root of the checkout: relative paths in sidecars are relative to it.
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
 # A candump -L line: "(timestamp) channel ID#DATA [R|T]", DATA in hex bytes, "R[dlc]"
 # for a remote frame, or "#F" + hex for CAN FD. Anything else in a .log is damage.
 _CANDUMP_LINE = re.compile(
@@ -206,9 +209,17 @@ def _read_candump(path: Path, contents: LogContents) -> None:
     if problem is not None:
         contents.complete = False
         contents.warnings.append(f"{problem}: the frames before the damage are kept")
+    lines = text.splitlines()
+    if problem is None and lines and text and not text.endswith(("\n", "\r")):
+        # candump and python-can end every line: a last line without its end was cut
+        # while being written, and may still look like a (shorter) frame.
+        contents.complete = False
+        contents.warnings.append(f"the last line ({len(lines)}) is incomplete (no line end): "
+                                 "dropped; the file was cut while being written")
+        lines.pop()
     good: list[str] = []
     damaged: list[int] = []
-    for number, line in enumerate(text.splitlines(), start=1):
+    for number, line in enumerate(lines, start=1):
         stripped = line.strip()
         if not stripped:
             continue
@@ -373,10 +384,6 @@ def write_sidecar(log_path: str | Path, metadata: LogMetadata) -> Path:
     except OSError as error:
         raise LogError(f"cannot write the sidecar {target}: {error}") from error
     return target
-
-
-#: Root of the checkout: relative paths in sidecars are relative to it.
-REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 def read_sidecar(log_path: str | Path) -> LogMetadata | None:

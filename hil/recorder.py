@@ -83,8 +83,8 @@ class BusRecorder:
             seen = self.count
             time.sleep(settle_s)
         try:
+            # Notifier.stop() also stops (and closes) its listeners, the writer included.
             self._notifier.stop()
-            self._writer.stop()
         finally:
             self.bus.shutdown()
 
@@ -132,14 +132,16 @@ class EcuFrameMonitor:
         """No dynamics."""
 
     def trace(self) -> dict[str, np.ndarray]:
-        """One row per control cycle that sent both frames: column -> array (n_cycles,)
-        (columns :data:`ECU_TRACE_COLUMNS`; time = the tick of reception, s)."""
-        diag_by_tick = {tick: diag for tick, diag in self.diags}
+        """One row per control cycle: column -> array (n_cycles,) (columns
+        :data:`ECU_TRACE_COLUMNS`; time = the tick of the command's reception, s).
+
+        The ECU sends STEER_TORQUE_CMD then CTRL_DIAG each cycle, so the i-th of each
+        belong together (in real time the two may be received in different ticks); the
+        extra CMD_VALID = 0 command the ECU sends when it stops has no diagnosis and is
+        left out.
+        """
         rows = []
-        for tick, cmd in self.commands:
-            diag = diag_by_tick.get(tick)
-            if diag is None:
-                continue
+        for (tick, cmd), (_, diag) in zip(self.commands, self.diags):
             rows.append((tick / 1000.0, int(cmd.ctrl_mode), float(cmd.cmd_valid),
                          cmd.steer_angle_cmd, cmd.drive_torque_cmd, int(diag.qp_status),
                          diag.solve_time_us, diag.cycle_time_us, diag.qp_iter, diag.overruns,

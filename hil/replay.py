@@ -25,6 +25,7 @@ within half a control period otherwise) and order.
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import os
@@ -32,16 +33,18 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
 import can
 
 from can_defs.codec import decode
+from can_defs.crc import e2e_crc
 from can_defs.dbc import load_database
 from can_defs.errors import CanDefsError
-from can_defs.frames import (HANDSHAKE_TICK, TICK_STEP_MS, CtrlDiag, FrameId, HilSync,
-                             PlannerReq, SteerTorqueCmd)
+from can_defs.frames import (HANDSHAKE_TICK, TICK_STEP_MS, CtrlMode, FrameId, HilSync,
+                             PlannerReq, QpStatus)
 from hil.errors import HilError
 from hil.logio import (ECU_OUTPUT_IDS, LogContents, frame_times, is_contract_data_frame,
                        read_log, sync_tick)
@@ -101,6 +104,7 @@ class ReplayRun:
     control_releases: int = 0
     aborted: str | None = None
     notes: list[str] = field(default_factory=list)
+    wall_time_s: float = 0.0
 
 
 class ReplayClock:
@@ -181,14 +185,18 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
         ``aborted`` set and the outputs so far.
     """
     channel = f"replay-{os.getpid()}-{next(_channel_numbers)}"
+    started = time.perf_counter()
     ecu_bus = can.Bus(interface="virtual", channel=channel)
     feeder = can.Bus(interface="virtual", channel=channel)
     try:
         if contents.is_lockstep:
-            return _replay_lockstep(contents, controller, paths, ecu_bus, feeder, realtime,
-                                    ack_timeout_s, controller_factory)
-        return _replay_timestamped(contents, controller, paths, ecu_bus, feeder, realtime,
-                                   expected_end_s, controller_factory)
+            run = _replay_lockstep(contents, controller, paths, ecu_bus, feeder, realtime,
+                                   ack_timeout_s, controller_factory)
+        else:
+            run = _replay_timestamped(contents, controller, paths, ecu_bus, feeder, realtime,
+                                      expected_end_s, controller_factory)
+        run.wall_time_s = time.perf_counter() - started
+        return run
     finally:
         feeder.shutdown()
         ecu_bus.shutdown()
@@ -367,8 +375,20 @@ def reference_path_for(log_path: str | Path) -> Path:
     return log_path.with_name(name + ".ref.log")
 
 
+def normalise_timing(frame: OutputFrame) -> OutputFrame:
+    """CTRL_DIAG with its measured timing signals set to 0 and the CRC recomputed; other
+    frames unchanged. A regenerated reference then differs only where behaviour did."""
+    if frame.arbitration_id != FrameId.CTRL_DIAG or len(frame.data) != 8:
+        return frame
+    mask = exact_masks()[int(FrameId.CTRL_DIAG)]
+    data = bytearray(b & m for b, m in zip(frame.data, mask))
+    data[0] = e2e_crc(FrameId.CTRL_DIAG, bytes(data))
+    return OutputFrame(frame.time_s, frame.arbitration_id, bytes(data))
+
+
 def write_reference(path: str | Path, outputs: Sequence[OutputFrame]) -> Path:
-    """Write replay outputs as a candump log whose timestamps are the replay times."""
+    """Write replay outputs as a candump log whose timestamps are the replay times, with
+    the measured timing of CTRL_DIAG zeroed (`normalise_timing`)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -376,7 +396,7 @@ def write_reference(path: str | Path, outputs: Sequence[OutputFrame]) -> Path:
     except (OSError, ValueError) as error:
         raise ReplayError(f"cannot write the reference {path}: {error}") from error
     try:
-        for output in outputs:
+        for output in map(normalise_timing, outputs):
             writer.on_message_received(can.Message(
                 timestamp=output.time_s, arbitration_id=output.arbitration_id,
                 data=output.data, is_extended_id=False, channel="ecu"))
@@ -399,6 +419,7 @@ def read_reference(path: str | Path) -> tuple[list[OutputFrame], LogContents]:
 # --- comparison -----------------------------------------------------------------------
 
 
+@functools.cache
 def exact_masks() -> dict[int, bytes]:
     """Per compared frame, the bits compared bit for bit: all but the measured timing
     signals of CTRL_DIAG and its CRC (built from the DBC's little-endian layouts)."""
@@ -461,7 +482,7 @@ class Comparison:
         return (self.mismatched_frames == 0 and self.missing == 0 and self.extra == 0
                 and self.paired > 0)
 
-    def _diverge(self, divergence: Divergence) -> None:
+    def _note_divergence(self, divergence: Divergence) -> None:
         if self.first_divergence is None or divergence.time_s < self.first_divergence.time_s:
             self.first_divergence = divergence
 
@@ -475,24 +496,21 @@ def _signal_values(frame: Any, counter: int | None) -> dict[str, float]:
     return values
 
 
-def _display(frame_id: FrameId, name: str, value: float) -> Any:
-    if name == "ctrl_mode":
-        return f"{int(value)} ({_enum_name(SteerTorqueCmd, value)})"
-    if name == "qp_status":
-        return f"{int(value)} ({_enum_name(CtrlDiag, value)})"
-    if name in ("steer_angle_cmd", "drive_torque_cmd"):
+_ENUM_SIGNALS: dict[str, type[IntEnum]] = {"ctrl_mode": CtrlMode, "qp_status": QpStatus}
+
+
+def _display(name: str, value: float) -> str:
+    """A signal value as the report shows it: choice names, units, integers."""
+    enum_type = _ENUM_SIGNALS.get(name)
+    if enum_type is not None:
+        try:
+            label = enum_type(int(value)).name
+        except ValueError:
+            label = "undefined"
+        return f"{int(value)} ({label})"
+    if name in SIGNAL_UNITS:
         return f"{value:.4f} {SIGNAL_UNITS[name]}"
-    return int(value)
-
-
-def _enum_name(frame_class: type, value: float) -> str:
-    from can_defs.frames import CtrlMode, QpStatus
-
-    enum_type = CtrlMode if frame_class is SteerTorqueCmd else QpStatus
-    try:
-        return enum_type(int(value)).name
-    except ValueError:
-        return "?"
+    return str(int(value))
 
 
 def _pairs(expected: list[OutputFrame], actual: list[OutputFrame], window_s: float
@@ -552,9 +570,9 @@ def compare_outputs(expected: Sequence[OutputFrame], actual: Sequence[OutputFram
         result.missing += len(missing)
         result.extra += len(extra)
         for frame in missing[:1]:
-            result._diverge(Divergence(frame.time_s, name, "(frame)", "sent", "not sent"))
+            result._note_divergence(Divergence(frame.time_s, name, "(frame)", "sent", "not sent"))
         for frame in extra[:1]:
-            result._diverge(Divergence(frame.time_s, name, "(frame)", "not sent", "sent"))
+            result._note_divergence(Divergence(frame.time_s, name, "(frame)", "not sent", "sent"))
         mask = masks[int(frame_id)]
         for want, got in pairs:
             result.paired += 1
@@ -570,7 +588,7 @@ def _compare_pair(result: Comparison, frame_id: FrameId, want: OutputFrame, got:
     except CanDefsError as error:
         result.undecodable += 1
         result.mismatched_frames += 1
-        result._diverge(Divergence(want.time_s, name, "(payload)", want.data.hex(),
+        result._note_divergence(Divergence(want.time_s, name, "(payload)", want.data.hex(),
                                    f"{got.data.hex()} ({error})"))
         return
     counters = mode == "exact"
@@ -603,11 +621,11 @@ def _compare_pair(result: Comparison, frame_id: FrameId, want: OutputFrame, got:
     result.mismatched_frames += 1
     signal = differing[0]
     if signal.startswith("("):
-        result._diverge(Divergence(want.time_s, name, signal, want.data.hex(), got.data.hex()))
+        result._note_divergence(Divergence(want.time_s, name, signal, want.data.hex(), got.data.hex()))
     else:
-        result._diverge(Divergence(want.time_s, name, signal,
-                                   _display(frame_id, signal, want_values[signal]),
-                                   _display(frame_id, signal, got_values[signal])))
+        result._note_divergence(Divergence(want.time_s, name, signal,
+                                   _display(signal, want_values[signal]),
+                                   _display(signal, got_values[signal])))
 
 
 # --- the whole replay -----------------------------------------------------------------
@@ -644,7 +662,8 @@ class ReplayReport:
                  f"  time base: {self.time_base}",
                  f"  fed {self.run.frames_fed} frames"
                  + (f", {self.run.acks} HIL_SYNC acknowledged" if self.run.lockstep
-                    else f", {self.run.control_releases} control releases"),
+                    else f", {self.run.control_releases} control releases")
+                 + f", in {self.run.wall_time_s:.2f} s of wall clock (ECU start-up included)",
                  f"  compared with: {self.expected_source}",
                  f"  comparison: {_mode_text(c.mode)}",
                  f"  frames: expected {c.expected}, replayed {c.replayed}, paired {c.paired}, "
@@ -687,7 +706,7 @@ class ReplayReport:
             "first_divergence": None if first is None else {
                 "time_s": first.time_s, "frame": first.frame, "signal": first.signal,
                 "expected": str(first.expected), "replayed": str(first.actual)},
-            "aborted": self.run.aborted,
+            "aborted": self.run.aborted, "wall_time_s": self.run.wall_time_s,
             "log_warnings": list(self.log_contents.warnings),
             "notes": self.run.notes + self.notes,
         }

@@ -34,6 +34,7 @@ import numpy as np
 from can_defs.frames import CtrlMode
 from hil.bus import BusConfig, open_bus, private_virtual_channel
 from hil.errors import HilError
+from hil.logio import LogMetadata, write_sidecar
 from hil.metrics import TrackingMetrics, path_errors, tracking_metrics
 from hil.plant_node import PlantNode
 from hil.planner_node import PlannerNode, engage_from_start
@@ -212,6 +213,7 @@ class EcuProcess(_EcuRunner):
             handle, name = tempfile.mkstemp(prefix="ecu-", suffix=".txt")
             os.close(handle)
             self.output_path = Path(name)
+        self._temporary_output = options.ecu_output is None
         self._output = self.output_path.open("wb")
         try:
             self.process = subprocess.Popen(self.command, cwd=REPO_ROOT, stdin=subprocess.DEVNULL,
@@ -242,6 +244,8 @@ class EcuProcess(_EcuRunner):
                 self.process.kill()
                 self.process.wait()
         self._output.close()
+        if self._temporary_output and self.process.returncode == 0:
+            self.output_path.unlink(missing_ok=True)  # kept only when something went wrong
 
 
 # --- one run -------------------------------------------------------------------------------
@@ -286,6 +290,12 @@ def run_hil(scenario: Scenario, options: RunOptions,
         finally:
             if recorder is not None:
                 recorder.stop()
+                # Sidecar so `python -m hil replay LOG` needs no flags.
+                write_sidecar(options.log_path, LogMetadata(
+                    controller=options.controller,
+                    mode="lockstep" if options.lockstep else "realtime",
+                    paths={scenario.path_id: str(scenario.path_file)},
+                    scenario=scenario.name))
             master_bus.shutdown()
     wall = time.monotonic() - started
     plant_trace = plant.trace()

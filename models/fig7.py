@@ -46,6 +46,8 @@ HORIZON = 10
 #: Default observer pole (both error poles of eq. 24); chosen from the gain sweep, see
 #: docs/readme/50-eso.md.
 DEFAULT_POLE = 0.5
+#: VEH_DYN signal resolutions [VX, VY, YAW_RATE] of the CAN contract (m/s, m/s, rad/s).
+CAN_RESOLUTION = np.array([0.01, 0.001, 0.0001])
 #: Poles of the gain sweep.
 SWEEP_POLES = (0.0, 0.2, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
 
@@ -76,50 +78,64 @@ class DriveSettings:
     seed: int = 7
     #: Speed P controller gain (N m per m/s) of the decoupled structure (Fig. 4).
     speed_gain: float = 400.0
-    max_steer: float = 0.08
+    #: Range of the steady-state lateral acceleration the manoeuvres ask for (m/s^2):
+    #: up to ~60 % of the grip limit at mu 0.85, up to ~95 % at mu 0.55.
+    min_lateral_accel: float = 2.0
+    max_lateral_accel: float = 5.0
+    max_steer: float = 0.15
 
 
-def drive_profile(settings: DriveSettings) -> tuple[np.ndarray, np.ndarray]:
+#: Manoeuvre sequence of the drive (parameters drawn from the seeded generator).
+MANOEUVRES = ("corner", "sine", "lane_change", "slalom", "corner", "straight", "sine", "lane_change", "slalom")
+
+
+def _manoeuvre_shape(rng: np.random.Generator, kind: str, tau: np.ndarray) -> np.ndarray:
+    """Normalised steering shape in [-1, 1] of one manoeuvre over local time tau (n,)."""
+    sign = rng.choice((-1.0, 1.0))
+    if kind == "corner":  # enter in ~1 s, hold, leave in the last second
+        ramp = rng.uniform(0.8, 1.5)
+        return sign * np.clip(tau / ramp, 0.0, 1.0) * np.clip((tau[-1] - tau) / 1.0, 0.0, 1.0)
+    if kind == "sine":
+        return sign * np.sin(2 * np.pi * rng.uniform(0.15, 0.6) * tau)
+    if kind == "lane_change":
+        period = rng.uniform(2.5, 4.0)
+        return sign * np.sin(2 * np.pi * tau / period) * (tau < period)
+    if kind == "slalom":
+        return sign * np.sin(2 * np.pi * rng.uniform(0.5, 0.8) * tau)
+    return np.zeros_like(tau)
+
+
+def drive_profile(settings: DriveSettings, params: VehicleParams | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Target speed (n,) m/s and front-wheel steer command (n,) rad of the drive.
 
-    A sequence of 6-12 s manoeuvres: straight, sine steer (0.2-1.2 Hz), step-and-hold,
-    lane-change pulses; speed targets between 30 and 60 km/h, ramps of 10 s (60 s drive), so Vx, Vy and
-    yaw rate are all excited, in the linear range at mu 0.85 and near the limit at 0.55.
+    3 s straight at 40 km/h, then 5-9 s manoeuvres (corner, sine 0.15-0.6 Hz, lane change,
+    slalom 0.5-0.8 Hz, straight), each asking for a steady-state lateral acceleration in
+    [min, max]_lateral_accel, turned into a wheel angle with the nominal car's
+    steady-state bicycle relation delta = a_y (L / v^2 + K_us) at the target speed; speed
+    targets 30-60 km/h with 10 s ramps. The same commands drive all three conditions, so
+    only the plant differs. ``params``: the nominal car (default ``models/vehicle.toml``).
     """
+    from models.data import understeer_gradient  # the data generator's scaling, same formula
+
+    params = params if params is not None else load_vehicle_params()
     rng = np.random.default_rng(settings.seed)
     n = int(round(settings.duration_s / TS))
     t = np.arange(n) * TS
-    steer = np.zeros(n)
-    start = int(3.0 / TS)  # 3 s straight at 40 km/h first
-    kinds = ("sine", "step", "lane_change", "straight", "sine", "chirp")
-    index = 0
+    levels = np.array([40.0, 50.0, 35.0, 55.0, 30.0, 60.0, 40.0]) * KMH
+    target_speed = np.interp(t, np.linspace(0.0, t[-1], levels.size), levels)
+    lateral = np.zeros(n)
+    start, index = int(3.0 / TS), 0
     while start < n:
-        length = int(rng.uniform(6.0, 12.0) / TS)
-        stop = min(n, start + length)
-        tau = t[start:stop] - t[start]
-        amplitude = rng.uniform(0.3, 1.0) * settings.max_steer
-        kind = kinds[index % len(kinds)]
-        if kind == "sine":
-            steer[start:stop] = amplitude * np.sin(2 * np.pi * rng.uniform(0.2, 1.2) * tau)
-        elif kind == "chirp":
-            f0, f1 = 0.1, 1.5
-            steer[start:stop] = amplitude * np.sin(2 * np.pi * (f0 * tau + (f1 - f0) * tau**2 / (2 * tau[-1])))
-        elif kind == "step":
-            hold = min(len(tau), int(3.0 / TS))
-            sign = rng.choice((-1.0, 1.0))
-            steer[start : start + hold] = sign * amplitude * 0.6
-        elif kind == "lane_change":
-            period = rng.uniform(2.0, 4.0)
-            pulse = np.sin(2 * np.pi * tau / period) * (tau < period)
-            steer[start:stop] = amplitude * pulse
+        stop = min(n, start + int(rng.uniform(5.0, 9.0) / TS))
+        level = rng.uniform(settings.min_lateral_accel, settings.max_lateral_accel)
+        lateral[start:stop] = level * _manoeuvre_shape(rng, MANOEUVRES[index % len(MANOEUVRES)], t[start:stop] - t[start])
         index += 1
         start = stop
-    # Smooth the manoeuvre edges (a driver, not a square wave): 0.2 s moving average.
+    # A driver, not a square wave: 0.2 s moving average over the manoeuvre edges.
     width = int(0.2 / TS)
-    steer = np.convolve(steer, np.ones(width) / width, mode="same")
-    levels = np.array([40.0, 50.0, 35.0, 55.0, 30.0, 60.0, 40.0]) * KMH
-    knots = np.linspace(0.0, t[-1], levels.size)
-    target_speed = np.interp(t, knots, levels)
+    lateral = np.convolve(lateral, np.ones(width) / width, mode="same")
+    gain = params.wheelbase / target_speed**2 + understeer_gradient(params)
+    steer = np.clip(lateral * gain, -settings.max_steer, settings.max_steer)
     return target_speed, steer
 
 
@@ -159,10 +175,16 @@ def simulate_drive(
 
 
 def _cache_key(settings: DriveSettings) -> str:
+    """Hash of everything the drives depend on: the commands, plant parameters and code."""
+    digest = hashlib.sha256()
     nominal = load_vehicle_params()
-    payload = json.dumps({"drive": asdict(settings), "plant": asdict(nominal),
-                          "conditions": [asdict(c) for c in CONDITIONS]}, sort_keys=True, default=str)
-    return hashlib.sha256(payload.encode()).hexdigest()[:16]
+    digest.update(json.dumps({"drive": asdict(settings), "plant": asdict(nominal),
+                              "conditions": [asdict(c) for c in CONDITIONS]}, sort_keys=True).encode())
+    for array in drive_profile(settings, nominal):
+        digest.update(array.tobytes())
+    for source in ("vehicle.py", "tyre.py"):
+        digest.update((Path(__file__).resolve().parent / source).read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def load_or_simulate(settings: DriveSettings, cache: Path, resimulate: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -205,11 +227,27 @@ class Predictions:
     multi_eso: np.ndarray
 
 
+def quantise_like_can(states: np.ndarray) -> np.ndarray:
+    """States (..., 3) rounded to the VEH_DYN resolutions: what the ECU receives."""
+    return np.round(states / CAN_RESOLUTION) * CAN_RESOLUTION
+
+
 def predict_along(
-    model: KoopmanModel, params: EsoParams, states: np.ndarray, inputs: np.ndarray, horizon: int = HORIZON
+    model: KoopmanModel,
+    params: EsoParams,
+    states: np.ndarray,
+    inputs: np.ndarray,
+    horizon: int = HORIZON,
+    measured: np.ndarray | None = None,
 ) -> Predictions:
-    """DK and ESO-DK predictions from every sample; states (n + 1, 3), inputs (n, 2)."""
+    """DK and ESO-DK predictions from every sample; states (n + 1, 3), inputs (n, 2).
+
+    ``measured`` (n + 1, 3), default ``states``: what the predictors see (e.g. CAN-quantised
+    states); the errors are always taken against the true ``states``.
+    """
     n = inputs.shape[0]
+    truth = states
+    states = truth if measured is None else measured
     predictor = EsoDkPredictor(model, params)
     predictor.reset(states[0])
     disturbances = np.empty((n, model.n_z))
@@ -224,12 +262,12 @@ def predict_along(
     c_t = model.C_P.T
     multi_dk = rollout_lifted(model, lifted, windows) @ c_t
     multi_eso = rollout_lifted(model, lifted, windows, disturbances[:starts]) @ c_t
-    multi_truth = np.lib.stride_tricks.sliding_window_view(states[1:], horizon, axis=0)
+    multi_truth = np.lib.stride_tricks.sliding_window_view(truth[1:], horizon, axis=0)
     multi_truth = np.moveaxis(multi_truth, -1, 1)
     lifted_all = model.lift(states[:n])
     one_dk = rollout_lifted(model, lifted_all, inputs[:, None, :])[:, 0] @ c_t
     one_eso = rollout_lifted(model, lifted_all, inputs[:, None, :], disturbances)[:, 0] @ c_t
-    return Predictions(states[1:], one_dk, one_eso, multi_truth, multi_dk, multi_eso)
+    return Predictions(truth[1:], one_dk, one_eso, multi_truth, multi_dk, multi_eso)
 
 
 def rmse(error: np.ndarray) -> np.ndarray:
@@ -253,16 +291,10 @@ def observer_params(model: KoopmanModel, pole: float) -> EsoParams:
     return EsoParams(model.A, model.B, model.offset, gains.beta1, gains.beta2)
 
 
-def rmse_table(results: dict[str, dict[str, np.ndarray]], pole: float, artifact: str) -> str:
-    """Markdown table of one-step and 10-step RMSE per condition and state."""
+def rmse_table(results: dict[str, dict[str, np.ndarray]], heading: str) -> str:
+    """Markdown table of one-step and H-step RMSE per condition and state under ``heading``."""
     lines = [
-        "# Fig. 7: DK vs ESO-DK prediction RMSE",
-        "",
-        f"Model `{artifact}` (trained on nominal conditions only); ESO matrix gains with both "
-        f"error poles of eq. 24 at {pole} (spectral radius {pole}; error bandwidth "
-        f"{-math.log(max(pole, 1e-12)) / (2 * math.pi * TS):.1f} Hz). "
-        f"One-step: x[k+1|k]; {HORIZON}-step: x[k+{HORIZON}|k] with w_hat held. "
-        "Improvement = (DK - ESO-DK) / DK. Generated by `make fig7`.",
+        f"## {heading}",
         "",
         f"| condition | state | 1-step DK | 1-step ESO-DK | 1-step impr. | {HORIZON}-step DK | "
         f"{HORIZON}-step ESO-DK | {HORIZON}-step impr. |",
@@ -278,6 +310,19 @@ def rmse_table(results: dict[str, dict[str, np.ndarray]], pole: float, artifact:
                 f"{one:+.1f} % | {r['multi_dk'][i]:.4f} | {r['multi_eso'][i]:.4f} | {multi:+.1f} % |"
             )
     return "\n".join(lines) + "\n"
+
+
+def table_header(pole: float, artifact: str, duration_s: float) -> str:
+    """Title and how to read the tables."""
+    bandwidth = "dead-beat" if pole == 0 else f"{-math.log(pole) / (2 * math.pi * TS):.1f} Hz error bandwidth"
+    return (
+        "# Fig. 7: DK vs ESO-DK prediction RMSE\n\n"
+        f"Model `{artifact}` (trained on nominal conditions only), {duration_s:.0f} s drive from 40 km/h "
+        f"(`models/fig7.py`). ESO: matrix gains from `design_gains` with both error poles of eq. 24 at "
+        f"{pole} (spectral radius {pole}, {bandwidth}). 1-step: RMSE of x[k+1|k]; {HORIZON}-step: RMSE "
+        f"of x[k+{HORIZON}|k] with w_hat held over the horizon (eq. 15). Improvement = (DK - ESO-DK) / DK, "
+        "positive = ESO-DK better. Errors always against the true plant state. Generated by `make fig7`.\n\n"
+    )
 
 
 def plot_condition(p: Predictions, condition: Condition, path: Path) -> None:
@@ -304,38 +349,36 @@ def plot_condition(p: Predictions, condition: Condition, path: Path) -> None:
 
 
 def gain_sweep(model: KoopmanModel, drives: dict[str, tuple[np.ndarray, np.ndarray]]) -> str:
-    """RMSE of Vy and yaw rate (1-step and H-step) against the observer pole, all conditions."""
+    """RMSE (mean over the three conditions) against the observer pole, for exact and
+    CAN-quantised measurements: the basis of the gain choice."""
     lines = [
         "# ESO gain sweep (Fig. 7 drives)",
         "",
-        "Both error poles of eq. 24 at the value shown (matrix gains from `design_gains`); "
-        "pole 0 is dead-beat. RMSE summed over the three conditions; DK row for reference. "
+        "Both error poles of eq. 24 at the value shown (matrix gains from `design_gains`; 0 is "
+        "dead-beat). RMSE averaged over the three conditions. `exact`: the predictors see the "
+        "plant state; `CAN`: they see it rounded to the VEH_DYN resolutions (0.01 m/s, 0.001 m/s, "
+        "0.0001 rad/s), as the ECU does; errors always against the true state. "
         "Generated by `make fig7`.",
         "",
-        f"| pole | bandwidth (Hz) | 1-step Vy | 1-step r | {HORIZON}-step Vy | {HORIZON}-step r | "
-        f"1-step Vx | {HORIZON}-step Vx |",
-        "|---|---|---|---|---|---|---|---|",
+        f"| pole | bandwidth (Hz) | measured | 1-step Vx | 1-step Vy | 1-step r | {HORIZON}-step Vx | "
+        f"{HORIZON}-step Vy | {HORIZON}-step r |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    dk_row = None
+    dk_rows: dict[str, np.ndarray] = {}
     for pole in SWEEP_POLES:
-        total = {"one": np.zeros(3), "multi": np.zeros(3), "one_dk": np.zeros(3), "multi_dk": np.zeros(3)}
-        for states, inputs in drives.values():
-            r = prediction_rmse(predict_along(model, observer_params(model, pole), states, inputs))
-            total["one"] += r["one_eso"]
-            total["multi"] += r["multi_eso"]
-            total["one_dk"] += r["one_dk"]
-            total["multi_dk"] += r["multi_dk"]
+        params = observer_params(model, pole)
         bandwidth = "inf" if pole == 0 else f"{-math.log(pole) / (2 * math.pi * TS):.1f}"
-        lines.append(
-            f"| {pole} | {bandwidth} | {total['one'][1]:.4f} | {total['one'][2]:.4f} | {total['multi'][1]:.4f} | "
-            f"{total['multi'][2]:.4f} | {total['one'][0]:.4f} | {total['multi'][0]:.4f} |"
-        )
-        dk_row = total
-    assert dk_row is not None
-    lines.append(
-        f"| DK (no ESO) | - | {dk_row['one_dk'][1]:.4f} | {dk_row['one_dk'][2]:.4f} | {dk_row['multi_dk'][1]:.4f} | "
-        f"{dk_row['multi_dk'][2]:.4f} | {dk_row['one_dk'][0]:.4f} | {dk_row['multi_dk'][0]:.4f} |"
-    )
+        for label, quantise in (("exact", False), ("CAN", True)):
+            eso, dk = np.zeros(6), np.zeros(6)
+            for states, inputs in drives.values():
+                measured = quantise_like_can(states) if quantise else None
+                r = prediction_rmse(predict_along(model, params, states, inputs, measured=measured))
+                eso += np.concatenate([r["one_eso"], r["multi_eso"]]) / len(drives)
+                dk += np.concatenate([r["one_dk"], r["multi_dk"]]) / len(drives)
+            dk_rows[label] = dk
+            lines.append(f"| {pole} | {bandwidth} | {label} | " + " | ".join(f"{v:.4f}" for v in eso) + " |")
+    for label, dk in dk_rows.items():
+        lines.append(f"| DK (no ESO) | - | {label} | " + " | ".join(f"{v:.4f}" for v in dk) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -357,13 +400,17 @@ def main(argv: list[str] | None = None) -> int:
         settings = DriveSettings(duration_s=args.duration)
         drives = load_or_simulate(settings, out / "fig7_drives.npz", args.resimulate)
         params = observer_params(model, args.pole)
-        results = {}
+        exact, quantised = {}, {}
         for condition in CONDITIONS:
             states, inputs = drives[condition.key]
             predictions = predict_along(model, params, states, inputs)
-            results[condition.key] = prediction_rmse(predictions)
+            exact[condition.key] = prediction_rmse(predictions)
+            quantised[condition.key] = prediction_rmse(
+                predict_along(model, params, states, inputs, measured=quantise_like_can(states)))
             plot_condition(predictions, condition, out / f"fig7_{condition.key}.png")
-        table = rmse_table(results, args.pole, Path(args.artifact).name)
+        table = (table_header(args.pole, Path(args.artifact).name, settings.duration_s)
+                 + rmse_table(exact, "Exact plant states (as the paper's simulation)") + "\n"
+                 + rmse_table(quantised, "CAN-quantised measurements (as the ECU receives them)"))
         (out / "fig7_rmse.md").write_text(table)
         print(table)
         if not args.no_sweep:

@@ -1,12 +1,13 @@
 """Steady-state handling of the plant, and the parameter table for the README.
 
 ``python -m models.handling diagram --out results`` drives the plant to steady state
-(constant speed held by a P controller on the drive torque, constant steer) over a steer
+(constant speed held by a P controller on the drive torque, constant steer; points that
+do not settle are left out) over a steer
 sweep at 20 m/s and a speed sweep at a small steer angle, for mu 0.85 and 0.5, and writes
 
 - ``handling_lateral_accel.png``: lateral acceleration against steer angle at 20 m/s;
-- ``handling_yaw_gain.png``: yaw rate gain r / delta against speed, with the linear
-  bicycle's vx / (L + K_us vx^2) for comparison;
+- ``handling_yaw_gain.png``: yaw rate gain r / delta against speed at two steer angles
+  (linear range and 0.03 rad), with the linear bicycle's vx / (L + K_us vx^2);
 - ``handling.json``: the numbers behind both figures.
 
 ``python -m models.handling table`` prints the parameter table (Markdown) from
@@ -28,45 +29,65 @@ from models.vehicle_params import DEFAULT_PARAMS_PATH, VehicleParams, load_vehic
 
 FRICTIONS = (0.85, 0.5)
 SWEEP_SPEED = 20.0
-STEER_SWEEP = np.linspace(0.002, 0.12, 24)
+STEER_SWEEP = np.linspace(0.0025, 0.15, 60)
 SPEED_SWEEP = np.linspace(5.0, 35.0, 13)
-GAIN_STEER = 0.005
-SETTLE_SECONDS = 5.0
+GAIN_STEERS = (0.005, 0.03)
+SETTLE_SECONDS = 8.0
 _TS = 0.025
+#: P gain (1/s) of the speed hold: strong, so the speed stays on target near the limit.
+SPEED_GAIN = 4.0
 
 
-def steady_state(params: VehicleParams, mu: float, speeds: np.ndarray, steers: np.ndarray,
-                 seconds: float = SETTLE_SECONDS) -> np.ndarray:
+def steady_state(params: VehicleParams, mu: float | np.ndarray, speeds: np.ndarray, steers: np.ndarray,
+                 seconds: float = SETTLE_SECONDS) -> tuple[np.ndarray, np.ndarray]:
     """Final states (n, N_STATE) after ``seconds`` at each (speed, steer) pair held by a
-    P speed controller on the torque (the torque also balances the running resistance)."""
+    P speed controller on the torque (the torque also balances the running resistance),
+    and a mask (n,) of the points that really are steady: speed within 1 m/s of the
+    target, yaw rate changed by < 2 % over the last second, no spin (|vy| < 0.3 vx)."""
     batch = VehicleBatch(params, len(speeds), mu=mu)
     batch.reset(speeds)
-    for _ in range(int(round(seconds / _TS))):
+    n_steps = int(round(seconds / _TS))
+    yaw_rate_before = np.zeros(len(speeds))
+    for k in range(n_steps):
+        if k == n_steps - int(round(1.0 / _TS)):
+            yaw_rate_before = batch.state[:, YAW_RATE].copy()
         vx = batch.state[:, VX]
-        torque = params.radius * params.mass * (speeds - vx) + params.radius * 300.0
+        torque = params.radius * params.mass * SPEED_GAIN * (speeds - vx) + params.radius * 300.0
         batch.step(steers, torque, _TS)
-    return batch.state
+    state = batch.state
+    yaw_rate = state[:, YAW_RATE]
+    steady = ((np.abs(state[:, VX] - speeds) < 1.0)
+              & (np.abs(yaw_rate - yaw_rate_before) <= 0.02 * np.abs(yaw_rate) + 1e-4)
+              & (np.abs(state[:, VY]) < 0.3 * np.abs(state[:, VX])))
+    return state, steady
 
 
 def handling_data(params: VehicleParams | None = None) -> dict:
     """Steady-state sweeps for every mu in FRICTIONS (one batch per mu)."""
     params = params if params is not None else load_vehicle_params()
     bicycle = LinearBicycle(nominal_model_params(params))
-    result: dict = {"speed_for_steer_sweep": SWEEP_SPEED, "gain_steer": GAIN_STEER,
+    result: dict = {"speed_for_steer_sweep": SWEEP_SPEED, "gain_steers": list(GAIN_STEERS),
                     "understeer_gradient_nominal": bicycle.params.understeer_gradient, "mu": {}}
-    for mu in FRICTIONS:
-        speeds = np.concatenate([np.full(STEER_SWEEP.size, SWEEP_SPEED), SPEED_SWEEP])
-        steers = np.concatenate([STEER_SWEEP, np.full(SPEED_SWEEP.size, GAIN_STEER)])
-        state = steady_state(params, mu, speeds, steers)
-        n = STEER_SWEEP.size
-        # A point whose sideslip grew past 0.3 vx has spun: not a steady state.
-        spun = np.abs(state[:, VY]) > 0.3 * np.abs(state[:, VX])
+    # One batch for every mu (each row has its own friction).
+    n = STEER_SWEEP.size
+    speeds_one = np.concatenate([np.full(n, SWEEP_SPEED), np.tile(SPEED_SWEEP, len(GAIN_STEERS))])
+    steers_one = np.concatenate([STEER_SWEEP, np.repeat(GAIN_STEERS, SPEED_SWEEP.size)])
+    per_mu = speeds_one.size
+    mus = np.repeat(np.array(FRICTIONS), per_mu)
+    states, steady = steady_state(params, mus, np.tile(speeds_one, len(FRICTIONS)),
+                                  np.tile(steers_one, len(FRICTIONS)))
+    for index, mu in enumerate(FRICTIONS):
+        rows = slice(index * per_mu, (index + 1) * per_mu)
+        state, ok = states[rows], steady[rows]
+        lateral = np.where(ok[:n], state[:n, ACCEL_Y_FILT], np.nan)
+        gains = np.where(ok[n:], state[n:, YAW_RATE] / steers_one[n:], np.nan)
         result["mu"][str(mu)] = {
             "steer": STEER_SWEEP.tolist(),
-            "lateral_accel": np.where(spun[:n], np.nan, state[:n, ACCEL_Y_FILT]).tolist(),
+            "lateral_accel": lateral.tolist(),
             "speed": SPEED_SWEEP.tolist(),
-            "yaw_rate_gain": np.where(spun[n:], np.nan, state[n:, YAW_RATE] / GAIN_STEER).tolist(),
-            "peak_lateral_accel": float(np.nanmax(np.abs(np.where(spun[:n], np.nan, state[:n, ACCEL_Y_FILT])))),
+            "yaw_rate_gain": {str(d): gains[i * SPEED_SWEEP.size:(i + 1) * SPEED_SWEEP.size].tolist()
+                              for i, d in enumerate(GAIN_STEERS)},
+            "peak_lateral_accel": float(np.nanmax(np.abs(lateral))),
         }
     result["bicycle_yaw_rate_gain"] = [bicycle.steady_state_yaw_rate_gain(v) for v in SPEED_SWEEP]
     return result
@@ -85,7 +106,8 @@ def plot_handling(data: dict, out_dir: Path) -> list[Path]:
         ax.axhline(float(mu) * 9.81, ls=":", lw=1, color="grey")
     ax.set_xlabel("front wheel angle (deg)")
     ax.set_ylabel("steady lateral acceleration (m/s$^2$)")
-    ax.set_title(f"Handling diagram at {data['speed_for_steer_sweep']:.0f} m/s (dotted: mu g)")
+    ax.set_title(f"Handling diagram at {data['speed_for_steer_sweep']:.0f} m/s (dotted: mu g; "
+                 "gaps: no steady state)", fontsize=10)
     ax.grid(True, alpha=0.3)
     ax.legend()
     lateral = out_dir / "handling_lateral_accel.png"
@@ -94,13 +116,14 @@ def plot_handling(data: dict, out_dir: Path) -> list[Path]:
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    for mu, curve in data["mu"].items():
-        ax.plot(curve["speed"], curve["yaw_rate_gain"], "o-", ms=3, label=f"plant, mu {mu}")
+    for (mu, curve), color in zip(data["mu"].items(), ("C0", "C1")):
+        for (steer, gains), style in zip(curve["yaw_rate_gain"].items(), ("o-", "s:")):
+            ax.plot(curve["speed"], gains, style, ms=3, color=color, label=f"plant, mu {mu}, delta {steer} rad")
     ax.plot(data["mu"][str(FRICTIONS[0])]["speed"], data["bicycle_yaw_rate_gain"], "k--",
             label="linear bicycle (nominal)")
     ax.set_xlabel("speed (m/s)")
     ax.set_ylabel("yaw rate gain r / delta (1/s)")
-    ax.set_title(f"Steady yaw rate gain at delta = {data['gain_steer']} rad")
+    ax.set_title("Steady yaw rate gain (missing points: no steady state)")
     ax.grid(True, alpha=0.3)
     ax.legend()
     gain = out_dir / "handling_yaw_gain.png"

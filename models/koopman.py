@@ -278,7 +278,7 @@ class KoopmanModel:
         h = x
         last = len(self._layers) - 1
         for i, ((w, b), out) in enumerate(zip(self._layers, self._hidden)):
-            np.matmul(w, h, out=out)
+            np.dot(w, h, out=out)  # np.dot: ~1 us less call overhead than matmul for a vector
             out += b
             if i < last:
                 np.tanh(out, out=out)

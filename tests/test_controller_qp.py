@@ -224,3 +224,59 @@ def test_eso_removes_the_steady_error_of_an_unmodelled_disturbance() -> None:
     print(f"steady |e_Y| with a 0.8 m/s^2 lateral push: DKMPC {steady['dkmpc']:.4f} m, "
           f"ESO-DKMPC {steady['eso-dkmpc']:.4f} m")
     assert steady["eso-dkmpc"] < 0.01 < steady["dkmpc"]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_heading_west_across_the_yaw_wrap(name: str) -> None:
+    """Driving along -x the measured yaw flips between +pi and -pi; nothing may notice."""
+    x = np.arange(0.0, -300.0, -0.25)
+    west = ReferencePath.from_arrays(x, np.zeros_like(x), np.full_like(x, math.pi), "west")
+    plant = LinearPlant((0.0, -0.5, math.pi - 0.05))
+    errors, commands, debugs = run(build(name), west, plant, 200)
+    wrapped_yaws = [d for d in debugs if d.predicted_pose.size and d.predicted_pose[0, 2] < 0]
+    print(f"{name}: e_Y start {errors[0]:.3f} m, after 5 s {errors[-1]:.1e} m, steps seen with yaw < 0: "
+          f"{len(wrapped_yaws)}, max |steer| {max(abs(c.steer_angle) for c in commands):.3f} rad")
+    assert not any(d.fallback for d in debugs)
+    assert abs(errors[-1]) < 1e-3 and len(wrapped_yaws) > 0
+
+
+def test_pose_jacobian_matches_finite_differences() -> None:
+    from controller.pose_kinematics import linearise_pose
+
+    rng = np.random.default_rng(1)
+    n, n_u = 30, 8
+    states = np.column_stack((10 + 0.1 * rng.normal(size=n), 0.2 * rng.normal(size=n), 0.3 * rng.normal(size=n)))
+    gain = 0.01 * rng.normal(size=(n, 3, n_u))
+    pose0 = np.array([1.0, 2.0, 3.0])
+    poses, jacobian = linearise_pose(pose0, states, gain, TS)
+    step = 1e-6
+    finite = np.stack([(rollout_pose(pose0, states + gain @ d, TS) - rollout_pose(pose0, states - gain @ d, TS))
+                       / (2 * step) for d in np.eye(n_u) * step], axis=2)
+    error = np.max(np.abs(jacobian - finite))
+    print(f"max |Jacobian - central differences| = {error:.1e} (entries up to {np.max(np.abs(jacobian)):.3f})")
+    assert np.array_equal(poses, rollout_pose(pose0, states, TS)) and error < 1e-7
+
+
+@pytest.mark.parametrize("name", ["dkmpc", "eso-dkmpc"])
+def test_predicted_pose_matches_with_the_trained_koopman_model(name: str) -> None:
+    """The same kinematics check with the real lifted model (nonlinear lift, n_z > 3)."""
+    from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
+
+    if not DEFAULT_ARTIFACT.exists():
+        pytest.skip("models/artifacts/dk_d5.npz not trained yet (make train)")
+    tuning = load_tuning()
+    model = KoopmanModel.load()
+    controller = (Dkmpc(model, tuning.dkmpc, tuning.longitudinal) if name == "dkmpc"
+                  else EsoDkmpc(model, tuning.eso_dkmpc, tuning.longitudinal))
+    plant = LinearPlant((0.0, 0.0, 0.0), state=(SPEED, 0.0, SPEED / 40.0))
+    controller.set_path(circle())
+    worst = 0.0
+    for k in range(60):
+        sample = plant.sample()
+        command, debug = controller.step(sample)
+        assert not debug.fallback
+        if k > 0:
+            worst = max(worst, pose_mismatch(sample, debug)[0])
+        plant.apply(command.steer_angle, command.drive_torque)
+    print(f"{name} (n_z = {model.n_z}) on a 40 m circle: max |QP pose - eq. 20 rollout| = {worst * 100:.2f} cm")
+    assert worst < 0.02

@@ -6,35 +6,43 @@ import json
 import numpy as np
 import pytest
 
-from models.data import generate_dataset, main
+from models.data import generate_dataset, main, plan_run
 from models.dataset import RUN_COLUMNS, load_dataset
+from models.vehicle_params import load_vehicle_params
 
 
 def _small(out, seed):
-    # 3 runs of 6 s: enough to exercise every code path in a few seconds.
-    return generate_dataset(out, hours=3 * 6.0 / 3600.0, seed=seed, run_duration=6.0, progress=False)
+    # 2 runs of 5 s: enough to exercise every code path in a few seconds.
+    return generate_dataset(out, hours=2 * 5.0 / 3600.0, seed=seed, run_duration=5.0, progress=False)
 
 
-def test_generation_is_deterministic_for_a_seed(tmp_path):
-    first = _small(tmp_path / "a", seed=3)
-    second = _small(tmp_path / "b", seed=3)
-    other = _small(tmp_path / "c", seed=4)
-    print(f"content hash seed 3: {first['content_sha256'][:16]} / {second['content_sha256'][:16]}, "
-          f"seed 4: {other['content_sha256'][:16]}")
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gen_seed3")
+    return out, _small(out, seed=3)
+
+
+def test_generation_is_deterministic_for_a_seed(generated, tmp_path):
+    first_dir, first = generated
+    second = _small(tmp_path, seed=3)
+    print(f"content hash seed 3, twice: {first['content_sha256'][:16]} / {second['content_sha256'][:16]}")
     assert first["content_sha256"] == second["content_sha256"]
-    assert first["content_sha256"] != other["content_sha256"]
-    for name in ("run_0000.csv", "run_0001.csv"):
-        if (tmp_path / "a" / name).exists():
-            assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    for path in sorted(first_dir.glob("run_*.csv")):
+        assert path.read_bytes() == (tmp_path / path.name).read_bytes()
+    # Another seed draws other manoeuvres (the plans are what the seed drives).
+    params = load_vehicle_params()
+    plan_a = plan_run(np.random.default_rng(3), 5.0, 0.025, params)
+    plan_b = plan_run(np.random.default_rng(4), 5.0, 0.025, params)
+    assert plan_a.initial_speed != plan_b.initial_speed
 
 
-def test_output_has_manifest_ready_and_loads(tmp_path):
-    manifest = _small(tmp_path, seed=0)
-    on_disk = json.loads((tmp_path / "manifest.json").read_text())
-    assert on_disk["seed"] == 0 and on_disk["params"]["mass"] == 1648.0
+def test_output_has_manifest_ready_and_loads(generated):
+    out, manifest = generated
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk["seed"] == 3 and on_disk["params"]["mass"] == 1648.0
     assert on_disk["content_sha256"] == manifest["content_sha256"]
-    assert (tmp_path / "READY").read_text().strip() == manifest["content_sha256"]
-    runs = load_dataset(tmp_path)
+    assert (out / "READY").read_text().strip() == manifest["content_sha256"]
+    runs = load_dataset(out)
     assert len(runs) == manifest["n_runs"] >= 1
     for run in runs:
         data = run.array(RUN_COLUMNS)

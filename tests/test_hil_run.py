@@ -15,19 +15,19 @@ e_Y and 1 mrad for the heading error (5 LSB of YAW), and prints what it measured
 from __future__ import annotations
 
 import dataclasses
-import threading
+import json
 
 import can
 import numpy as np
 import pytest
 
 from can_defs.frames import CtrlMode
-from hil.bus import BusConfig, open_bus, private_virtual_channel
+from hil.bus import open_bus, private_virtual_channel
 from hil.plant_node import PlantNode
 from hil.planner_node import PlannerNode
 from hil.recorder import EcuFrameMonitor
 from hil.scenario import load_scenario
-from hil.session import InProcessEcu, RunOptions, default_options, run_hil
+from hil.session import InProcessEcu, default_options, run_hil
 from hil.time_master import LockstepMaster
 from test_hil_nodes import crc8_sae_j1850_bitwise, e2e_ok, unsigned
 
@@ -124,7 +124,6 @@ class _RestartingPlant:
         self.plant.advance(tick_ms, dt_s)
 
 
-@pytest.mark.slow
 def test_plant_restart_degrades_then_recovers_through_standby():
     base = load_scenario("dlc_smoke")
     scenario = dataclasses.replace(
@@ -161,3 +160,42 @@ def test_plant_restart_degrades_then_recovers_through_standby():
     assert abs(speed[400]) < 0.1, "SAFE_STOP brakes to standstill"
     assert modes[2050] == CtrlMode.STANDBY and not valid[2050]
     assert modes[2500] == CtrlMode.ACTIVE and valid[2500]
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["run", "--scenario", "no_such_scenario", "--controller", "lmpc"], "unknown scenario 'no_such_scenario'"),
+    (["run", "--scenario", "dlc_smoke", "--controller", "pid"], "latched FAULT at start-up"),
+    (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ack-timeout", "0"], "--ack-timeout must be > 0"),
+    (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--interface", "socketcan",
+      "--channel", "nocan0", "--handshake-timeout", "1"], "cannot open CAN bus socketcan:nocan0"),
+])
+def test_cli_bad_input_is_one_error_line(argv, fragment, capsys):
+    from hil.__main__ import main
+
+    status = main(argv)
+    err = capsys.readouterr().err
+    print(err)
+    assert status == 1
+    assert err.startswith("error: ") and fragment in err and "Traceback" not in err
+
+
+def test_cli_run_writes_time_series_summary_and_log(tmp_path, capsys):
+    from hil.__main__ import main
+
+    scenario = tmp_path / "quick.toml"
+    source = load_scenario("dlc_smoke").source
+    scenario.write_text(source.read_text().replace("duration_s = 4.0", "duration_s = 0.3")
+                        .replace('"../paths/dlc.csv"', f'"{source.parent.parent / "paths/dlc.csv"}"'))
+    status = main(["run", "--scenario", str(scenario), "--controller", CONTROLLER,
+                   "--interface", "virtual", "--channel", private_virtual_channel("cli"),
+                   "--log", str(tmp_path / "run.asc"), "--out", str(tmp_path / "out")])
+    printed = capsys.readouterr().out
+    assert status == 0, printed
+    plant = np.genfromtxt(tmp_path / "out" / "plant.csv", delimiter=",", names=True)
+    ecu = np.genfromtxt(tmp_path / "out" / "ecu.csv", delimiter=",", names=True)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    frames = list(can.LogReader(tmp_path / "run.asc"))
+    print(f"{len(plant)} plant rows, {len(ecu)} ECU cycles, {len(frames)} frames in the .asc log")
+    assert len(plant) == 60 and plant["time"][-1] == pytest.approx(0.295)
+    assert len(ecu) == 12 and summary["control_cycles"] == 12 and summary["active_cycles"] == 11
+    assert summary["frames_logged"] == len(frames) > 60 * 2

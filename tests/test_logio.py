@@ -89,8 +89,13 @@ def test_damaged_candump_lines_are_skipped_and_counted(tmp_path: Path) -> None:
     log = read_log(path)
     print(log.warnings)
     assert len(log.messages) == 200
-    assert log.skipped_lines == 3 and not log.complete
-    assert "3 line(s)" in log.warnings[0] and "line 101, 102, 203" in log.warnings[0]
+    assert log.skipped_lines == 2 and not log.complete
+    assert "last line (203) is incomplete" in log.warnings[0]
+    assert "2 line(s)" in log.warnings[1] and "line 101, 102" in log.warnings[1]
+    # A cut line that still looks like a shorter frame is caught by its missing line end.
+    path.write_text("\n".join(lines[:10]) + "\n" + lines[10][:-12])
+    log = read_log(path)
+    assert len(log.messages) == 10 and "incomplete" in log.warnings[0]
 
 
 def test_truncated_blf_gives_a_partial_result_with_a_warning(tmp_path: Path) -> None:

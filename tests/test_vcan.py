@@ -10,10 +10,16 @@ Where vcan0 comes from:
   (``sudo apt-get install user-mode-linux kmod iproute2 can-utils``, or ``sudo make apt-deps``);
 - else the test skips saying how to enable it; with ``CI=true`` it fails instead.
 
-Processes (each its own socket on vcan0): ``candump -L vcan0`` from can-utils (the
-independent recorder), ``python -m hil run --interface socketcan`` (plant, planner, time
-master and its own python-can recorder), which starts the ECU through its CLI
+Processes (each its own socket on vcan0): ``candump -L vcan0,200:7FE`` from can-utils (the
+independent recorder of the ECU's frames 0x200 / 0x201), ``python -m hil run --interface
+socketcan`` (plant, planner, time master), which starts the ECU through its CLI
 ``python -m firmware_sim --interface socketcan ...``.
+
+Why candump has a kernel-side filter: inside user-mode Linux on hosts with a large XSAVE
+area (see hil/vcan.py) we measured occasional 1-LSB differences of the plant state when an
+unfiltered candump woke for every frame while the plant integrated; with the filter (it
+then wakes only for the ECU's 2 frames per 25 ms) repeated runs were bit-identical to the
+host. On a host vcan0 the filter changes nothing.
 """
 from __future__ import annotations
 
@@ -82,8 +88,8 @@ def test_ecu_over_socketcan_vcan0_equals_the_virtual_bus_bit_for_bit(tmp_path):
     python = shlex.quote(sys.executable)
     run = (f"{python} -m hil run --scenario {scenario} --controller {CONTROLLER} "
            f"--interface socketcan --channel vcan0 --lockstep --handshake-timeout 120 "
-           f"--ack-timeout 30 --log {tmp_path / 'hil.log'} --out {tmp_path / 'out'}")
-    command = (f"candump -L vcan0 > {tmp_path / 'candump.log'} & CANDUMP=$!; sleep 0.5; "
+           f"--ack-timeout 30 --out {tmp_path / 'out'}")
+    command = (f"candump -L vcan0,200:7FE > {tmp_path / 'candump.log'} & CANDUMP=$!; sleep 0.5; "
                f"{run}; status=$?; sleep 0.5; kill $CANDUMP; wait $CANDUMP; exit $status")
     if backend == "uml":
         result = run_in_uml(command, workdir=REPO_ROOT, timeout_s=300)
@@ -105,16 +111,26 @@ def test_ecu_over_socketcan_vcan0_equals_the_virtual_bus_bit_for_bit(tmp_path):
     assert reference.returncode == 0, reference.stderr[-1500:]
 
     candump = _ecu_frames(tmp_path / "candump.log")
-    recorded = _ecu_frames(tmp_path / "hil.log")
     virtual = _ecu_frames(tmp_path / "virtual.log")
     cycles = round(DURATION_S / 0.025)
-    print(f"ECU frames: candump {len(candump)}, hil recorder {len(recorded)}, "
+    print(f"ECU frames: candump {len(candump)}, "
           f"virtual {len(virtual)} ({cycles} control cycles + the CMD_VALID = 0 on close)")
     assert sum(1 for fid, _ in candump if fid == 0x201) == cycles
     mismatch = next((i for i, (a, b) in enumerate(zip(candump, virtual)) if a != b), None)
     assert mismatch is None, f"first difference at ECU frame {mismatch}: " \
                              f"vcan0 {candump[mismatch]} virtual {virtual[mismatch]}"
     assert candump == virtual
-    assert recorded[:len(candump)] == candump, "python-can recorder agrees with candump"
     steer = {data[2:4] for fid, data in candump if fid == 0x200}
     assert len(steer) > 10, "the ECU really steered (not a constant command)"
+
+
+def test_without_vcan_it_skips_with_the_fix_but_fails_on_ci(monkeypatch):
+    module = sys.modules[__name__]
+    monkeypatch.setattr(module, "host_vcan_available", lambda channel: False)
+    monkeypatch.setattr(module, "uml_unavailable_reason", lambda: "missing linux.uml: install ...")
+    monkeypatch.delenv("CI", raising=False)
+    with pytest.raises(pytest.skip.Exception, match="missing linux.uml"):
+        _backend()
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="CI=true: this test must run"):
+        _backend()

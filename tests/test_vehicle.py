@@ -7,41 +7,38 @@ import numpy as np
 import pytest
 
 from models.bicycle import nominal_model_params
+from models.handling import steady_state
 from models.errors import VehicleCommandError, VehicleParamsError
 from models.vehicle import (ACCEL_Y_FILT, POS_Y, STEER, VX, VY, YAW, YAW_RATE, FourWheelVehicle,
-                            PlantModel, VehicleBatch, VehicleCommand)
+                            VehicleBatch, VehicleCommand)
 from models.vehicle_params import load_vehicle_params
 
 TS = 0.025
 
 
-def _hold_speed(batch: VehicleBatch, steer: np.ndarray, speed: float, seconds: float,
-                gain: float = 1.0) -> np.ndarray:
-    """Drive the batch with fixed steering and a P speed controller; returns final state."""
-    p = batch.params
-    for _ in range(int(round(seconds / TS))):
-        vx = batch.state[:, VX]
-        torque = p.radius * p.mass * gain * (speed - vx) + p.radius * 300.0
-        batch.step(steer, torque, TS)
-    return batch.state
-
-
 @pytest.fixture(scope="module")
-def steady_states() -> dict[float, tuple[np.ndarray, np.ndarray]]:
-    """Steady cornering at 20 m/s over a steer sweep, for mu 0.85 and 0.5: (steer, state)."""
+def steady_states() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Steady cornering at 20 m/s, (steer, state, steady mask) per case, in one batch:
+    small steer (linear range) at mu 0.85, and steer around the limit for mu 0.85 and 0.5."""
     params = load_vehicle_params()
-    steer = np.concatenate([np.linspace(0.004, 0.02, 5), np.linspace(0.03, 0.12, 10)])
-    out = {}
-    for mu in (0.85, 0.5):
-        batch = VehicleBatch(params, steer.size, mu=mu)
-        batch.reset(np.full(steer.size, 20.0))
-        out[mu] = (steer, _hold_speed(batch, steer, 20.0, 5.0).copy())
+    cases = {"linear": (0.85, np.linspace(0.004, 0.02, 5)),
+             "limit 0.85": (0.85, np.linspace(0.08, 0.14, 7)),
+             "limit 0.5": (0.5, np.linspace(0.04, 0.10, 7))}
+    steer = np.concatenate([s for _, s in cases.values()])
+    mu = np.concatenate([np.full(s.size, m) for m, s in cases.values()])
+    state, steady = steady_state(params, mu, np.full(steer.size, 20.0), steer, seconds=6.0)
+    out, start = {}, 0
+    for name, (_, s) in cases.items():
+        rows = slice(start, start + s.size)
+        out[name] = (steer[rows], state[rows], steady[rows])
+        start += s.size
     return out
 
 
 def test_steady_state_cornering_understeers_at_20_mps(steady_states):
-    steer, state = steady_states[0.85]
-    linear = steer <= 0.02
+    steer, state, steady = steady_states["linear"]
+    assert steady.all()
+    linear = slice(None)
     ay = state[linear, ACCEL_Y_FILT]
     wheelbase = load_vehicle_params().wheelbase
     # delta = L r / vx + K_us a_y: the slope of (delta - L r/vx) against a_y is K_us.
@@ -57,11 +54,11 @@ def test_steady_state_cornering_understeers_at_20_mps(steady_states):
 
 @pytest.mark.parametrize("mu", [0.85, 0.5])
 def test_peak_lateral_acceleration_is_near_mu_g(steady_states, mu):
-    _, state = steady_states[mu]
-    settled = np.abs(state[:, VY]) < 0.3 * state[:, VX]
-    peak = np.max(np.abs(state[settled, ACCEL_Y_FILT]))
+    _, state, steady = steady_states[f"limit {mu}"]
+    peak = np.max(np.abs(state[steady, ACCEL_Y_FILT]))
     mu_g = mu * 9.81
-    print(f"mu {mu}: peak steady a_y {peak:.3f} m/s^2 = {peak / mu_g:.3f} mu g")
+    print(f"mu {mu}: peak steady a_y {peak:.3f} m/s^2 = {peak / mu_g:.3f} mu g "
+          f"({steady.sum()} of {steady.size} points steady)")
     assert abs(peak - mu_g) < 0.1 * mu_g
 
 

@@ -36,13 +36,15 @@ def test_single_vehicle_trajectory_equals_batch_and_step_cost():
     batch = VehicleBatch(params, 1)
     vehicle.reset(vx=12.0)
     batch.reset(np.array([12.0]))
-    started = time.perf_counter()
+    single_cpu = 0.0
     for k in range(200):
         command = VehicleCommand(800.0 * np.sin(0.05 * k), 0.1 * np.sin(0.03 * k))
+        started = time.process_time()
         vehicle.step(command, 0.005)
+        single_cpu += time.process_time() - started
         batch.step(np.array([command.steer_angle]), np.array([command.drive_torque]), 0.005)
-    per_step = (time.perf_counter() - started) / 200
     diff = np.abs(vehicle.state - batch.state[0]).max()
-    print(f"single vs batch after 1 s: max difference {diff:.2e}; "
-          f"wall time per 5 ms step (single + batch) {1e3 * per_step:.2f} ms")
+    # A figure to report, not an assertion (timing depends on the machine).
+    print(f"single vs batch after 1 s: max difference {diff:.2e}; FourWheelVehicle CPU time "
+          f"per 5 ms step (five 1 ms RK4 steps) {1e3 * single_cpu / 200:.3f} ms")
     assert diff < 1e-8

@@ -66,6 +66,14 @@ def _tolerances(items: list[str]) -> dict[str, float]:
     return tolerances
 
 
+def controller_from_file_name(log: Path, names: tuple[str, ...]) -> str | None:
+    """The controller of a log named as ``make run`` names them
+    (``dlc_high_mu__eso-dkmpc.log``), None for any other name."""
+    stem = log.name.split(".")[0]
+    _, separator, controller = stem.rpartition("__")
+    return controller if separator and controller in names else None
+
+
 def main(args: argparse.Namespace) -> int:
     """Replay, print the report; see the module docstring for the exit status."""
     from controller.registry import CONTROLLER_NAMES
@@ -83,6 +91,8 @@ def main(args: argparse.Namespace) -> int:
         controller, controller_source = args.controller, "--controller"
     elif metadata is not None:
         controller, controller_source = metadata.controller, "from the sidecar"
+    elif (named := controller_from_file_name(args.log, CONTROLLER_NAMES)) is not None:
+        controller, controller_source = named, "from the file name <scenario>__<controller>"
     else:
         raise ReplayError(
             f"{args.log}: the log does not say which controller ran (no sidecar "

@@ -68,4 +68,11 @@ def main(args: argparse.Namespace) -> int:
         for path in result.write(args.out):
             print(f"wrote {path}")
     print(json.dumps(summary, indent=2))
+    if summary["active_cycles"] == 0:
+        raise HilError(f"the ECU never went ACTIVE in {summary['control_cycles']} control "
+                       "cycles (see CTRL_MODE in the log / ecu.csv)")
+    if not args.lockstep and summary["realtime_overruns"]:
+        share = summary["realtime_overruns"] / max(summary["ticks"], 1)
+        print(f"note: {summary['realtime_overruns']} of {summary['ticks']} plant ticks ended after "
+              f"their deadline ({share:.0%}): the plant ran slower than real time here")
     return 0

@@ -1,0 +1,17 @@
+# Controllers (controller/): tests, the closed-loop check and the per-step timing benchmark.
+.PHONY: controller-test controller-closed-loop controller-bench
+
+CONTROLLER_TESTS := tests/test_reference.py tests/test_controller_tuning.py tests/test_controller_doubles.py \
+	tests/test_controller_qp.py tests/test_controller_nmpc.py tests/test_controller_registry.py
+
+controller-test: setup
+	$(PY) -m pytest -q $(CONTROLLER_TESTS)
+
+# All four controllers through both double lane changes on the four-wheel plant (slow, ~3 min).
+controller-closed-loop: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -s -m slow tests/test_controller_closed_loop.py
+
+# Per-step compute time of each controller (DLC 35 km/h, mu 0.85): results/controller_timing.md
+controller-bench: setup
+	@mkdir -p results
+	OPENBLAS_NUM_THREADS=1 $(PY) -m controller.bench --out results/controller_timing.md

@@ -1,0 +1,30 @@
+# HIL over CAN (hil/): `make run` is the main job - the paper's two double lane changes
+# with the four controllers, ECU and plant exchanging only CAN frames in lockstep.
+# Default: python-can's virtual bus, one process, no set-up.
+#   make run CAN_INTERFACE=socketcan CAN_CHANNEL=vcan0   # ECU as its own process on a real vcan
+# Writes results/run_*.md, results/run_*.png, results/run_metrics.json, frame logs in
+# results/logs/ (candump format, ~40 kB per simulated second: not for git).
+.PHONY: run run-uml hil-test vcan-test
+
+RUN_ARGS ?=
+
+run: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.run_all --interface $(CAN_INTERFACE) --channel $(CAN_CHANNEL) \
+		--out results --logs results/logs $(RUN_ARGS)
+
+# `make run` on a real SocketCAN vcan0 inside user-mode Linux, for machines whose kernel has
+# no CAN (see docs/readme/85-vcan.md). Slow (UML system calls); for checking, not timing:
+#   make run-uml RUN_ARGS="--controllers lmpc eso-dkmpc --duration 2"
+run-uml: setup
+	$(PY) -m hil.vcan --timeout 3600 -- $(PY) -m hil.run_all --interface socketcan --channel vcan0 \
+		--out results/uml --logs results/uml/logs $(RUN_ARGS)
+
+HIL_TESTS := tests/test_hil_nodes.py tests/test_hil_time_master.py tests/test_hil_run.py \
+	tests/test_hil_third_party.py
+
+hil-test: setup
+	$(PY) -m pytest -q $(HIL_TESTS)
+
+# The real SocketCAN path: host vcan0 if present, else user-mode Linux (see README).
+vcan-test: setup
+	$(PY) -m pytest -q -s tests/test_vcan.py
