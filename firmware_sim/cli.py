@@ -118,6 +118,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--log-level", default="warning", type=str.lower, choices=LOG_LEVELS,
                         help="logging level on stderr (default warning)")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    parser.add_argument("--cpu", type=int, default=None, metavar="N",
+                        help="pin the process to CPU N (benchmarks; skipped with a warning "
+                             "where refused)")
+    parser.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                        help="run under SCHED_FIFO priority P (1..99) where permitted")
+    parser.add_argument("--timing-out", type=Path, default=None, metavar="FILE.npz",
+                        help="write the per-cycle timing record here on exit")
     return parser
 
 
@@ -152,6 +159,18 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
 
+    if args.cpu is not None or args.rt_priority is not None:
+        from firmware_sim.timing import apply_realtime_policy
+        try:
+            policy = apply_realtime_policy(args.cpu, args.rt_priority)
+        except ValueError as error:
+            bus.shutdown()
+            print(f"error: {error}", file=sys.stderr)
+            return EXIT_USAGE
+        logging.getLogger("firmware_sim").info("scheduling: %s", policy.describe())
+        for note in policy.notes:
+            logging.getLogger("firmware_sim").warning("%s", note)
+
     from firmware_sim.ecu import Ecu  # after argument checks: keeps --help and errors fast
     ecu = None
     try:
@@ -163,6 +182,8 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     finally:
         if ecu is not None:
             ecu.close()
+            if args.timing_out is not None:
+                ecu.timing.save(args.timing_out)
         else:
             bus.shutdown()
     return EXIT_OK

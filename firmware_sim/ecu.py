@@ -413,7 +413,7 @@ class Ecu:
             input_age = (now_ns - arrival) / NS_PER_S
             latency = (tx_ns - arrival) / NS_PER_S
         self.timing.record(release_jitter_s, task_time_s, solve_time_s, input_age, latency,
-                           self.overruns)
+                           self.overruns, start_time=now_ns / NS_PER_S, mode=int(self.mode))
 
     # ---------------------------------------------------------------- shutdown
     def close(self) -> None:

@@ -62,7 +62,9 @@ class RunOptions:
     ``lockstep`` False runs on the wall clock. ``log_path`` None records nothing.
     ``engage`` overrides the planner's engage schedule (virtual time s -> bool).
     ``ecu_output`` is where a separate ECU process writes stdout/stderr (default: a
-    temporary file, shown in errors).
+    temporary file, shown in errors). ``faults`` (a ``hil.faults.FaultSpec``) puts a
+    fault injector between the HIL nodes and the bus and changes the plant; what it did
+    is in ``HilRunResult.extra["injector"]`` (its ``records()``).
     """
 
     controller: str
@@ -74,6 +76,8 @@ class RunOptions:
     engage: Callable[[float], bool] = engage_from_start
     ecu_output: Path | None = None
     ecu_extra_args: tuple[str, ...] = ()
+    #: Faults to inject (``hil.faults.FaultSpec``); None injects nothing.
+    faults: Any = None
 
 
 @dataclass
@@ -259,8 +263,14 @@ def run_hil(scenario: Scenario, options: RunOptions,
         SessionError: the ECU could not start or stopped.
         hil.bus.BusOpenError, hil.recorder.RecorderError, hil.time_master.TimeMasterError.
     """
-    plant = PlantNode(scenario)
+    injector = None
+    if options.faults is not None:
+        from hil.faults import FaultInjector
+
+        injector = FaultInjector(options.faults)
+    plant = PlantNode(scenario, vehicle=injector.vehicle(scenario) if injector else None)
     planner = PlannerNode(scenario, engage=options.engage)
+    send_hook = injector.outgoing if injector is not None else None
     monitor = EcuFrameMonitor()
     recorder = None
     ecu: _EcuRunner | None = None
@@ -275,9 +285,10 @@ def run_hil(scenario: Scenario, options: RunOptions,
         if options.lockstep:
             master: LockstepMaster | RealTimeMaster = LockstepMaster(
                 master_bus, nodes, handshake_timeout_s=options.handshake_timeout_s,
-                ack_timeout_s=options.ack_timeout_s, peer_alive=ecu.alive_problem)
+                ack_timeout_s=options.ack_timeout_s, peer_alive=ecu.alive_problem,
+                send_hook=send_hook)
         else:
-            master = RealTimeMaster(master_bus, nodes)
+            master = RealTimeMaster(master_bus, nodes, send_hook=send_hook)
         stats = master.run(scenario.duration_s, on_tick=on_tick)
         if recorder is not None:
             # Every frame the master sent or received is on the bus: let the recorder
@@ -307,7 +318,9 @@ def run_hil(scenario: Scenario, options: RunOptions,
         stats=stats, wall_time_s=wall,
         log_path=options.log_path, frames_logged=recorder.count if recorder else 0,
         extra={"plant_commands_rejected": plant.commands_rejected,
-               "ecu_frames_undecodable": monitor.undecodable},
+               "ecu_frames_undecodable": monitor.undecodable,
+               "ecu_frames_raw": monitor.raw,
+               **({"injector": injector} if injector is not None else {})},
     )
 
 

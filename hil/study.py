@@ -31,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from hil.closed_loop import ClosedLoopResult, ClosedLoopTrace, control_steps, run_closed_loop
-from hil.errors import HilError, StudyError
+from hil.errors import HilError
 from hil.report import compute_time_table, display_name, plot_scenario, tracking_table
 from hil.scenario import Scenario, load_scenario
 
@@ -282,7 +282,3 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-
-
-__all__ = ["CONTROLLERS", "SCENARIOS", "StudyError", "acceptance_checks", "main", "run_study",
-           "run_summary", "summary_text"]

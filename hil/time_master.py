@@ -100,12 +100,18 @@ class MasterStats:
     max_lateness_s: float = 0.0
 
 
+#: Send hook: (tick ms, the nodes' frames due at that tick) -> the frames that reach the
+#: bus instead (fault injection, hil/faults.py).
+SendHook = Callable[[int, list[can.Message]], list[can.Message]]
+
+
 class _MasterBase:
     def __init__(self, bus: can.BusABC, nodes: Sequence[HilNode],
-                 clock: Callable[[], float]) -> None:
+                 clock: Callable[[], float], send_hook: SendHook | None = None) -> None:
         self.bus = bus
         self.nodes = list(nodes)
         self.clock = clock
+        self.send_hook = send_hook
         self.stats = MasterStats()
 
     def _send(self, message: can.Message) -> None:
@@ -117,9 +123,12 @@ class _MasterBase:
         self.stats.frames_sent += 1
 
     def _send_due(self, tick_ms: int) -> None:
-        for node in self.nodes:
-            for message in node.frames_due(tick_ms):
-                self._send(message)
+        frames = [message for node in self.nodes for message in node.frames_due(tick_ms)]
+        if self.send_hook is not None:
+            # Called every tick, also without frames: held (delayed) frames may be due.
+            frames = self.send_hook(tick_ms, frames)
+        for message in frames:
+            self._send(message)
 
     def _dispatch(self, message: can.Message, tick_ms: int) -> None:
         self.stats.frames_received += 1
@@ -143,14 +152,16 @@ class LockstepMaster(_MasterBase):
         peer_alive: returns None while the ECU runs, else why it stopped (checked while
             waiting, so a crashed ECU is reported at once, not after the timeout).
         clock: monotonic wall clock (s), injectable for tests.
+        send_hook: every tick's node frames pass through it before the bus (faults).
     """
 
     def __init__(self, bus: can.BusABC, nodes: Sequence[HilNode], *,
                  handshake_timeout_s: float = DEFAULT_HANDSHAKE_TIMEOUT_S,
                  ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
                  peer_alive: Callable[[], str | None] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(bus, nodes, clock)
+                 clock: Callable[[], float] = time.monotonic,
+                 send_hook: SendHook | None = None) -> None:
+        super().__init__(bus, nodes, clock, send_hook)
         self.handshake_timeout_s = handshake_timeout_s
         self.ack_timeout_s = ack_timeout_s
         self.peer_alive = peer_alive or (lambda: None)
@@ -237,11 +248,13 @@ class RealTimeMaster(_MasterBase):
         nodes: plant, planner and monitors.
         clock: monotonic clock (s), injectable for tests; the waiting itself is a
             blocking receive with a timeout, so a frame is handled as soon as it arrives.
+        send_hook: every tick's node frames pass through it before the bus (faults).
     """
 
     def __init__(self, bus: can.BusABC, nodes: Sequence[HilNode], *,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(bus, nodes, clock)
+                 clock: Callable[[], float] = time.monotonic,
+                 send_hook: SendHook | None = None) -> None:
+        super().__init__(bus, nodes, clock, send_hook)
 
     def run(self, duration_s: float,
             on_tick: Callable[[int], None] | None = None) -> MasterStats:

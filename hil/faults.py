@@ -1,0 +1,509 @@
+"""Fault injection for the HIL: bus faults on the frames the HIL nodes send, and vehicle
+faults in the plant, both deterministic for a seed.
+
+One mechanism for the bus: `FaultInjector.outgoing` is the time master's send hook
+(``hil.time_master``), so every frame the plant and the planner send at a tick passes
+through it before it reaches the bus; it may drop, hold back (delay, reorder), duplicate,
+corrupt or rewrite frames and add frames of a babbling node. HIL_SYNC is the master's own
+and is never touched (lockstep would just stop). Vehicle faults change the plant that the
+injector builds (`FaultInjector.vehicle`): mass, an offset and extra lag of the steering
+actuator; sensor bias / noise on VY and YAW_RATE is a rewrite of VEH_DYN on the bus (the
+plant's measurement, not its state). The road friction step stays the plant's own
+(``[faults] mu_step``, hil/plant_node.py).
+
+A fault spec comes from a scenario's ``[faults]`` table (or the CLI, hil/commands/faults.py)::
+
+    [faults]
+    seed = 1                                   # default 0
+    mu_step = { time_s = 4.0, mu = 0.5 }       # read by the plant node
+    [faults.vehicle]
+    mass_offset_kg = 200.0                     # added to the scenario's mass
+    steer_offset_rad = 0.02                    # actual wheel angle = command + offset
+    steer_extra_lag_s = 0.1                    # added to the actuator's time constant
+    [faults.sensor]                            # on VEH_DYN from start_s on
+    start_s = 0.0
+    vy_bias = 0.05                             # m/s
+    vy_noise = 0.02                            # m/s, standard deviation
+    yaw_rate_bias = 0.01                       # rad/s
+    yaw_rate_noise = 0.005                     # rad/s
+    [[faults.bus]]
+    kind = "drop"                              # see BUS_KINDS
+    sender = "plant"                           # plant | planner, or ids = [0x100, ...]
+    start_s = 3.0
+    duration_s = 0.5                           # default: to the end of the run
+    rate = 0.1                                 # per-kind parameters, see BUS_KINDS
+
+Randomness: one ``numpy.random.Generator`` per fault, spawned from the seed in spec order,
+so a run is reproducible and adding a fault does not change the draws of the others.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+
+from can_defs.codec import decode, encode
+from can_defs.crc import e2e_crc
+from can_defs.errors import CanDefsError
+from can_defs.frames import FRAME_LENGTH, FrameId, PlannerReq, VehDyn
+from hil.errors import HilError
+from models.vehicle import FourWheelVehicle, VehicleCommand
+
+PLANT_IDS = (int(FrameId.VEH_DYN), int(FrameId.VEH_POSE_XY), int(FrameId.VEH_POSE_YAW))
+PLANNER_IDS = (int(FrameId.PLANNER_REQ),)
+SENDERS: dict[str, tuple[int, ...]] = {"plant": PLANT_IDS, "planner": PLANNER_IDS}
+#: Lockstep tick (ms): delays are whole ticks.
+TICK_MS = 5
+
+#: Bus fault kinds and their parameters (name -> (default or None if required)).
+BUS_KINDS: dict[str, dict[str, Any]] = {
+    # Each frame starts a burst of ``burst`` lost frames (of that ID) with probability rate.
+    "drop": {"rate": None, "burst": 1},
+    # Every frame (rate 1) held back by delay_ms, a multiple of 5 ms.
+    "delay": {"delay_ms": None},
+    # The frame is sent twice (same payload: a repeated alive counter).
+    "duplicate": {"rate": 1.0},
+    # A sample instant's frames are held and sent after the next instant's (swap).
+    "reorder": {"rate": None},
+    # One random bit of the payload flipped.
+    "bitflip": {"rate": None},
+    # CNT stuck at the value of the first frame in the window (CRC recomputed: only the
+    # counter is wrong).
+    "frozen_counter": {},
+    # CRC byte inverted.
+    "wrong_crc": {"rate": 1.0},
+    # Nothing of this sender reaches the bus.
+    "silent": {},
+    # A node floods ``babble_id`` with random 8-byte payloads; ``starve`` = it is a higher
+    # priority ID than the victims and sends back to back, so every frame of a higher ID
+    # loses arbitration for the whole window (dropped: the HIL has no TX queue).
+    "babble": {"babble_id": None, "frames_per_tick": 10, "starve": True},
+    # A signal rewritten to a physical value (saturated to its raw range by the encoder),
+    # with a valid CRC and counter: field is the frame dataclass's field (vx, path_id, ...).
+    "override": {"field": None, "value": None},
+    # PLANNER_REQ.ENGAGE alternating every period_ms (starting with 0).
+    "engage_toggle": {"period_ms": 50},
+}
+_COMMON = {"kind", "sender", "ids", "start_s", "duration_s"}
+
+
+class FaultSpecError(HilError):
+    """A fault spec (scenario ``[faults]`` table or CLI flag) is invalid; names the field."""
+
+
+@dataclass(frozen=True)
+class BusFault:
+    """One bus fault: kind, the frame IDs it acts on, its window (s) and parameters."""
+
+    kind: str
+    ids: tuple[int, ...]
+    start_s: float
+    duration_s: float = math.inf
+    params: Mapping[str, Any] = field(default_factory=dict)
+
+    def active(self, tick_ms: int) -> bool:
+        """True while the fault acts at virtual time ``tick_ms``."""
+        t = tick_ms / 1000.0
+        return self.start_s <= t < self.start_s + self.duration_s
+
+    def describe(self) -> str:
+        """Short text for tables: kind, targets, parameters, window."""
+        targets = next((name for name, ids in SENDERS.items() if ids == self.ids),
+                       "/".join(f"0x{i:03X}" for i in self.ids))
+        params = ", ".join(f"{k}={_fmt(v)}" for k, v in self.params.items())
+        window = (f"{self.start_s:g} s on" if math.isinf(self.duration_s)
+                  else f"{self.start_s:g}-{self.start_s + self.duration_s:g} s")
+        return f"{self.kind} {targets}" + (f" ({params})" if params else "") + f", {window}"
+
+
+@dataclass(frozen=True)
+class VehicleFaults:
+    """Plant changes: mass offset (kg), steering actuator offset (rad) and extra lag (s)."""
+
+    mass_offset_kg: float = 0.0
+    steer_offset_rad: float = 0.0
+    steer_extra_lag_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class SensorFaults:
+    """Bias and Gaussian noise (standard deviation) on VEH_DYN's VY (m/s) and YAW_RATE
+    (rad/s) from ``start_s`` on."""
+
+    start_s: float = 0.0
+    vy_bias: float = 0.0
+    vy_noise: float = 0.0
+    yaw_rate_bias: float = 0.0
+    yaw_rate_noise: float = 0.0
+
+    @property
+    def any(self) -> bool:
+        """True when the sensor fault changes anything."""
+        return any((self.vy_bias, self.vy_noise, self.yaw_rate_bias, self.yaw_rate_noise))
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """Everything injected into one run (immutable; `FaultInjector` holds the state)."""
+
+    seed: int = 0
+    bus: tuple[BusFault, ...] = ()
+    vehicle: VehicleFaults = VehicleFaults()
+    sensor: SensorFaults = SensorFaults()
+
+    @classmethod
+    def from_mapping(cls, table: Mapping[str, Any], source: object = "faults") -> "FaultSpec":
+        """Parse a ``[faults]`` table (see the module docstring); ``mu_step`` is the plant's
+        and is skipped here.
+
+        Raises:
+            FaultSpecError: unknown key or kind, missing or wrong-typed parameter.
+        """
+        unknown = sorted(set(table) - {"seed", "bus", "vehicle", "sensor", "mu_step"})
+        if unknown:
+            raise FaultSpecError(f"{source}: unknown key(s) {', '.join(unknown)} in [faults]")
+        seed = table.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise FaultSpecError(f"{source}: faults.seed = {seed!r}: must be an integer >= 0")
+        bus_raw = table.get("bus", [])
+        if not isinstance(bus_raw, list):
+            raise FaultSpecError(f"{source}: faults.bus must be an array of tables ([[faults.bus]])")
+        bus = tuple(_parse_bus(item, f"{source}: faults.bus[{i}]") for i, item in enumerate(bus_raw))
+        vehicle = VehicleFaults(**_numbers(table.get("vehicle", {}), VehicleFaults, f"{source}: faults.vehicle"))
+        sensor = SensorFaults(**_numbers(table.get("sensor", {}), SensorFaults, f"{source}: faults.sensor"))
+        if vehicle.steer_extra_lag_s < 0 or sensor.vy_noise < 0 or sensor.yaw_rate_noise < 0:
+            raise FaultSpecError(f"{source}: steer_extra_lag_s and the noise levels must be >= 0")
+        return cls(seed=seed, bus=bus, vehicle=vehicle, sensor=sensor)
+
+    def with_seed(self, seed: int) -> "FaultSpec":
+        """The same faults with another seed."""
+        return dataclasses.replace(self, seed=seed)
+
+    @property
+    def onset_s(self) -> float | None:
+        """Earliest start of any fault (None when the spec injects nothing)."""
+        starts = [f.start_s for f in self.bus]
+        if self.sensor.any:
+            starts.append(self.sensor.start_s)
+        if any(dataclasses.astuple(self.vehicle)):
+            starts.append(0.0)
+        return min(starts) if starts else None
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, int) and not isinstance(value, bool) and value > 255:
+        return f"0x{value:03X}"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _numbers(raw: Any, cls: type, where: str) -> dict[str, float]:
+    if not isinstance(raw, Mapping):
+        raise FaultSpecError(f"{where} must be a table")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(raw) - names)
+    if unknown:
+        raise FaultSpecError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
+    out = {}
+    for key, value in raw.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise FaultSpecError(f"{where}.{key} = {value!r}: must be a finite number")
+        out[key] = float(value)
+    return out
+
+
+def _parse_bus(raw: Any, where: str) -> BusFault:
+    if not isinstance(raw, Mapping):
+        raise FaultSpecError(f"{where} must be a table")
+    kind = raw.get("kind")
+    if kind not in BUS_KINDS:
+        raise FaultSpecError(f"{where}.kind = {kind!r}: must be one of {', '.join(BUS_KINDS)}")
+    defaults = BUS_KINDS[kind]
+    unknown = sorted(set(raw) - _COMMON - set(defaults))
+    if unknown:
+        raise FaultSpecError(f"{where}: unknown key(s) {', '.join(unknown)} for kind {kind!r}")
+    if "sender" in raw and "ids" in raw:
+        raise FaultSpecError(f"{where}: give sender or ids, not both")
+    if "ids" in raw:
+        ids = raw["ids"]
+        if not isinstance(ids, list) or not ids or not all(
+                isinstance(i, int) and not isinstance(i, bool) and 0 <= i <= 0x7FF for i in ids):
+            raise FaultSpecError(f"{where}.ids = {ids!r}: must be a non-empty array of 11-bit IDs")
+        ids_t = tuple(ids)
+    else:
+        sender = raw.get("sender", "plant")
+        if sender not in SENDERS:
+            raise FaultSpecError(f"{where}.sender = {sender!r}: must be one of {', '.join(SENDERS)}")
+        ids_t = SENDERS[sender]
+    start_s = raw.get("start_s", 0.0)
+    duration_s = raw.get("duration_s", math.inf)
+    for name, value in (("start_s", start_s), ("duration_s", duration_s)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0 \
+                or (name == "start_s" and not math.isfinite(value)):
+            raise FaultSpecError(f"{where}.{name} = {value!r}: must be a number >= 0")
+    params: dict[str, Any] = {}
+    for key, default in defaults.items():
+        if key not in raw and default is None:
+            raise FaultSpecError(f"{where}: kind {kind!r} needs {key}")
+        params[key] = raw.get(key, default)
+    _check_params(kind, params, ids_t, where)
+    return BusFault(kind, ids_t, float(start_s), float(duration_s), params)
+
+
+def _check_params(kind: str, params: dict[str, Any], ids: tuple[int, ...], where: str) -> None:
+    def number(key: str, low: float, high: float) -> None:
+        value = params[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+            raise FaultSpecError(f"{where}.{key} = {value!r}: must be a number in [{low}, {high}]")
+
+    for key in ("rate",):
+        if key in params:
+            number(key, 0.0, 1.0)
+    if kind == "drop":
+        number("burst", 1, 1000)
+        params["burst"] = int(params["burst"])
+    if kind == "delay":
+        number("delay_ms", TICK_MS, 10_000)
+        if params["delay_ms"] % TICK_MS:
+            raise FaultSpecError(f"{where}.delay_ms = {params['delay_ms']!r}: must be a multiple of {TICK_MS}")
+        params["delay_ms"] = int(params["delay_ms"])
+    if kind == "babble":
+        number("babble_id", 0, 0x7FF)
+        number("frames_per_tick", 1, 200)
+        params["babble_id"] = int(params["babble_id"])
+        params["frames_per_tick"] = int(params["frames_per_tick"])
+        if not isinstance(params["starve"], bool):
+            raise FaultSpecError(f"{where}.starve = {params['starve']!r}: must be true or false")
+    if kind == "engage_toggle":
+        number("period_ms", 25, 10_000)
+        if ids != PLANNER_IDS:
+            raise FaultSpecError(f"{where}: engage_toggle acts on the planner (sender = \"planner\")")
+    if kind == "override":
+        if not isinstance(params["field"], str):
+            raise FaultSpecError(f"{where}.field = {params['field']!r}: must be a signal field name")
+        for frame_id in ids:
+            frame = _template(frame_id)
+            if params["field"] not in {f.name for f in dataclasses.fields(frame)}:
+                raise FaultSpecError(f"{where}.field = {params['field']!r}: not a field of "
+                                     f"{type(frame).__name__}")
+        value = params["value"]
+        if isinstance(value, bool):
+            params["value"] = int(value)
+        elif not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise FaultSpecError(f"{where}.value = {value!r}: must be a finite number")
+
+
+def _template(frame_id: int) -> Any:
+    """A zero frame of ``frame_id`` (to know its fields)."""
+    try:
+        return decode(frame_id, bytes(FRAME_LENGTH)).frame
+    except CanDefsError as e:
+        raise FaultSpecError(f"0x{frame_id:03X} is not a frame the HIL nodes send: {e}") from e
+
+
+# --- the injector ------------------------------------------------------------------------
+
+
+@dataclass
+class FaultRecord:
+    """What one fault did: frames it acted on and the first tick it acted (ms)."""
+
+    description: str
+    actions: int = 0
+    first_action_ms: int | None = None
+
+    def note(self, tick_ms: int, count: int = 1) -> None:
+        self.actions += count
+        if self.first_action_ms is None:
+            self.first_action_ms = tick_ms
+
+
+def _message(frame_id: int, data: bytes) -> can.Message:
+    return can.Message(arbitration_id=frame_id, data=data, is_extended_id=False)
+
+
+def _rewrite(message: can.Message, change: Mapping[str, Any]) -> can.Message:
+    """Same frame and counter with fields replaced, CRC recomputed (a faulty sender)."""
+    decoded = decode(message.arbitration_id, bytes(message.data))
+    frame = dataclasses.replace(decoded.frame, **change)
+    return _message(message.arbitration_id, encode(frame, decoded.counter or 0))
+
+
+class _BusFaultState:
+    """One bus fault's state between ticks (held frames, bursts, its RNG)."""
+
+    def __init__(self, fault: BusFault, rng: np.random.Generator) -> None:
+        self.fault = fault
+        self.rng = rng
+        self.record = FaultRecord(fault.describe())
+        self.held: list[tuple[int, can.Message]] = []   # (release tick, frame)
+        self.burst_left: dict[int, int] = {}
+        self.frozen: dict[int, int] = {}
+        self.swap_pending: list[can.Message] | None = None
+
+    def apply(self, tick_ms: int, frames: list[can.Message]) -> list[can.Message]:
+        fault = self.fault
+        out = [m for due, m in self.held if due <= tick_ms]
+        self.held = [(due, m) for due, m in self.held if due > tick_ms]
+        if fault.kind == "reorder" and self.swap_pending is not None and \
+                any(m.arbitration_id in fault.ids for m in frames):
+            # The held instant goes out after the next one: CNT k+1 arrives before k.
+            late, self.swap_pending = self.swap_pending, None
+            return out + frames + late
+        if not fault.active(tick_ms):
+            return out + frames
+        if fault.kind == "babble":
+            return out + self._babble(tick_ms, frames)
+        targets = [m for m in frames if m.arbitration_id in fault.ids]
+        if fault.kind == "reorder" and targets and self.rng.random() < fault.params["rate"]:
+            self.swap_pending = targets
+            self.record.note(tick_ms, len(targets))
+            return out + [m for m in frames if m.arbitration_id not in fault.ids]
+        for message in frames:
+            if message.arbitration_id not in fault.ids:
+                out.append(message)
+            else:
+                out.extend(self._one(tick_ms, message))
+        return out
+
+    def _one(self, tick_ms: int, message: can.Message) -> list[can.Message]:
+        """The frames that go out instead of ``message`` (a frame of a target ID)."""
+        kind, p, frame_id = self.fault.kind, self.fault.params, message.arbitration_id
+        data = bytearray(message.data)
+        if kind == "silent":
+            self.record.note(tick_ms)
+            return []
+        if kind == "drop":
+            left = self.burst_left.get(frame_id, 0)
+            if left == 0 and self.rng.random() < p["rate"]:
+                left = p["burst"]
+            if left:
+                self.burst_left[frame_id] = left - 1
+                self.record.note(tick_ms)
+                return []
+            return [message]
+        if kind == "delay":
+            self.held.append((tick_ms + p["delay_ms"], message))
+            self.record.note(tick_ms)
+            return []
+        if kind == "duplicate":
+            if self.rng.random() < p["rate"]:
+                self.record.note(tick_ms)
+                return [message, _message(frame_id, bytes(data))]
+            return [message]
+        if kind == "bitflip":
+            if self.rng.random() < p["rate"]:
+                bit = int(self.rng.integers(0, 8 * len(data)))
+                data[bit // 8] ^= 1 << (bit % 8)
+                self.record.note(tick_ms)
+                return [_message(frame_id, bytes(data))]
+            return [message]
+        if kind == "wrong_crc":
+            if self.rng.random() < p["rate"]:
+                data[0] ^= 0xFF
+                self.record.note(tick_ms)
+                return [_message(frame_id, bytes(data))]
+            return [message]
+        if kind == "frozen_counter":
+            counter = self.frozen.setdefault(frame_id, (data[1] & 0x0F))
+            data[1] = (data[1] & 0xF0) | counter
+            data[0] = e2e_crc(frame_id, bytes(data))
+            if bytes(data) != bytes(message.data):
+                self.record.note(tick_ms)
+            return [_message(frame_id, bytes(data))]
+        if kind == "override":
+            self.record.note(tick_ms)
+            return [_rewrite(message, {p["field"]: p["value"]})]
+        if kind == "engage_toggle":
+            elapsed = tick_ms - round(self.fault.start_s * 1000)
+            engage = (elapsed // p["period_ms"]) % 2 == 1
+            self.record.note(tick_ms)
+            return [_rewrite(message, {"engage": engage})]
+        raise AssertionError(f"unhandled bus fault kind {kind}")  # parse refuses unknown kinds
+
+    def _babble(self, tick_ms: int, frames: list[can.Message]) -> list[can.Message]:
+        p = self.fault.params
+        flood = [_message(p["babble_id"], self.rng.integers(0, 256, FRAME_LENGTH, dtype=np.uint8).tobytes())
+                 for _ in range(p["frames_per_tick"])]
+        self.record.note(tick_ms, len(flood))
+        if p["starve"]:
+            # Lower priority (higher ID) frames never win arbitration against the flood.
+            return flood + [m for m in frames if m.arbitration_id < p["babble_id"]]
+        return flood + frames
+
+
+class FaultInjector:
+    """The state of one run's faults; `outgoing` is the time master's send hook.
+
+    Args:
+        spec: what to inject.
+    """
+
+    def __init__(self, spec: FaultSpec) -> None:
+        self.spec = spec
+        children = np.random.SeedSequence(spec.seed).spawn(len(spec.bus) + 1)
+        self._bus = [_BusFaultState(f, np.random.default_rng(s)) for f, s in zip(spec.bus, children)]
+        self._sensor_rng = np.random.default_rng(children[-1])
+        self.sensor_record = FaultRecord("sensor bias/noise on VY, YAW_RATE")
+
+    def outgoing(self, tick_ms: int, frames: Sequence[can.Message]) -> list[can.Message]:
+        """The frames that reach the bus at ``tick_ms`` instead of ``frames`` (in order)."""
+        out = [self._sensor(tick_ms, m) for m in frames]
+        for state in self._bus:
+            out = state.apply(tick_ms, out)
+        return out
+
+    def _sensor(self, tick_ms: int, message: can.Message) -> can.Message:
+        s = self.spec.sensor
+        if not s.any or message.arbitration_id != FrameId.VEH_DYN or tick_ms < s.start_s * 1000:
+            return message
+        dyn = decode(message.arbitration_id, bytes(message.data)).frame
+        assert isinstance(dyn, VehDyn)
+        noise = self._sensor_rng.standard_normal(2)
+        self.sensor_record.note(tick_ms)
+        return _rewrite(message, {"vy": dyn.vy + s.vy_bias + s.vy_noise * noise[0],
+                                  "yaw_rate": dyn.yaw_rate + s.yaw_rate_bias + s.yaw_rate_noise * noise[1]})
+
+    def vehicle(self, scenario: Any) -> FourWheelVehicle | None:
+        """The plant's ``models.vehicle.FourWheelVehicle`` for ``scenario`` with the
+        vehicle faults (None when there are none: the plant builds its own)."""
+        v = self.spec.vehicle
+        if not any(dataclasses.astuple(v)):
+            return None
+        params = scenario.vehicle_params()
+        params = dataclasses.replace(params, mass=params.mass + v.mass_offset_kg,
+                                     steer_time_constant=params.steer_time_constant + v.steer_extra_lag_s)
+        if v.steer_offset_rad == 0.0:
+            return FourWheelVehicle(params)
+        return OffsetSteeringVehicle(params, v.steer_offset_rad)
+
+    def records(self) -> list[FaultRecord]:
+        """What each fault did (bus faults in spec order, then the sensor fault if any)."""
+        out = [state.record for state in self._bus]
+        if self.spec.sensor.any:
+            out.append(self.sensor_record)
+        return out
+
+    @property
+    def first_action_ms(self) -> int | None:
+        """Earliest tick at which any bus or sensor fault acted (None: none did)."""
+        ticks = [r.first_action_ms for r in self.records() if r.first_action_ms is not None]
+        return min(ticks) if ticks else None
+
+
+class OffsetSteeringVehicle(FourWheelVehicle):
+    """A vehicle whose steering actuator settles at command + offset (a misaligned rack);
+    the measured STEER_ANGLE is the true wheel angle, offset included."""
+
+    def __init__(self, params: Any, offset_rad: float) -> None:
+        super().__init__(params)
+        self.steer_offset_rad = offset_rad
+
+    def step(self, command: VehicleCommand, dt: float) -> Any:
+        """Step with the offset added to the steering command (the model saturates it)."""
+        return super().step(VehicleCommand(drive_torque=command.drive_torque,
+                                           steer_angle=command.steer_angle + self.steer_offset_rad), dt)
