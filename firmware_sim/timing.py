@@ -14,12 +14,12 @@ jitter in lockstep or the input age before the first sample):
 - ``overruns``: deadline overruns counted so far (not saturated).
 
 Beside each row, optional context (`CONTEXT_FIELDS`, kept apart so that `rows` and
-`summary` keep their shape): ``start_time`` (task start on the ECU's clock, s; virtual time in lockstep: lets a
-benchmark join cycles with other processes' CLOCK_MONOTONIC stamps) and ``mode``
-(CTRL_MODE after the transition, -1 if not given). `save` / `load_timing` move the record
-through an ``.npz`` file (the ECU process writes it on exit with ``--timing-out``), and
-`apply_realtime_policy` pins a process to a core and raises it to SCHED_FIFO where the
-OS permits.
+`summary` keep their shape): ``start_time`` (task start on the ECU's clock, s; virtual
+time in lockstep; lets a benchmark join cycles with other processes' CLOCK_MONOTONIC
+stamps) and ``mode`` (CTRL_MODE after the transition, -1 if not given). `save` /
+`load_timing` move the record through an ``.npz`` file (the ECU process writes it on exit
+with ``--timing-out``), and `apply_realtime_policy` pins a process to a core and raises it
+to SCHED_FIFO where the OS permits.
 """
 from __future__ import annotations
 

@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, str] = {
     "replay": "hil.commands.replay",
     "decode": "hil.commands.decode",
     "play": "hil.commands.play",
+    "faults": "hil.commands.faults",
 }
 
 

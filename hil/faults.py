@@ -39,6 +39,7 @@ so a run is reproducible and adding a fault does not change the draws of the oth
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -84,7 +85,8 @@ BUS_KINDS: dict[str, dict[str, Any]] = {
     # loses arbitration for the whole window (dropped: the HIL has no TX queue).
     "babble": {"babble_id": None, "frames_per_tick": 10, "starve": True},
     # A signal rewritten to a physical value (saturated to its raw range by the encoder),
-    # with a valid CRC and counter: field is the frame dataclass's field (vx, path_id, ...).
+    # with a valid CRC and counter: field is the frame dataclass's field (vx, path_id, ...),
+    # in the sender's frames that have it.
     "override": {"field": None, "value": None},
     # PLANNER_REQ.ENGAGE alternating every period_ms (starting with 0).
     "engage_toggle": {"period_ms": 50},
@@ -113,9 +115,10 @@ class BusFault:
 
     def describe(self) -> str:
         """Short text for tables: kind, targets, parameters, window."""
-        targets = next((name for name, ids in SENDERS.items() if ids == self.ids),
-                       "/".join(f"0x{i:03X}" for i in self.ids))
-        params = ", ".join(f"{k}={_fmt(v)}" for k, v in self.params.items())
+        targets = "node" if self.kind == "babble" else next(
+            (name for name, ids in SENDERS.items() if ids == self.ids),
+            "/".join(f"0x{i:03X}" for i in self.ids))
+        params = ", ".join(f"{k}={_fmt(k, v)}" for k, v in self.params.items())
         window = (f"{self.start_s:g} s on" if math.isinf(self.duration_s)
                   else f"{self.start_s:g}-{self.start_s + self.duration_s:g} s")
         return f"{self.kind} {targets}" + (f" ({params})" if params else "") + f", {window}"
@@ -180,23 +183,9 @@ class FaultSpec:
             raise FaultSpecError(f"{source}: steer_extra_lag_s and the noise levels must be >= 0")
         return cls(seed=seed, bus=bus, vehicle=vehicle, sensor=sensor)
 
-    def with_seed(self, seed: int) -> "FaultSpec":
-        """The same faults with another seed."""
-        return dataclasses.replace(self, seed=seed)
 
-    @property
-    def onset_s(self) -> float | None:
-        """Earliest start of any fault (None when the spec injects nothing)."""
-        starts = [f.start_s for f in self.bus]
-        if self.sensor.any:
-            starts.append(self.sensor.start_s)
-        if any(dataclasses.astuple(self.vehicle)):
-            starts.append(0.0)
-        return min(starts) if starts else None
-
-
-def _fmt(value: Any) -> str:
-    if isinstance(value, int) and not isinstance(value, bool) and value > 255:
+def _fmt(key: str, value: Any) -> str:
+    if key.endswith("babble_id") and isinstance(value, int):
         return f"0x{value:03X}"
     return f"{value:g}" if isinstance(value, float) else str(value)
 
@@ -285,11 +274,10 @@ def _check_params(kind: str, params: dict[str, Any], ids: tuple[int, ...], where
     if kind == "override":
         if not isinstance(params["field"], str):
             raise FaultSpecError(f"{where}.field = {params['field']!r}: must be a signal field name")
-        for frame_id in ids:
-            frame = _template(frame_id)
-            if params["field"] not in {f.name for f in dataclasses.fields(frame)}:
-                raise FaultSpecError(f"{where}.field = {params['field']!r}: not a field of "
-                                     f"{type(frame).__name__}")
+        frames = [_template(frame_id) for frame_id in ids]
+        if not any(params["field"] in _fields(frame) for frame in frames):
+            raise FaultSpecError(f"{where}.field = {params['field']!r}: not a field of "
+                                 f"{', '.join(type(f).__name__ for f in frames)}")
         value = params["value"]
         if isinstance(value, bool):
             params["value"] = int(value)
@@ -297,6 +285,11 @@ def _check_params(kind: str, params: dict[str, Any], ids: tuple[int, ...], where
             raise FaultSpecError(f"{where}.value = {value!r}: must be a finite number")
 
 
+def _fields(frame: Any) -> set[str]:
+    return {f.name for f in dataclasses.fields(frame)}
+
+
+@functools.lru_cache(maxsize=None)
 def _template(frame_id: int) -> Any:
     """A zero frame of ``frame_id`` (to know its fields)."""
     try:
@@ -358,11 +351,13 @@ class _BusFaultState:
             return out + frames
         if fault.kind == "babble":
             return out + self._babble(tick_ms, frames)
-        targets = [m for m in frames if m.arbitration_id in fault.ids]
-        if fault.kind == "reorder" and targets and self.rng.random() < fault.params["rate"]:
-            self.swap_pending = targets
-            self.record.note(tick_ms, len(targets))
-            return out + [m for m in frames if m.arbitration_id not in fault.ids]
+        if fault.kind == "reorder":
+            targets = [m for m in frames if m.arbitration_id in fault.ids]
+            if targets and self.rng.random() < fault.params["rate"]:
+                self.swap_pending = targets
+                self.record.note(tick_ms, len(targets))
+                return out + [m for m in frames if m.arbitration_id not in fault.ids]
+            return out + frames
         for message in frames:
             if message.arbitration_id not in fault.ids:
                 out.append(message)
@@ -416,6 +411,8 @@ class _BusFaultState:
                 self.record.note(tick_ms)
             return [_message(frame_id, bytes(data))]
         if kind == "override":
+            if p["field"] not in _fields(_template(frame_id)):
+                return [message]  # another frame of the sender
             self.record.note(tick_ms)
             return [_rewrite(message, {p["field"]: p["value"]})]
         if kind == "engage_toggle":

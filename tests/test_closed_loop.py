@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from controller.base import STEER_LIMIT_RAD
+from controller.registry import create_controller
 from hil.closed_loop import ABORT_LATERAL_ERROR_M, run_closed_loop
+from hil.errors import StudyError
 from hil.scenario import SpeedProfile, load_scenario
 from tests.test_closed_loop_doubles import (KinematicCommand, KinematicPlant, PurePursuit,
                                        ScriptedController)
@@ -111,21 +113,9 @@ def test_result_saves_its_trace(tmp_path) -> None:
 # --- the real plant and controllers -----------------------------------------------------
 
 
-def _create(name: str):
-    """The registry's controller, or a skip naming why it cannot be built yet."""
-    registry = pytest.importorskip("controller.registry")
-    try:
-        return registry.create_controller(name)
-    except (ImportError, OSError, Exception) as e:  # noqa: BLE001 - any missing artefact
-        if isinstance(e, (ImportError, FileNotFoundError)) or "not found" in str(e):
-            pytest.skip(f"{name} not buildable yet: {e}")
-        raise
-
-
-@pytest.mark.slow
 @pytest.mark.parametrize("name", ["lmpc", "eso-dkmpc"])
 def test_real_controller_drives_the_smoke_scenario(name: str) -> None:
-    controller = _create(name)
+    controller = create_controller(name)
     result = run_closed_loop(smoke(), controller)
     trace = result.trace
     print(f"{name}: completed {result.completed} ({result.failure}), max |e_Y| "
@@ -140,3 +130,17 @@ def test_real_controller_drives_the_smoke_scenario(name: str) -> None:
     assert result.tracking.lateral.max_abs < 0.5
     assert trace.y.max() > 3.0
     assert result.fallback_steps == 0
+
+
+def test_plant_period_option_gives_fresh_samples_and_is_validated() -> None:
+    scenario = replace(smoke(), duration_s=0.2)
+    scenario = replace(scenario, start=replace(scenario.start, x_m=0.0, y_m=0.0, yaw_rad=0.0,
+                                               speed_mps=1.0))
+    controller = ScriptedController(lambda k: 0.0)
+    run_closed_loop(scenario, controller, plant=KinematicPlant(), command_type=KinematicCommand,
+                    plant_period_ms=5)
+    np.testing.assert_allclose([s.x for s in controller.samples], 0.025 * np.arange(8),
+                               atol=1e-12)
+    with pytest.raises(StudyError, match="plant_period_ms = 7"):
+        run_closed_loop(scenario, controller, plant=KinematicPlant(),
+                        command_type=KinematicCommand, plant_period_ms=7)

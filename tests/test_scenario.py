@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from controller.reference import ReferencePath
 from hil.errors import PathFileError, ScenarioError
 from hil.metrics import path_errors
 from hil.path_files import (DLC_PATH_FILE, MAX_POINT_SPACING_M, double_lane_change,
@@ -52,11 +53,10 @@ def test_formula_shape_and_yaw_is_the_tangent() -> None:
 
 def test_path_matches_controller_reference_implementation() -> None:
     """Two independent codings of the architecture's formula must agree."""
-    reference = pytest.importorskip("controller.reference")
-    path = reference.ReferencePath.from_csv(DLC_PATH_FILE)
+    path = ReferencePath.from_csv(DLC_PATH_FILE)
     points = read_path_csv(DLC_PATH_FILE)
     assert np.allclose(path.x, points[:, 0]) and np.allclose(path.y, points[:, 1], atol=1e-6)
-    generated = reference.ReferencePath.double_lane_change()
+    generated = ReferencePath.double_lane_change()
     y_ours, yaw_ours = double_lane_change(np.asarray(generated.x))
     gap = max(np.max(np.abs(np.asarray(generated.y) - y_ours)),
               np.max(np.abs(np.asarray(generated.yaw) - yaw_ours)))
@@ -128,9 +128,8 @@ def test_scenarios_start_on_the_path_and_end_before_it(name: str) -> None:
     scenario = load_scenario(name)
     points = scenario.path_points()
     start = scenario.start
-    reference = pytest.importorskip("controller.reference")
     errors = path_errors(np.array([[start.x_m, start.y_m, start.yaw_rad]]),
-                         reference.ReferencePath.from_csv(scenario.path_file))
+                         ReferencePath.from_csv(scenario.path_file))
     assert abs(errors.lateral_error[0]) < 0.01 and abs(errors.heading_error[0]) < 0.005
     assert start.x_m - points[0, 0] >= 10.0                     # path behind the start
     # Driving the target profile, the run plus a 1 s horizon at top speed stays on the path.
@@ -158,7 +157,6 @@ def test_speed_profile_interpolates_and_holds() -> None:
 
 
 def test_vehicle_params_carry_mu_and_mass(tmp_path: Path) -> None:
-    pytest.importorskip("models.vehicle_params")
     from models.vehicle_params import load_vehicle_params
 
     nominal = load_vehicle_params()

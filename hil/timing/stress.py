@@ -14,6 +14,23 @@ import sys
 
 from firmware_sim.timing import apply_realtime_policy
 
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """``preexec_fn`` for the benchmark's child processes: SIGTERM when the parent dies.
+
+    Without it a benchmark killed with SIGKILL would leave busy loops running, or an ECU
+    under SCHED_FIFO whose bus peer is gone. Linux only; elsewhere a no-op.
+    """
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
 #: What each load process runs: integer arithmetic forever, no system calls.
 BUSY_LOOP = "x = 0\nwhile True:\n    x = (x * 1103515245 + 12345) & 0xFFFFFFFF\n"
 
@@ -34,7 +51,7 @@ class StressLoad:
         for cpu in self.cpus:
             process = subprocess.Popen([sys.executable, "-c", BUSY_LOOP],
                                        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                       stderr=subprocess.DEVNULL)
+                                       stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
             self._processes.append(process)
             policy = apply_realtime_policy(cpu if cpu < (os.cpu_count() or 1) else None,
                                            None, pid=process.pid)

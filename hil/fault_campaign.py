@@ -1,0 +1,556 @@
+"""`make faults`: every fault of hil/faults.py in the high-mu double lane change, in
+lockstep on the virtual bus, judged from the frames alone.
+
+Per run (`evaluate`):
+
+- the ECU's mode sequence and FAULTS bits, from its STEER_TORQUE_CMD / CTRL_DIAG frames;
+- time to detect: first control cycle at or after the fault's first action (the tick at
+  which the injector first changed a frame; t = 0 for vehicle faults) with a mode other
+  than ACTIVE or a FAULTS bit that was clear in the cycle before the onset;
+- each expected reaction of the contract (``Expect``: a mode or a FAULTS bit) and whether it
+  came within its bound;
+- max |e_Y| of the true pose (t = 0, 25, 50, ... ms) and the outcome: ``safe stop`` (SAFE_STOP
+  and the plant at standstill at the end; SAFE_STOP steers straight, so it may leave the
+  path), else ``tracked`` (max |e_Y| <= 1 m), else ``FAILED``;
+- invalid commands, checked independently of the ECU's own code: every ECU frame decoded
+  with cantools from the DBC, CRC recomputed; a STEER_TORQUE_CMD with CMD_VALID = 1 is
+  invalid when its CRC is wrong, |steer| > 0.3 rad, |torque| > the ECU's 3000 N m (inside
+  the DBC's range), its CTRL_MODE is not ACTIVE / DEGRADED / SAFE_STOP, or it drives
+  (torque > 0) in SAFE_STOP;
+- crashes: the run raised (ECU thread died, ACK timeout) or the ECU logged an
+  "unexpected error" (an exception its RX / control path caught).
+
+Bus faults run with ESO-DKMPC; vehicle faults with ESO-DKMPC and DKMPC (the observer is
+what should make them survivable). The full 13.5 s scenario every time (about 12-15 s of
+wall clock per run here); faults start at 3.0 s, in the first lane change (X ~ 29 m).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import math
+import time
+import types
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from can_defs.frames import CtrlMode, FrameId
+from hil.errors import HilError
+from hil.faults import FaultSpec
+
+#: Where the fault starts in the campaign (s): mid first lane change of the DLC.
+ONSET_S = 3.0
+#: Lateral deviation the vehicle must stay within (m) unless it comes to a safe stop.
+PATH_TOLERANCE_M = 1.0
+#: Limits of the independent command check (contract / ECU configuration).
+STEER_LIMIT_RAD = 0.3
+TORQUE_LIMIT_NM = 3000.0
+STANDSTILL_MPS = 0.1
+CONTROL_PERIOD_MS = 25
+#: Window at the end of a run over which the remaining |e_Y| is averaged (s): the straight
+#: after the manoeuvre, where a steady-state offset shows.
+SETTLE_WINDOW_S = 2.0
+VALID_MODES = {int(CtrlMode.ACTIVE), int(CtrlMode.DEGRADED), int(CtrlMode.SAFE_STOP)}
+
+
+@dataclass(frozen=True)
+class Expect:
+    """An expected reaction: ``mode`` entered or FAULTS ``bit`` set within ``bound_ms`` of
+    the fault's first action, and why that bound (contract rule)."""
+
+    bound_ms: int
+    why: str
+    mode: CtrlMode | None = None
+    bit: int | None = None
+
+    def label(self) -> str:
+        what = self.mode.name if self.mode is not None else f"bit {self.bit}"
+        return f"{what} <= {self.bound_ms} ms"
+
+
+# Contract bounds (can-contract.md, fault reaction), counted from the first frame the
+# fault hit (t0, a plant instant): the last good sample is then t0 - 10 ms, its age passes
+# 20 ms after t0 + 10 ms and the next control task is at most 25 ms later.
+DEGRADED = Expect(35, "sample > 20 ms old at a task", mode=CtrlMode.DEGRADED)
+# SAFE_STOP: age > 100 ms after t0 + 90 ms, plus up to 25 ms to the next task.
+SAFE_STOP = Expect(115, "no good sample > 100 ms", mode=CtrlMode.SAFE_STOP)
+# E2E error: flagged in the next CTRL_DIAG (the frame is handled before the next task).
+E2E_NEXT = Expect(25, "E2E error in the next CTRL_DIAG", bit=1)
+# Evidence one plant period (10 ms) after the first action (the next sample shows the gap).
+E2E_NEXT_SAMPLE = Expect(35, "sequence error seen with the next sample", bit=1)
+TORN = Expect(35, "torn set seen with the next sample", bit=0)
+STANDBY_PLANNER = Expect(25, "unknown PATH_ID / ENGAGE = 0 at the next task",
+                         mode=CtrlMode.STANDBY)
+# PLANNER_REQ every 25 ms on the control grid; the last one 25 ms before the first
+# missing, so its age passes 100 ms at the task t0 + 100 ms.
+STANDBY_TIMEOUT = Expect(100, "PLANNER_REQ missing > 100 ms", mode=CtrlMode.STANDBY)
+
+
+@dataclass(frozen=True)
+class FaultCase:
+    """One campaign entry: its ``[faults]`` table, controllers and expected reactions."""
+
+    name: str
+    group: str                      # "bus" or "vehicle"
+    table: dict[str, Any]
+    controllers: tuple[str, ...]
+    expects: tuple[Expect, ...] = ()
+    note: str = ""
+
+
+def _bus(kind: str, expects: tuple[Expect, ...] = (), note: str = "", name: str | None = None,
+         **fault: Any) -> FaultCase:
+    fault = {"kind": kind, "start_s": ONSET_S, **fault}
+    return FaultCase(name or kind, "bus", {"seed": 1, "bus": [fault]}, ("eso-dkmpc",), expects, note)
+
+
+def _vehicle(name: str, table: dict[str, Any], note: str = "") -> FaultCase:
+    return FaultCase(name, "vehicle", table, ("eso-dkmpc", "dkmpc"), (), note)
+
+
+def campaign_cases() -> list[FaultCase]:
+    """The faults of `make faults`, bus faults first."""
+    return [
+        _bus("drop", (TORN,), "5 % of plant frames lost", name="drop 5 %", rate=0.05),
+        _bus("drop", (DEGRADED,), "bursts of 6 frames of one ID (60 ms)", name="drop bursts",
+             rate=0.02, burst=6),
+        _bus("delay", (), "no timestamp in the contract: undetectable", delay_ms=20),
+        _bus("duplicate", (E2E_NEXT,), "every plant frame twice (repeated CNT)", rate=1.0),
+        _bus("reorder", (E2E_NEXT_SAMPLE,), "10 % of sample instants swapped with the next",
+             rate=0.1),
+        _bus("bitflip", (E2E_NEXT,), "one bit of 5 % of plant frames", rate=0.05),
+        _bus("frozen_counter", (DEGRADED, SAFE_STOP), "plant CNT stuck from 3.0 s on"),
+        _bus("wrong_crc", (E2E_NEXT, DEGRADED), "every plant frame for 50 ms", duration_s=0.05),
+        _bus("silent", (DEGRADED,), "plant silent 60 ms", name="plant silent 60 ms",
+             duration_s=0.06),
+        _bus("silent", (DEGRADED, SAFE_STOP), "plant silent from 3.0 s on",
+             name="plant silent"),
+        _bus("silent", (STANDBY_TIMEOUT,), "planner silent 200 ms", name="planner silent 200 ms",
+             sender="planner", duration_s=0.2),
+        _bus("babble", (DEGRADED, SAFE_STOP), "0x0FF back to back for 300 ms starves 0x100-0x110",
+             name="babble 0x0FF", babble_id=0x0FF, frames_per_tick=10, starve=True,
+             duration_s=0.3),
+        _bus("babble", (E2E_NEXT,), "random payloads on VEH_DYN's ID for 1 s",
+             name="babble on 0x100", babble_id=0x100, frames_per_tick=10, starve=False,
+             duration_s=1.0),
+        _bus("override", (), "VX raw max (327.67 m/s) for 100 ms", name="VX out of range",
+             field="vx", value=1e9, duration_s=0.1),
+        _bus("override", (), "VX = 0 (division by Vx) for 100 ms", name="VX = 0",
+             field="vx", value=0.0, duration_s=0.1),
+        _bus("override", (), "TARGET_SPEED raw max (655.35 m/s) for 100 ms",
+             name="TARGET_SPEED max", sender="planner", field="target_speed", value=1e9,
+             duration_s=0.1),
+        _bus("override", (STANDBY_PLANNER,), "PATH_ID 99 for 200 ms", name="unknown PATH_ID",
+             sender="planner", field="path_id", value=99, duration_s=0.2),
+        _bus("engage_toggle", (STANDBY_PLANNER,), "ENGAGE 0/1 every 50 ms for 0.5 s",
+             sender="planner", period_ms=50, duration_s=0.5),
+        _vehicle("none", {}, "baseline"),
+        _vehicle("mu step 0.85 -> 0.5", {"mu_step": {"time_s": ONSET_S, "mu": 0.5}},
+                 "at 3.0 s"),
+        _vehicle("mass +200 kg", {"vehicle": {"mass_offset_kg": 200.0}}),
+        _vehicle("steer offset 0.02 rad", {"vehicle": {"steer_offset_rad": 0.02}}),
+        _vehicle("steer lag +0.1 s", {"vehicle": {"steer_extra_lag_s": 0.1}}),
+        _vehicle("sensor bias + noise", {"seed": 1, "sensor": {
+            "vy_bias": 0.05, "vy_noise": 0.02, "yaw_rate_bias": 0.01, "yaw_rate_noise": 0.005}},
+            "VY +0.05 (sd 0.02) m/s, YAW_RATE +0.01 (sd 0.005) rad/s"),
+        _vehicle("all vehicle faults", {"seed": 1, "mu_step": {"time_s": ONSET_S, "mu": 0.5},
+                 "vehicle": {"mass_offset_kg": 200.0, "steer_offset_rad": 0.02,
+                             "steer_extra_lag_s": 0.1},
+                 "sensor": {"vy_bias": 0.05, "vy_noise": 0.02, "yaw_rate_bias": 0.01,
+                            "yaw_rate_noise": 0.005}}, "the five above at once"),
+    ]
+
+
+# --- judging one run ----------------------------------------------------------------------
+
+
+@dataclass
+class Verdict:
+    """What one run showed (see the module docstring)."""
+
+    case: str
+    group: str
+    controller: str
+    description: str
+    mode_sequence: str = ""
+    detect_ms: int | None = None
+    expects: list[dict[str, Any]] = field(default_factory=list)
+    max_abs_ey_m: float = math.nan
+    settled_abs_ey_m: float = math.nan   # mean |e_Y| over the last 2 s (steady-state offset)
+    outcome: str = ""
+    invalid_commands: int = 0
+    commands_checked: int = 0
+    crashes: int = 0
+    crash_reason: str = ""
+    controller_errors: int = 0
+    faults_first_ms: int | None = None
+    frames_hit: int = 0
+    wall_s: float = 0.0
+    e_y: list[float] = field(default_factory=list)
+    time_s: list[float] = field(default_factory=list)
+
+    @property
+    def expects_met(self) -> bool:
+        return all(e["met"] for e in self.expects)
+
+    def passed(self) -> bool:
+        """No crash, no invalid command, outcome tracked or safe stop, expectations met."""
+        return (self.crashes == 0 and self.invalid_commands == 0
+                and self.outcome in ("tracked", "safe stop") and self.expects_met)
+
+
+def check_commands(raw: Sequence[tuple[int, int, bytes]]) -> tuple[int, int, list[str]]:
+    """Independent check of the ECU's commands: (invalid count, CMD_VALID = 1 frames checked,
+    reasons of the first few). ``raw``: (tick ms, arbitration ID, payload) of ECU frames."""
+    import cantools
+
+    from can_defs.crc import e2e_crc
+    from can_defs.dbc import DBC_PATH
+
+    db = cantools.database.load_file(str(DBC_PATH))
+    message = db.get_message_by_frame_id(int(FrameId.STEER_TORQUE_CMD))
+    invalid, checked, reasons = 0, 0, []
+    for tick, frame_id, data in raw:
+        if frame_id != FrameId.STEER_TORQUE_CMD:
+            continue
+        why = None
+        if len(data) != 8:
+            why = f"length {len(data)}"
+        else:
+            s = message.decode(data, decode_choices=False)
+            if not s["CMD_VALID"]:
+                continue
+            checked += 1
+            steer, torque, mode = s["STEER_ANGLE_CMD"], s["DRIVE_TORQUE_CMD"], int(s["CTRL_MODE"])
+            if data[0] != e2e_crc(frame_id, data):
+                why = "CRC"
+            elif not (math.isfinite(steer) and abs(steer) <= STEER_LIMIT_RAD + 1e-9):
+                why = f"steer {steer}"
+            elif not (math.isfinite(torque) and abs(torque) <= TORQUE_LIMIT_NM + 1e-9):
+                why = f"torque {torque}"
+            elif mode not in VALID_MODES:
+                why = f"CMD_VALID in mode {mode}"
+            elif mode == CtrlMode.SAFE_STOP and torque > 0:
+                why = f"drive torque {torque} in SAFE_STOP"
+        if why is not None:
+            invalid += 1
+            if len(reasons) < 5:
+                reasons.append(f"t={tick} ms: {why}")
+    return invalid, checked, reasons
+
+
+def mode_sequence(times_s: np.ndarray, modes: np.ndarray, max_items: int = 7) -> str:
+    """Run-length mode sequence, ``ACTIVE, DEGRADED@3.025, ...`` (startup INIT / STANDBY
+    before the first ACTIVE left out)."""
+    names = [CtrlMode(int(m)).name for m in modes]
+    start = next((i for i, n in enumerate(names) if n == "ACTIVE"), 0)
+    items: list[str] = []
+    previous = None
+    for t, name in zip(times_s[start:], names[start:]):
+        if name != previous:
+            items.append(name if previous is None else f"{name}@{t:.3f}")
+            previous = name
+    if len(items) > max_items:
+        items = items[:max_items - 1] + [f"... ({len(items) - max_items + 1} more)"]
+    return ", ".join(items)
+
+
+def evaluate(case: FaultCase, controller: str, result: Any, error: BaseException | None,
+             unexpected_errors: int, controller_errors: int, description: str,
+             path: Any = None) -> Verdict:
+    """Judge one run (``result`` a ``hil.session.HilRunResult``, None when it raised;
+    ``path`` the reference path, to keep e_Y(t) for the figure)."""
+    verdict = Verdict(case.name, case.group, controller, description,
+                      controller_errors=controller_errors)
+    if error is not None or result is None:
+        verdict.crashes = 1
+        verdict.crash_reason = f"{type(error).__name__}: {error}"
+        verdict.outcome = "CRASH"
+        return verdict
+    verdict.wall_s = result.wall_time_s
+    if unexpected_errors:
+        verdict.crashes = unexpected_errors
+        verdict.crash_reason = f"{unexpected_errors} exception(s) caught inside the ECU"
+    ecu, plant = result.ecu_trace, result.plant_trace
+    times, modes, faults = ecu["time"], ecu["ctrl_mode"].astype(int), ecu["faults"].astype(int)
+    verdict.mode_sequence = mode_sequence(times, modes)
+    injector = result.extra.get("injector")
+    onset_ms = injector.first_action_ms if injector is not None else None
+    if case.group == "vehicle":
+        onset_ms = None  # no bus evidence: the ECU is not expected to detect these
+    verdict.faults_first_ms = onset_ms
+    verdict.frames_hit = sum(r.actions for r in injector.records()) if injector is not None else 0
+    tick_ms = np.round(times * 1000).astype(int)
+    if onset_ms is not None and len(times):
+        after = tick_ms >= onset_ms
+        before = np.flatnonzero(~after)
+        baseline = faults[before[-1]] if len(before) else 0
+        changed = after & ((modes != int(CtrlMode.ACTIVE)) | ((faults & ~baseline) != 0))
+        if changed.any():
+            verdict.detect_ms = int(tick_ms[np.argmax(changed)] - onset_ms)
+        for expect in case.expects:
+            hit = after & ((modes == int(expect.mode)) if expect.mode is not None
+                           else ((faults >> expect.bit) & 1 == 1))
+            at = int(tick_ms[np.argmax(hit)] - onset_ms) if hit.any() else None
+            verdict.expects.append({"expect": expect.label(), "why": expect.why, "at_ms": at,
+                                    "met": at is not None and at <= expect.bound_ms})
+    elif case.expects:
+        verdict.expects = [{"expect": e.label(), "why": e.why, "at_ms": None, "met": False}
+                           for e in case.expects]
+    verdict.max_abs_ey_m = float(result.tracking.lateral.max_abs)
+    safe_stopped = (modes == int(CtrlMode.SAFE_STOP)).any() and abs(plant["vx"][-1]) < STANDSTILL_MPS
+    if safe_stopped:
+        verdict.outcome = "safe stop"
+    elif verdict.max_abs_ey_m <= PATH_TOLERANCE_M:
+        verdict.outcome = "tracked"
+    else:
+        verdict.outcome = "FAILED"
+    raw = result.extra.get("ecu_frames_raw", [])
+    verdict.invalid_commands, verdict.commands_checked, reasons = check_commands(raw)
+    if reasons:
+        verdict.crash_reason += ("; " if verdict.crash_reason else "") + "invalid: " + "; ".join(reasons)
+    if path is not None:
+        _keep_ey(verdict, result, path)
+    return verdict
+
+
+def _keep_ey(verdict: Verdict, result: Any, path: Any) -> None:
+    """e_Y at the control instants (for the figure)."""
+    from hil.metrics import path_errors
+
+    plant = result.plant_trace
+    at = np.round(plant["time"] * 1000).astype(int) % CONTROL_PERIOD_MS == 0
+    pose = np.column_stack([plant["x"][at], plant["y"][at], plant["yaw"][at]])
+    errors = path_errors(pose, path)
+    verdict.time_s = [round(float(t), 3) for t in plant["time"][at]]
+    verdict.e_y = [round(float(e), 5) for e in errors.lateral_error]
+    last = plant["time"][at] >= plant["time"][at][-1] - SETTLE_WINDOW_S
+    verdict.settled_abs_ey_m = float(np.mean(np.abs(errors.lateral_error[last])))
+
+
+# --- running ------------------------------------------------------------------------------
+
+
+class _EcuLogCounter(logging.Handler):
+    """Counts what the ECU logs: caught exceptions and controller failures."""
+
+    def __init__(self) -> None:
+        super().__init__(level=logging.ERROR)
+        self.unexpected = 0
+        self.controller = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        if "unexpected error" in text:
+            self.unexpected += 1
+        elif "controller step raised" in text:
+            self.controller += 1
+
+
+def run_case(case: FaultCase, controller: str, scenario_name: str = "dlc_high_mu",
+             duration_s: float | None = None, seed: int | None = None,
+             source: object | None = None) -> Verdict:
+    """Run one case with one controller on a private virtual bus and judge it
+    (``source`` names where the faults table came from in errors; default the case)."""
+    from hil.scenario import load_scenario
+    from hil.session import SessionError, default_options, reference_path, run_hil
+    from hil.time_master import TimeMasterError
+
+    scenario = load_scenario(scenario_name)
+    table = dict(case.table)
+    if seed is not None:
+        table["seed"] = seed
+    spec = FaultSpec.from_mapping(table, source if source is not None else f"case {case.name!r}")
+    changes: dict[str, Any] = {"faults": types.MappingProxyType(table)}
+    if duration_s is not None:
+        changes["duration_s"] = duration_s
+    scenario = dataclasses.replace(scenario, **changes)
+    description = "; ".join(f.describe() for f in spec.bus) or case.note or "no fault"
+    if case.group == "vehicle" and case.note and case.table:
+        description = f"{case.name} ({case.note})"
+    elif case.group == "vehicle":
+        description = case.name if case.table else "no fault (baseline)"
+    counter = _EcuLogCounter()
+    logger = logging.getLogger("firmware_sim")
+    logger.addHandler(counter)
+    result, error = None, None
+    try:
+        result = run_hil(scenario, default_options(controller, faults=spec))
+    except (TimeMasterError, SessionError) as e:
+        # The ECU died or stopped ACKing: a crash is a result here, not the end. Anything
+        # else is a fault of the harness and propagates.
+        error = e
+    finally:
+        logger.removeHandler(counter)
+    return evaluate(case, controller, result, error, counter.unexpected, counter.controller,
+                    description, reference_path(scenario))
+
+
+def run_campaign(cases: Sequence[FaultCase], controllers: Sequence[str] | None = None,
+                 duration_s: float | None = None) -> list[Verdict]:
+    """Every (case, controller) run in order, with a tqdm progress bar."""
+    from tqdm import tqdm
+
+    jobs = [(case, c) for case in cases for c in case.controllers
+            if controllers is None or c in controllers]
+    verdicts = []
+    with tqdm(jobs, desc="make faults", unit="run") as progress:
+        for case, controller in progress:
+            progress.set_postfix_str(f"{case.name} / {controller}")
+            verdicts.append(run_case(case, controller, duration_s=duration_s))
+    return verdicts
+
+
+# --- report ------------------------------------------------------------------------------
+
+
+def _ms(value: int | None) -> str:
+    return "-" if value is None else f"{value}"
+
+
+def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
+    """results/faults.md."""
+    lines = ["# Fault injection campaign (`make faults`)", "",
+             f"Scenario `dlc_high_mu` (35 km/h, mu 0.85, 13.5 s), lockstep on python-can's "
+             f"virtual bus; faults start at {ONSET_S} s (first lane change, X ~ 29 m) unless "
+             "said otherwise. Generated by `" + command + f"` in {wall_s / 60:.1f} min.", "",
+             "Detect = first control cycle after the fault's first action with a mode other "
+             "than ACTIVE or a new FAULTS bit (ms). Expected = the contract's reaction and its "
+             "bound, and when it came (ms after the first action). Outcome: tracked = max |e_Y| "
+             f"<= {PATH_TOLERANCE_M} m; safe stop = SAFE_STOP and standstill at the end. "
+             "Invalid = commands with CMD_VALID = 1 that broke a limit (decoded with cantools "
+             "from the DBC, CRC recomputed; |steer| <= 0.3 rad, |torque| <= 3000 N m, mode "
+             "ACTIVE/DEGRADED/SAFE_STOP, no drive torque in SAFE_STOP).", ""]
+    for group, title in (("bus", "Bus faults (ESO-DKMPC)"),
+                         ("vehicle", "Vehicle faults (ESO-DKMPC against DKMPC)")):
+        rows = [v for v in verdicts if v.group == group]
+        if not rows:
+            continue
+        vehicle = group == "vehicle"
+        lines += [f"## {title}", "",
+                  "| fault | controller | mode sequence | detect (ms) | expected (at ms) | "
+                  "max \\|e_Y\\| (m) | " + ("\\|e_Y\\| last 2 s (m) | " if vehicle else "")
+                  + "outcome | invalid / checked | crashes |",
+                  "|---|---|---|---|---|---|---|---|---|" + ("---|" if vehicle else "")]
+        for v in rows:
+            expected = "; ".join(f"{e['expect']} ({_ms(e['at_ms'])}) {'ok' if e['met'] else 'MISSED'}"
+                                 for e in v.expects) or "-"
+            crash = str(v.crashes) + (f" ({v.crash_reason})" if v.crash_reason else "")
+            settled = f"{v.settled_abs_ey_m:.3f} | " if vehicle else ""
+            lines.append(f"| {v.description} | {v.controller} | {v.mode_sequence} | "
+                         f"{_ms(v.detect_ms)} | {expected} | {v.max_abs_ey_m:.3f} | {settled}"
+                         f"{v.outcome} | {v.invalid_commands} / {v.commands_checked} | {crash} |")
+        lines.append("")
+    total_invalid = sum(v.invalid_commands for v in verdicts)
+    total_crash = sum(v.crashes for v in verdicts)
+    failed = [f"{v.case} / {v.controller}" for v in verdicts if not v.passed()]
+    lines += ["## Summary", "",
+              f"- runs: {len(verdicts)}; crashes: {total_crash}; invalid commands: "
+              f"{total_invalid} of {sum(v.commands_checked for v in verdicts)} checked",
+              f"- controller exceptions turned into the guarded fallback: "
+              f"{sum(v.controller_errors for v in verdicts)}",
+              f"- runs not meeting every criterion: {', '.join(failed) if failed else 'none'}", ""]
+    return "\n".join(lines)
+
+
+def figure(verdicts: Sequence[Verdict], path: Path) -> Path:
+    """e_Y over time for the vehicle faults, ESO-DKMPC against DKMPC."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cases = list(dict.fromkeys(v.case for v in verdicts if v.group == "vehicle"))
+    if not cases:
+        return path
+    fig, axes = plt.subplots(len(cases), 1, figsize=(8, 1.9 * len(cases)), sharex=True)
+    axes = np.atleast_1d(axes)
+    for ax, case in zip(axes, cases):
+        for v in verdicts:
+            if v.case == case and v.e_y:
+                ax.plot(v.time_s, v.e_y, label=f"{v.controller} (max {v.max_abs_ey_m:.2f} m)")
+        ax.set_title(case, fontsize=9)
+        ax.set_ylabel("e_Y (m)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, command: str) -> list[Path]:
+    """results/faults.md, faults.json and faults_vehicle.png."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    md = out_dir / "faults.md"
+    md.write_text(markdown(verdicts, wall_s, command), encoding="utf-8")
+    js = out_dir / "faults.json"
+    rows = []
+    for v in verdicts:
+        row = dataclasses.asdict(v)
+        row.pop("e_y")
+        row.pop("time_s")
+        row["passed"] = v.passed()
+        rows.append(row)
+    js.write_text(json.dumps(rows, indent=2) + "\n", encoding="utf-8")
+    png = figure(verdicts, out_dir / "faults_vehicle.png")
+    return [md, js, png]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m hil.fault_campaign [--out results] [--only NAME ...]``; exit 1 when a run
+    crashed, sent an invalid command, left the path without a safe stop or missed a bound."""
+    parser = argparse.ArgumentParser(prog="python -m hil.fault_campaign", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    return run_from_args(parser.parse_args(argv))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the campaign (shared with ``python -m hil faults --campaign``)."""
+    parser.add_argument("--out", type=Path, default=Path("results"), help="output folder")
+    parser.add_argument("--only", nargs="+", default=None, metavar="NAME",
+                        help="run only these cases (names as in the table)")
+    parser.add_argument("--controllers", nargs="+", default=None,
+                        help="restrict to these controllers")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="shorten the scenario (s); default the full 13.5 s")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Run the campaign as ``args`` say, write the results, print the summary."""
+    cases = campaign_cases()
+    if args.only:
+        known = {c.name for c in cases}
+        unknown = [n for n in args.only if n not in known]
+        if unknown:
+            raise HilError(f"unknown case(s) {unknown}; known: {sorted(known)}")
+        cases = [c for c in cases if c.name in args.only]
+    started = time.monotonic()
+    verdicts = run_campaign(cases, args.controllers, args.duration)
+    wall = time.monotonic() - started
+    command = "make faults" if not (args.only or args.controllers or args.duration) \
+        else "python -m hil faults --campaign " + " ".join(
+            f"--{k} {v if not isinstance(v, list) else ' '.join(map(str, v))}"
+            for k, v in (("only", args.only), ("controllers", args.controllers),
+                         ("duration", args.duration)) if v)
+    for path in write_results(verdicts, args.out, wall, command):
+        print(f"wrote {path}")
+    bad = [v for v in verdicts if not v.passed()]
+    print(f"{len(verdicts)} runs, {sum(v.crashes for v in verdicts)} crashes, "
+          f"{sum(v.invalid_commands for v in verdicts)} invalid commands, "
+          f"{len(bad)} not meeting every criterion")
+    return 1 if any(v.crashes or v.invalid_commands for v in verdicts) else 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())

@@ -1,0 +1,212 @@
+"""Figures of timing runs: the measurement window, percentiles, goals, tables, histograms.
+
+A run's window is from ``SETTLE_S`` after the plant started (the ECU engages in its first
+cycles; the first control step sets the controller up) to the plant's end, on the
+CLOCK_MONOTONIC stamps that the ECU's timing record (``start_time``) and the plant
+process share. Cycles outside it (ECU waiting for the plant, plant gone) are left out of
+the percentiles; overruns are counted from the plant's start itself.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.timing.runner import TimingRun
+
+SETTLE_S = 1.0
+PERIOD_MS = 25.0
+#: Figures from the ECU's record, in report order: (field, label).
+FIGURES = (("release_jitter", "release jitter"), ("task_time", "task time"),
+           ("solve_time", "solver time"), ("input_age", "input age"),
+           ("rx_to_tx_latency", "RX-to-TX latency"))
+QUANTILES = (50.0, 99.0, 99.9)
+#: Issue 9's goals (ms): ESO-DKMPC task time p99, RX-to-TX latency p99.
+GOAL_TASK_P99_MS = 2.0
+GOAL_LATENCY_P99_MS = 3.0
+#: Lower end of the log-spaced histogram bins, ms.
+HISTOGRAM_FLOOR_MS = 0.01
+#: CTRL_MODE values in which the controller runs (ACTIVE, DEGRADED).
+CONTROLLING_MODES = (2, 3)
+_MODE_NAMES = {0: "INIT", 1: "STANDBY", 2: "ACTIVE", 3: "DEGRADED", 4: "SAFE_STOP", 5: "FAULT"}
+
+
+@dataclass(frozen=True)
+class RunFigures:
+    """What one run measured in its window. Times in ms; ``stats[field]`` = (p50, p99,
+    p99.9, max, n)."""
+
+    condition: str
+    controller: str
+    seconds: float
+    cycles: int
+    modes: dict[str, int]
+    overruns: int
+    commands_received: int
+    commands_lost: int
+    command_e2e_errors: int
+    plant_commands_rejected: int
+    command_gap_max_ms: float
+    plant_tick_overruns: int
+    plant_ticks: int
+    lateral_error_max_m: float
+    steal_share: float
+    stats: dict[str, tuple[float, float, float, float, int]]
+    samples_ms: dict[str, np.ndarray]
+    scheduling: dict[str, str]
+
+
+def _stats(values_ms: np.ndarray) -> tuple[float, float, float, float, int]:
+    values_ms = values_ms[np.isfinite(values_ms)]
+    if not values_ms.size:
+        return (float("nan"),) * 4 + (0,)
+    p50, p99, p999 = np.percentile(values_ms, QUANTILES)
+    return float(p50), float(p99), float(p999), float(values_ms.max()), int(values_ms.size)
+
+
+def run_figures(run: TimingRun, condition: str, settle_s: float = SETTLE_S) -> RunFigures:
+    """The figures of ``run`` over its window (module docstring)."""
+    columns = run.ecu.columns
+    start = columns["start_time"]
+    t0, t1 = run.plant["started"] + settle_s, run.plant["ended"]
+    window = (start >= t0) & (start <= t1)
+    # Overruns from the plant's start on: the engagement and the controller's first step
+    # (its set-up) must meet the deadline too.
+    overruns = columns["overruns"]
+    running = (start >= run.plant["started"]) & (start <= t1)
+    before = overruns[start < run.plant["started"]]
+    overruns_in_window = int(overruns[running].max() - (before.max() if before.size else 0)) \
+        if running.any() else 0
+    modes = {_MODE_NAMES.get(int(m), str(int(m))): int(n)
+             for m, n in zip(*np.unique(columns["mode"][window], return_counts=True))}
+    commands = run.plant["commands"]
+    arrivals = np.asarray(commands["arrivals"], dtype=float)
+    in_window = arrivals[(arrivals >= t0) & (arrivals <= t1)]
+    gaps = np.diff(in_window) * 1e3
+    samples = {name: columns[name][window] * 1e3 for name, _ in FIGURES}
+    # the solver runs only while the controller does (ACTIVE, DEGRADED): elsewhere its
+    # figure is 0 by definition and would only dilute the percentiles
+    controlling = window & np.isin(columns["mode"], CONTROLLING_MODES)
+    samples["solve_time"] = columns["solve_time"][controlling] * 1e3
+    return RunFigures(
+        condition=condition, controller=run.controller, seconds=run.seconds,
+        cycles=int(window.sum()), modes=modes, overruns=overruns_in_window,
+        commands_received=int(commands["received"]), commands_lost=int(commands["lost"]),
+        command_e2e_errors=int(commands.get("e2e_errors", 0)),
+        plant_commands_rejected=int(run.plant["plant_commands_rejected"]),
+        command_gap_max_ms=float(gaps.max()) if gaps.size else float("nan"),
+        plant_tick_overruns=int(run.plant["tick_overruns"]), plant_ticks=int(run.plant["ticks"]),
+        lateral_error_max_m=float(run.plant["tracking"]["lateral_error_m"]["max_abs"]),
+        steal_share=float(run.plant.get("steal_share", float("nan"))),
+        stats={name: _stats(values) for name, values in samples.items()},
+        samples_ms=samples, scheduling=dict(run.scheduling))
+
+
+def _fmt(value: float) -> str:
+    return "-" if not np.isfinite(value) else f"{value:.3f}"
+
+
+def summary_table(figures: list[RunFigures]) -> list[str]:
+    """Markdown: one row per run with the deadline and loss figures."""
+    lines = ["| load | controller | s | cycles (ACTIVE) | overruns at 25 ms | commands lost "
+             "| largest command gap at the plant (ms) | task p99 (ms) | RX-to-TX p99 (ms) "
+             "| plant ticks late | CPU steal by the host | max abs e_Y (m) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for f in figures:
+        lines.append(
+            f"| {f.condition} | {f.controller} | {f.seconds:g} | {f.cycles} "
+            f"({f.modes.get('ACTIVE', 0)}) | {f.overruns} | {f.commands_lost} "
+            f"| {_fmt(f.command_gap_max_ms)} | {_fmt(f.stats['task_time'][1])} "
+            f"| {_fmt(f.stats['rx_to_tx_latency'][1])} | {f.plant_tick_overruns} of "
+            f"{f.plant_ticks} | {100 * f.steal_share:.1f} % | {f.lateral_error_max_m:.3f} |")
+    return lines
+
+
+def percentile_table(figures: list[RunFigures]) -> list[str]:
+    """Markdown: p50 / p99 / p99.9 / max (ms) of every figure of every run."""
+    lines = ["| load | controller | figure | n | p50 | p99 | p99.9 | max |",
+             "|---|---|---|---|---|---|---|---|"]
+    for f in figures:
+        for name, label in FIGURES:
+            p50, p99, p999, peak, n = f.stats[name]
+            lines.append(f"| {f.condition} | {f.controller} | {label} | {n} | {_fmt(p50)} "
+                         f"| {_fmt(p99)} | {_fmt(p999)} | {_fmt(peak)} |")
+    return lines
+
+
+def goal_lines(figures: list[RunFigures]) -> list[str]:
+    """The issue's goals, each with the measured figure and met / NOT met."""
+    lines = []
+    for condition in dict.fromkeys(f.condition for f in figures):
+        runs = {f.controller: f for f in figures if f.condition == condition}
+        eso, lmpc = runs.get("eso-dkmpc"), runs.get("lmpc")
+        if eso is not None:
+            task = eso.stats["task_time"][1]
+            lines.append(f"- {condition}: ESO-DKMPC task time p99 {task:.3f} ms <= "
+                         f"{GOAL_TASK_P99_MS} ms: {'met' if task <= GOAL_TASK_P99_MS else 'NOT met'}")
+            if lmpc is not None:
+                ratio = task / lmpc.stats["task_time"][1]
+                lines.append(f"- {condition}: ESO-DKMPC / LMPC task time p99 = {ratio:.2f} "
+                             f"(<= 2): {'met' if ratio <= 2.0 else 'NOT met'}")
+            latency = eso.stats["rx_to_tx_latency"][1]
+            lines.append(f"- {condition}: ESO-DKMPC RX-to-TX latency p99 {latency:.3f} ms <= "
+                         f"{GOAL_LATENCY_P99_MS} ms: "
+                         f"{'met' if latency <= GOAL_LATENCY_P99_MS else 'NOT met'}")
+        for f in runs.values():
+            lines.append(f"- {condition}: {f.controller} overruns at 25 ms over {f.seconds:g} s: "
+                         f"{f.overruns} ({'met' if f.overruns == 0 else 'NOT met'}), "
+                         f"commands lost: {f.commands_lost}")
+    return lines
+
+
+def plot_histograms(figures: list[RunFigures], condition: str, out: Path) -> Path:
+    """One PNG per load condition: histograms of the figures on log-spaced bins (so that
+    the QP controllers' ~2 ms and NMPC's ~25 ms both show), log counts, controllers
+    overlaid, the 25 ms period dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [f for f in figures if f.condition == condition]
+    fig, axes = plt.subplots(2, 3, figsize=(13.0, 6.5))
+    flat = axes.ravel()
+    for ax, (name, label) in zip(flat, FIGURES):
+        finite = [f.samples_ms[name][np.isfinite(f.samples_ms[name])] for f in runs]
+        top = max((v.max() for v in finite if v.size), default=1.0)
+        bins = np.geomspace(HISTOGRAM_FLOOR_MS, max(top * 1.1, 10 * HISTOGRAM_FLOOR_MS), 80)
+        for f, values in zip(runs, finite):
+            if values.size:
+                ax.hist(np.maximum(values, HISTOGRAM_FLOOR_MS), bins=bins, histtype="step",
+                        label=f.controller, log=True)
+        ax.set_xscale("log")
+        if top >= 0.5 * PERIOD_MS:
+            ax.axvline(PERIOD_MS, color="k", lw=0.8, ls="--")
+        ax.set_xlabel(f"{label} (ms, log scale)")
+        ax.set_ylabel("cycles")
+    flat[0].legend(fontsize=8)
+    flat[-1].axis("off")
+    fig.suptitle(f"ECU timing per control cycle, {condition} (values below "
+                 f"{HISTOGRAM_FLOOR_MS} ms in the first bin)")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def as_json(figures: list[RunFigures]) -> list[dict[str, Any]]:
+    """JSON-ready figures (no samples)."""
+    keys = ("condition", "controller", "seconds", "cycles", "modes", "overruns",
+            "commands_received", "commands_lost", "command_e2e_errors",
+            "plant_commands_rejected", "command_gap_max_ms", "plant_tick_overruns",
+            "plant_ticks", "lateral_error_max_m", "steal_share", "scheduling")
+    out = []
+    for f in figures:
+        record = {key: getattr(f, key) for key in keys}
+        record["stats_ms"] = {name: dict(zip(("p50", "p99", "p99.9", "max", "n"), values))
+                              for name, values in f.stats.items()}
+        out.append(record)
+    return out

@@ -1,0 +1,23 @@
+# ECU timing as on a vehicle (issue 9, hil/timing/):
+#   make timing   - ECU and plant as separate processes pinned to separate cores (SCHED_FIFO
+#                   where permitted), 40 Hz control per controller, idle and under a busy-loop
+#                   load on both cores -> results/timing.md, results/timing_{idle,stress}.png
+#                   (2 min per controller, NMPC 30 s: about 15 min; TIMING_SECONDS=20 for a
+#                   quick run)
+#   make bench    - per-step compute time of the four controllers side by side with the
+#                   paper's, and a profile of the ESO-DKMPC step -> results/bench.md
+#   make timing-test - the 20 s real-time test of ESO-DKMPC (also part of `make test`)
+.PHONY: timing bench timing-test
+
+TIMING_SECONDS ?= 120
+TIMING_NMPC_SECONDS ?= 30
+
+timing: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.timing.bench --seconds $(TIMING_SECONDS) \
+		--nmpc-seconds $(TIMING_NMPC_SECONDS) --out results/timing.md --work build/timing
+
+bench: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.timing.compute --out results/bench.md
+
+timing-test: setup
+	$(PY) -m pytest -q -s tests/test_timing.py tests/test_timing_units.py
