@@ -82,7 +82,7 @@ def report_trace(result: Any, path: Any, target_speed: Any) -> Any:
         "target_speed": np.array([target_speed(t) for t in plant["time"][rows]]),
         "steer_cmd": from_ecu("steer_angle_cmd"), "torque_cmd": from_ecu("drive_torque_cmd"),
         "lateral_error": errors.lateral_error, "heading_error": errors.heading_error,
-        "arc_length": errors.progress,
+        "progress": errors.progress,
         "solver_status": np.nan_to_num(from_ecu("qp_status"), nan=15).astype(np.int64),
         "solver_iterations": np.nan_to_num(from_ecu("qp_iter")).astype(np.int64),
         "solve_time_s": from_ecu("solve_time_us", 1e-6),
