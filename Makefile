@@ -53,3 +53,8 @@ test-fast: setup
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis
+
+# README.md is assembled from docs/readme/*.md (one section per capability).
+.PHONY: readme
+readme:
+	$(PYTHON) docs/build_readme.py
