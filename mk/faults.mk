@@ -3,7 +3,7 @@
 #                 bus (32 runs, about 3-4 min here): results/faults.md, faults.json,
 #                 faults_vehicle.png; FAULTS_ARGS="--only NAME ..." for a subset
 #   make fuzz     the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000,
-#                 about 25 min here; no pytest timeout); `make test` runs the same test
+#                 about 14 min here; no pytest timeout); `make test` runs the same test
 #                 with 10000 (about 1 min)
 .PHONY: faults fuzz faults-test
 
