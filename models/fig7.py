@@ -326,25 +326,34 @@ def table_header(pole: float, artifact: str, duration_s: float) -> str:
 
 
 def plot_condition(p: Predictions, condition: Condition, path: Path) -> None:
-    """Fig. 7 style: true vs DK vs ESO-DK one-step predictions of the three states."""
+    """Fig. 7 style: true vs DK vs ESO-DK one-step predictions of the three states (left)
+    and the one-step prediction errors (right, where the difference is visible)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     t = (np.arange(p.truth.shape[0]) + 1) * TS
-    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
-    for i, (ax, label) in enumerate(zip(axes, STATE_LABELS)):
+    fig, axes = plt.subplots(3, 2, figsize=(14, 8), sharex=True)
+    for i, label in enumerate(STATE_LABELS):
+        ax, err_ax = axes[i]
         ax.plot(t, p.truth[:, i], color="black", lw=1.6, label="true")
         ax.plot(t, p.one_step_dk[:, i], color="tab:blue", lw=1.0, ls="--", label="DK")
         ax.plot(t, p.one_step_eso[:, i], color="tab:red", lw=1.0, ls=":", label="ESO-DK")
         ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right", ncol=3)
-    axes[0].set_title(f"Fig. 7 {condition.title}: one-step predictions")
-    axes[-1].set_xlabel("time (s)")
+        err_ax.plot(t, p.one_step_dk[:, i] - p.truth[:, i], color="tab:blue", lw=0.8, label="DK error")
+        err_ax.plot(t, p.one_step_eso[:, i] - p.truth[:, i], color="tab:red", lw=0.8, label="ESO-DK error")
+        err_ax.set_ylabel(f"error {label}")
+        for a in (ax, err_ax):
+            a.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", ncol=3)
+    axes[0, 1].legend(loc="upper right", ncol=2)
+    axes[0, 0].set_title(f"Fig. 7 {condition.title}: one-step predictions")
+    axes[0, 1].set_title("one-step prediction error (prediction - true)")
+    for a in axes[-1]:
+        a.set_xlabel("time (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
