@@ -8,15 +8,7 @@ import cantools
 from can_defs import (DBC_PATH, CtrlMode, E2EMonitor, E2EStatus, FrameId, VehDyn, decode,
                       encode)
 
-
-def _third_party_crc8_j1850(data: bytes) -> int:
-    """What a third party writes from the contract text: poly 0x1D, init 0xFF, xorout 0xFF."""
-    register = 0xFF
-    for byte in data:
-        register ^= byte
-        for _ in range(8):
-            register = ((register << 1) ^ 0x1D) & 0xFF if register & 0x80 else (register << 1) & 0xFF
-    return register ^ 0xFF
+from contract_reference import crc8_sae_j1850_bitwise
 
 
 def test_third_party_command_is_accepted_and_our_frames_decode_with_cantools():
@@ -26,7 +18,7 @@ def test_third_party_command_is_accepted_and_our_frames_decode_with_cantools():
         "CRC": 0, "CNT": 3, "CTRL_MODE": "ACTIVE", "CMD_VALID": 1,
         "STEER_ANGLE_CMD": -0.1, "DRIVE_TORQUE_CMD": 100.0}))
     frame_id = command.frame_id
-    payload[0] = _third_party_crc8_j1850(bytes([frame_id & 0xFF, frame_id >> 8]) + payload[1:])
+    payload[0] = crc8_sae_j1850_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + payload[1:])
 
     with can.Bus(interface="virtual", channel="can_defs_interop") as third_party, \
             can.Bus(interface="virtual", channel="can_defs_interop") as our_node:
@@ -47,7 +39,7 @@ def test_third_party_command_is_accepted_and_our_frames_decode_with_cantools():
     assert abs(decoded.frame.drive_torque_cmd - 100.0) < 0.05
 
     signals = database.decode_message(reply.arbitration_id, reply.data)
-    crc = _third_party_crc8_j1850(bytes([0x00, 0x01]) + bytes(reply.data[1:]))
+    crc = crc8_sae_j1850_bitwise(bytes([0x00, 0x01]) + bytes(reply.data[1:]))
     print(f"our VEH_DYN decoded by cantools: {signals}; CRC by third party 0x{crc:02X}")
     assert signals["CRC"] == crc and signals["CNT"] == 9
     assert abs(signals["VX"] - 13.9) < 0.005 and abs(signals["VY"] + 0.21) < 0.0005

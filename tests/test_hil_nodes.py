@@ -16,30 +16,7 @@ from hil.plant_node import COMMAND_TIMEOUT_MS, PlantFaultError, PlantNode, mu_st
 from hil.planner_node import PlannerNode
 from hil.scenario import load_scenario
 
-
-def crc8_sae_j1850_bitwise(data: bytes) -> int:
-    """CRC-8/SAE-J1850 one bit at a time (poly 0x1D, init 0xFF, xorout 0xFF)."""
-    register = 0xFF
-    for byte in data:
-        register ^= byte
-        for _ in range(8):
-            register = ((register << 1) ^ 0x1D) & 0xFF if register & 0x80 else (register << 1) & 0xFF
-    return register ^ 0xFF
-
-
-def e2e_ok(arbitration_id: int, data: bytes) -> bool:
-    """Contract E2E CRC: over ID low byte, ID high byte, payload bytes 1..7."""
-    covered = bytes([arbitration_id & 0xFF, arbitration_id >> 8]) + data[1:8]
-    return data[0] == crc8_sae_j1850_bitwise(covered)
-
-
-def signed(data: bytes, start_bit: int, length: int) -> int:
-    raw = (int.from_bytes(data, "little") >> start_bit) & ((1 << length) - 1)
-    return raw - (1 << length) if raw & (1 << (length - 1)) else raw
-
-
-def unsigned(data: bytes, start_bit: int, length: int) -> int:
-    return (int.from_bytes(data, "little") >> start_bit) & ((1 << length) - 1)
+from contract_reference import crc8_sae_j1850_bitwise, e2e_ok, signed, unsigned
 
 
 def steer_cmd_payload(counter: int, mode: int, valid: bool, steer_rad: float,

@@ -29,7 +29,7 @@ from hil.recorder import EcuFrameMonitor
 from hil.scenario import load_scenario
 from hil.session import InProcessEcu, default_options, run_hil
 from hil.time_master import LockstepMaster
-from test_hil_nodes import crc8_sae_j1850_bitwise, e2e_ok, unsigned
+from contract_reference import crc8_sae_j1850_bitwise, e2e_ok, unsigned
 
 CONTROLLER = "lmpc"  # the fastest of the four; the comparison is about the bus, not the law
 E_Y_BOUND_M = 2e-3

@@ -16,7 +16,7 @@ from pathlib import Path
 import can
 import pytest
 
-from test_hil_nodes import crc8_sae_j1850_bitwise
+from contract_reference import crc8_sae_j1850_bitwise
 
 PATH_FILE = Path(__file__).resolve().parent.parent / "hil" / "paths" / "dlc.csv"
 HANDSHAKE = 0xFFFFFFFF
