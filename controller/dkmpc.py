@@ -1,13 +1,8 @@
 """DKMPC: the deep Koopman MPC without the observer (w_hat = 0), paper Section IV-B 4)."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from controller.lifted_mpc import LiftedMpc
-from controller.tuning import ControllerTuning, LongitudinalTuning, QpMpcTuning
-
-if TYPE_CHECKING:
-    from models.koopman import KoopmanModel
+from controller.tuning import ControllerTuning
 
 
 class Dkmpc(LiftedMpc):
@@ -21,6 +16,3 @@ class Dkmpc(LiftedMpc):
         from models.koopman import KoopmanModel
 
         return cls(KoopmanModel.load(), tuning.dkmpc, tuning.longitudinal)
-
-    def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
-        super().__init__(model, tuning, longitudinal)

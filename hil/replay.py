@@ -26,9 +26,7 @@ within half a control period otherwise) and order.
 from __future__ import annotations
 
 import functools
-import itertools
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -45,6 +43,7 @@ from can_defs.dbc import load_database
 from can_defs.errors import CanDefsError
 from can_defs.frames import (HANDSHAKE_TICK, TICK_STEP_MS, CtrlMode, FrameId, HilSync,
                              PlannerReq, QpStatus)
+from hil.bus import private_virtual_channel
 from hil.errors import HilError
 from hil.logio import (ECU_OUTPUT_IDS, LogContents, frame_times, is_contract_data_frame,
                        read_log, sync_tick)
@@ -77,7 +76,6 @@ CONTROL_PERIOD_NS = 25_000_000
 #: Wall-clock wait for one HIL_SYNC_ACK.
 DEFAULT_ACK_TIMEOUT_S = 10.0
 _NS_PER_S = 1_000_000_000
-_channel_numbers = itertools.count()
 
 
 class ReplayError(HilError):
@@ -184,7 +182,7 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
         ReplayError: the ECU could not start. A missing ACK ends the replay early with
         ``aborted`` set and the outputs so far.
     """
-    channel = f"replay-{os.getpid()}-{next(_channel_numbers)}"
+    channel = private_virtual_channel("replay")
     started = time.perf_counter()
     ecu_bus = can.Bus(interface="virtual", channel=channel)
     feeder = can.Bus(interface="virtual", channel=channel)
