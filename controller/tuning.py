@@ -77,10 +77,19 @@ class QpMpcTuning(MpcTuning):
 
 @dataclass(frozen=True)
 class EsoDkmpcTuning(QpMpcTuning):
-    """ESO-DKMPC: the QP MPC plus the ESO error pole; the gains beta1, beta2 of eq. 13
-    (g1 = g2 = identity) follow from ``models.eso.design_gains(A, eso_pole)``."""
+    """ESO-DKMPC: the QP MPC plus the ESO.
+
+    The gains beta1, beta2 of eq. 13 (g1 = g2 = identity) follow from
+    ``models.eso.design_gains(A, eso_pole, second_pole=eso_second_pole)``: the two error
+    poles of eq. 24 in every lifted direction (a fast one lets z_hat follow z, a slow one
+    sets how quickly w_hat moves). ``disturbance_decay`` shapes w_hat over the horizon:
+    step i of the prediction adds ``disturbance_decay**i * w_hat``; 1 holds it constant,
+    as eq. 15 does.
+    """
 
     eso_pole: float
+    eso_second_pole: float
+    disturbance_decay: float
 
 
 @dataclass(frozen=True)
@@ -126,6 +135,8 @@ _RULES: dict[str, _Rule] = {
     "ipopt_max_iter": (lambda v: v >= 1, "must be >= 1"),
     "ipopt_tol": _POSITIVE,
     "eso_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
+    "eso_second_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
+    "disturbance_decay": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
 }
 
 

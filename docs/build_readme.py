@@ -2,6 +2,12 @@
 
 Each capability keeps its section in its own file so parallel work does not collide; this
 joins them in file-name order and puts a contents list after the introduction.
+
+A line ``@include results/FILE.md`` in a section is replaced by that file, as the make
+target named beside it last wrote it: tables of measured figures are never copied by hand,
+so the README cannot drift from ``results/``. Headings of the included file are moved down
+so that its top level is ``####`` (they stay out of the contents list). A missing file
+stops the build, naming the section and the file.
 """
 from __future__ import annotations
 
@@ -18,8 +24,41 @@ def _anchor(title: str) -> str:
     return slug.replace(" ", "-")
 
 
+INCLUDE = re.compile(r"^@include (\S+)\s*$", re.MULTILINE)
+
+
+class ReadmeError(Exception):
+    """A section includes a file that does not exist (or escapes the repository)."""
+
+
+def expand_includes(text: str, section: Path) -> str:
+    """``text`` with every ``@include PATH`` line replaced by the file (path from the repo root)."""
+    def replace(match: re.Match[str]) -> str:
+        target = (ROOT / match.group(1)).resolve()
+        if ROOT not in target.parents or not target.is_file():
+            raise ReadmeError(f"{section.name}: @include {match.group(1)}: no such file in the repository "
+                              "(run the make target that writes it)")
+        return demote_headings(target.read_text().rstrip())
+
+    return INCLUDE.sub(replace, text)
+
+
+HEADING = re.compile(r"^(#{1,6}) ", re.MULTILINE)
+#: Level of an included file's top heading in the README.
+INCLUDED_TOP_LEVEL = 4
+
+
+def demote_headings(text: str) -> str:
+    """Shift every ATX heading so the highest one in ``text`` becomes level 4 (never above 6)."""
+    levels = [len(m.group(1)) for m in HEADING.finditer(text)]
+    if not levels:
+        return text
+    shift = max(0, INCLUDED_TOP_LEVEL - min(levels))
+    return HEADING.sub(lambda m: "#" * min(6, len(m.group(1)) + shift) + " ", text)
+
+
 def build() -> str:
-    parts = [p.read_text().rstrip() + "\n" for p in sorted(SECTIONS.glob("*.md"))]
+    parts = [expand_includes(p.read_text(), p).rstrip() + "\n" for p in sorted(SECTIONS.glob("*.md"))]
     titles = [
         line[3:] for part in parts[1:] for line in part.splitlines() if line.startswith("## ")
     ]
@@ -28,5 +67,9 @@ def build() -> str:
 
 
 if __name__ == "__main__":
-    (ROOT / "README.md").write_text(build())
+    try:
+        text = build()
+    except ReadmeError as e:
+        raise SystemExit(f"error: {e}") from None
+    (ROOT / "README.md").write_text(text)
     print(f"wrote README.md from {len(list(SECTIONS.glob('*.md')))} sections")

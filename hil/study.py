@@ -7,6 +7,7 @@ Writes to ``--out`` (default ``results/``):
   controller, the paper's Tables II / III beside them;
 - ``fig8_high_mu.png``, ``fig9_low_mu.png``: speed, steer, trajectory, e_Y (Figs 8 / 9);
 - ``compute_time.md``: wall-clock time per control step (mean, median, p99, max);
+- ``study_checks.md``: the issue's acceptance checks, PASS / FAIL with the figures;
 - ``study_metrics.json``: every number above plus the acceptance checks;
 - ``traces/<scenario>__<controller>.npz``: the full time series of every run.
 
@@ -149,6 +150,11 @@ def acceptance_checks(runs: Sequence[Mapping[str, Any]], scenarios: Sequence[str
     return checks
 
 
+def checks_markdown(checks: Sequence[Mapping[str, Any]]) -> str:
+    """The acceptance checks as a Markdown list: ``- PASS: check (detail)``."""
+    return "".join(f"- {'PASS' if c['passed'] else 'FAIL'}: {c['check']} ({c['detail']})\n" for c in checks)
+
+
 def machine_description() -> str:
     """CPU model, logical CPU count and Python version, for the compute-time table."""
     cpu = platform.processor() or platform.machine()
@@ -209,6 +215,7 @@ def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Pa
                       f"{scenario.description}: closed loop, four-wheel plant", out / files.figure)
     (out / "compute_time.md").write_text(compute_time_table(runs, machine))
     checks = acceptance_checks(runs, [s.name for s in scenarios], list(controllers))
+    (out / "study_checks.md").write_text(checks_markdown(checks))
     document = {
         "generated_by": "python -m hil.study",
         "machine": machine,

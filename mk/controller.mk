@@ -1,5 +1,5 @@
 # Controllers (controller/): tests, the closed-loop check and the per-step timing benchmark.
-.PHONY: controller-test controller-closed-loop controller-bench
+.PHONY: controller-test controller-closed-loop controller-bench eso-sweep
 
 CONTROLLER_TESTS := tests/test_reference.py tests/test_controller_tuning.py tests/test_controller_doubles.py \
 	tests/test_controller_qp.py tests/test_controller_nmpc.py tests/test_controller_registry.py
@@ -15,3 +15,10 @@ controller-closed-loop: setup
 controller-bench: setup
 	@mkdir -p results
 	OPENBLAS_NUM_THREADS=1 $(PY) -m controller.bench --out results/controller_timing.md
+
+# ESO-DKMPC's observer poles and horizon decay against DKMPC, both lane changes (~1 min):
+# results/eso_dkmpc_sweep.{md,png,json}
+eso-sweep: setup
+	@mkdir -p results
+	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.eso_sweep --out results
+	@$(MAKE) --no-print-directory readme  # README.md includes these results

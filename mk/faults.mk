@@ -12,6 +12,7 @@ FAULTS_ARGS ?=
 
 faults: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m hil faults --campaign --out results $(FAULTS_ARGS)
+	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 fuzz: setup
 	FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(PY) -m pytest -q -s -p no:cacheprovider -p no:logging --timeout=0 \

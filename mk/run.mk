@@ -11,6 +11,7 @@ RUN_ARGS ?=
 run: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.run_all --interface $(CAN_INTERFACE) --channel $(CAN_CHANNEL) \
 		--out results --logs results/logs $(RUN_ARGS)
+	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # `make run` on a real SocketCAN vcan0 inside user-mode Linux, for machines whose kernel has
 # no CAN (see docs/readme/85-vcan.md). Slow (UML system calls); for checking, not timing:

@@ -4,6 +4,7 @@
 
 tables: setup
 	$(PY) -m hil.study --out results
+	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # Regenerates hil/paths/dlc.csv from the architecture's double-lane-change formula.
 dlc-path: setup

@@ -54,6 +54,9 @@ def test_study_writes_tables_figures_json_and_traces(tmp_path: Path, doubles) ->
     summary = summary_text(on_disk)
     print(summary)
     assert "[FAIL] every controller completes" in summary and "nmpc on dlc_high_mu" in summary
+    checks = (tmp_path / "study_checks.md").read_text()
+    assert checks.startswith("- FAIL: every controller completes") and "nmpc on dlc_high_mu" in checks
+    assert checks.count("\n- ") + 1 == len(on_disk["checks"])
 
 
 def test_cli_reports_unbuildable_runs_and_bad_scenarios(tmp_path: Path, doubles, capsys) -> None:

@@ -30,34 +30,3 @@ def test_double_lane_change_completes_within_two_metres(name: str, scenario_name
     assert lateral.max_abs < 2.0
     assert result.steer_limit_held
 
-
-def test_eso_pole_sweep(tmp_path) -> None:
-    """ESO-DKMPC's observer pole in closed loop (low-mu lane change, the hard case): prints the
-    table behind the tuning's choice and checks the chosen pole is within 25 % of the best."""
-    import dataclasses
-    import tomllib
-
-    from hil.closed_loop import run_closed_loop
-    from hil.scenario import load_scenario
-    from models.koopman import DEFAULT_ARTIFACT
-
-    from controller.eso_dkmpc import EsoDkmpc
-    from controller.tuning import load_tuning
-    from models.koopman import KoopmanModel
-
-    if not DEFAULT_ARTIFACT.exists():
-        pytest.skip("models/artifacts/dk_d5.npz not trained yet (make train)")
-    tuning = load_tuning()
-    model = KoopmanModel.load()
-    scenario = load_scenario("dlc_low_mu")
-    chosen = tuning.eso_dkmpc.eso_pole
-    rows, max_errors = [], {}
-    for pole in sorted({0.5, 0.7, 0.85, 0.9, 0.95, 0.98, chosen}):
-        table = dataclasses.replace(tuning.eso_dkmpc, eso_pole=pole)
-        result = run_closed_loop(scenario, EsoDkmpc(model, table, tuning.longitudinal))
-        max_errors[pole] = result.tracking.lateral.max_abs if result.completed else float("inf")
-        rows.append(f"| {pole} | {result.completed} | {result.tracking.lateral.max_abs:.3f} | "
-                    f"{result.tracking.lateral.rmse:.3f} | {result.tracking.heading.rmse:.3f} |")
-    print("\n| ESO pole | completed | e_Y max (m) | e_Y RMSE (m) | heading RMSE (rad) |\n|---|---|---|---|---|")
-    print("\n".join(rows))
-    assert max_errors[chosen] <= 1.25 * min(max_errors.values())

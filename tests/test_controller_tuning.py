@@ -28,6 +28,8 @@ def test_default_tuning_loads() -> None:
     ("dkmpc", "r_steer", -1.0, "[dkmpc] r_steer must be > 0, got -1.0"),
     ("nmpc", "prediction_horizon", 2.5, "[nmpc] prediction_horizon must be an integer, got 2.5"),
     ("eso-dkmpc", "eso_pole", 1.2, "[eso-dkmpc] eso_pole must be in [0, 1), got 1.2"),
+    ("eso-dkmpc", "eso_second_pole", -0.1, "[eso-dkmpc] eso_second_pole must be in [0, 1), got -0.1"),
+    ("eso-dkmpc", "disturbance_decay", 1.5, "[eso-dkmpc] disturbance_decay must be in [0, 1], got 1.5"),
     ("eso-dkmpc", "state_max", [1.0, 2.0], "[eso-dkmpc] state_max must be a list of 3 finite numbers"),
     ("lmpc", "state_min", [0.0, 3.0, -1.0], "state_min[vy] (3.0) must be < state_max[vy] (2.0)"),
     ("longitudinal", "torque_min", 5000.0, "torque_min (5000.0) must be < torque_max"),
