@@ -5,7 +5,9 @@ joins them in file-name order and puts a contents list after the introduction.
 
 A line ``@include results/FILE.md`` in a section is replaced by that file, as the make
 target named beside it last wrote it: tables of measured figures are never copied by hand,
-so the README cannot drift from ``results/``. Headings of the included file are moved down
+so the README cannot drift from ``results/``. ``@include results/FILE.md#Heading`` takes
+only the part under that heading (without the heading line), up to the next heading of
+the same or a higher level. Headings of the included text are moved down
 so that its top level is ``####`` (they stay out of the contents list). A missing file
 stops the build, naming the section and the file.
 """
@@ -24,7 +26,7 @@ def _anchor(title: str) -> str:
     return slug.replace(" ", "-")
 
 
-INCLUDE = re.compile(r"^@include (\S+)\s*$", re.MULTILINE)
+INCLUDE = re.compile(r"^@include ([^\s#]+)(?:#(.+?))?\s*$", re.MULTILINE)
 
 
 class ReadmeError(Exception):
@@ -38,12 +40,28 @@ def expand_includes(text: str, section: Path) -> str:
         if ROOT not in target.parents or not target.is_file():
             raise ReadmeError(f"{section.name}: @include {match.group(1)}: no such file in the repository "
                               "(run the make target that writes it)")
-        return demote_headings(target.read_text().rstrip())
+        text = target.read_text()
+        if match.group(2) is not None:
+            text = heading_part(text, match.group(2).strip(), f"{section.name}: @include {match.group(0)[9:]}")
+        return demote_headings(text.strip())
 
     return INCLUDE.sub(replace, text)
 
 
 HEADING = re.compile(r"^(#{1,6}) ", re.MULTILINE)
+
+
+def heading_part(text: str, title: str, where: str) -> str:
+    """The lines under the heading ``title`` up to the next heading of its level or above."""
+    lines = text.splitlines()
+    for start, line in enumerate(lines):
+        found = HEADING.match(line)
+        if found and line[found.end():].strip() == title:
+            level = len(found.group(1))
+            end = next((i for i in range(start + 1, len(lines))
+                        if (m := HEADING.match(lines[i])) and len(m.group(1)) <= level), len(lines))
+            return "\n".join(lines[start + 1:end])
+    raise ReadmeError(f"{where.strip()}: no heading {title!r} in the file")
 #: Level of an included file's top heading in the README.
 INCLUDED_TOP_LEVEL = 4
 

@@ -31,6 +31,17 @@ def test_include_is_replaced_by_the_file_and_a_missing_file_is_named() -> None:
             builder.expand_includes(f"@include {missing}\n", section)
 
 
+def test_include_of_one_part_stops_at_the_next_heading_of_its_level() -> None:
+    builder = _builder()
+    text = "# T\nintro\n## A\na1\n### A.1\na2\n## B\nb\n"
+    assert builder.heading_part(text, "A", "x") == "a1\n### A.1\na2"
+    assert builder.heading_part(text, "B", "x") == "b"
+    with pytest.raises(builder.ReadmeError, match="no heading 'C'"):
+        builder.heading_part(text, "C", "x")
+    summary = builder.expand_includes("@include results/timing.md#Summary\n", Path("95-x.md"))
+    assert summary.startswith("| load | controller |") and "## Goals" not in summary
+
+
 def test_included_headings_move_below_the_sections() -> None:
     builder = _builder()
     assert builder.demote_headings("# A\n## B\ntext #1\n###### deep") == "#### A\n##### B\ntext #1\n###### deep"
