@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from models.measurement import VehicleMeasurement
+
 #: Physical steering limit of eq. 22 (rad); the contract's STEER_ANGLE_CMD limit too.
 STEER_LIMIT_RAD = 0.3
 
@@ -28,29 +30,21 @@ class SolverStatus(enum.IntEnum):
 
 
 @dataclass(frozen=True)
-class VehicleSample:
+class VehicleSample(VehicleMeasurement):
     """One consistent measurement of the vehicle plus the planner's request.
 
-    Units: m/s, rad/s, m, rad, N m. ``yaw`` is wrapped to [-pi, pi).
+    The eight measured fields (and ``state()`` / ``pose()``) are those of
+    `models.measurement.VehicleMeasurement`, in its order; ``target_speed`` (m/s) is the
+    planner's desired longitudinal velocity. Positional construction takes the nine
+    values in that order.
     """
 
-    vx: float
-    vy: float
-    yaw_rate: float
-    x: float
-    y: float
-    yaw: float
-    steer_angle: float
-    drive_torque: float
     target_speed: float
 
-    def state(self) -> np.ndarray:
-        """Planar dynamic state [vx, vy, yaw_rate], shape (3,)."""
-        return np.array([self.vx, self.vy, self.yaw_rate])
-
-    def pose(self) -> np.ndarray:
-        """Global pose [x, y, yaw], shape (3,)."""
-        return np.array([self.x, self.y, self.yaw])
+    @classmethod
+    def from_measurement(cls, measurement: VehicleMeasurement, target_speed: float) -> "VehicleSample":
+        """The controller's input from a measurement (or any subclass of it) and a target speed."""
+        return cls(**measurement.measurement_values(), target_speed=target_speed)
 
 
 @dataclass(frozen=True)

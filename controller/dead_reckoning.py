@@ -18,16 +18,10 @@ from dataclasses import replace
 import numpy as np
 
 from controller.base import VehicleSample
+from models.measurement import wrap_angle
 
 #: Control period of the paper (s), the default integration step.
 DEFAULT_TS = 0.025
-
-
-def wrap_angle(angle: float) -> float:
-    """Wrap to [-pi, pi); an angle already inside is returned unchanged (no rounding)."""
-    if -math.pi <= angle < math.pi:
-        return angle
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def predict_pose(pose: np.ndarray, velocity: np.ndarray, elapsed_s: float,

@@ -5,8 +5,10 @@
 the path that passes close by (hairpins, crossings), and produces the pose reference over
 an MPC horizon plus the signed lateral and heading errors.
 
-Files are read and validated only when loaded (``ReferencePath.from_csv``); nothing here
-raises at step time for finite inputs.
+The path CSV format (``read_path_csv``, ``format_path_csv``) and the double-lane-change
+formula (``double_lane_change_curve``) are implemented here only; ``hil.path_files`` and
+the studies use them. Files are read and validated only when loaded
+(``ReferencePath.from_csv``); nothing here raises at step time for finite inputs.
 """
 from __future__ import annotations
 
@@ -18,17 +20,129 @@ from pathlib import Path
 import numpy as np
 
 from controller.errors import PathError
+from models.measurement import wrap_angle
 
 #: Largest spacing allowed between consecutive path points (m).
 MAX_POINT_SPACING_M = 0.5
 #: Points closer than this count as duplicates (m): they would make the tangent undefined.
 MIN_POINT_SPACING_M = 1e-6
+#: Header line of a path CSV (``docs/can-contract.md``, "Reference path").
 CSV_HEADER = ("x", "y", "yaw")
 
 
-def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
-    """Wrap to [-pi, pi)."""
-    return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
+def double_lane_change_curve(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The double lane change of the architecture spec (Section IV of the paper).
+
+    z1 = 2.4/25 (X - 27.19) - 1.2, z2 = 2.4/21.95 (X - 56.46) - 1.2,
+    Y = 4.05/2 (1 + tanh z1) - 5.7/2 (1 + tanh z2),
+    yaw = atan(dY/dX) = atan(4.05 sech^2(z1) 1.2/25 - 5.7 sech^2(z2) 1.2/21.95).
+
+    Args:
+        x: global X positions (m), shape (n,).
+
+    Returns:
+        ``(y, yaw)``: lateral position (m) and path heading (rad), each shape (n,).
+    """
+    x = np.asarray(x, dtype=float)
+    z1 = 2.4 / 25.0 * (x - 27.19) - 1.2
+    z2 = 2.4 / 21.95 * (x - 56.46) - 1.2
+    y = 4.05 / 2.0 * (1.0 + np.tanh(z1)) - 5.7 / 2.0 * (1.0 + np.tanh(z2))
+    yaw = np.arctan(4.05 / np.cosh(z1) ** 2 * (1.2 / 25.0)
+                    - 5.7 / np.cosh(z2) ** 2 * (1.2 / 21.95))
+    return y, yaw
+
+
+def check_path_points(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, where: str) -> np.ndarray:
+    """Validate path points and return the spacing between consecutive ones, shape (n - 1,).
+
+    Checks: 1-D arrays of one length n >= 2, every value finite, consecutive points
+    more than `MIN_POINT_SPACING_M` and at most `MAX_POINT_SPACING_M` apart.
+
+    Raises:
+        PathError: naming ``where``, the point(s) and the check that failed.
+    """
+    arrays = [np.asarray(a, dtype=float) for a in (x, y, yaw)]
+    if any(a.ndim != 1 for a in arrays) or len({a.size for a in arrays}) != 1:
+        raise PathError(f"{where}: x, y, yaw must be 1-D arrays of equal length, got shapes "
+                        f"{[a.shape for a in arrays]}")
+    if arrays[0].size < 2:
+        raise PathError(f"{where}: needs at least 2 points, got {arrays[0].size}")
+    for label, values in zip(CSV_HEADER, arrays):
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise PathError(f"{where}: point {bad[0]} has non-finite {label} = {values[bad[0]]}")
+    spacing = np.hypot(np.diff(arrays[0]), np.diff(arrays[1]))
+    too_far = np.flatnonzero(spacing > MAX_POINT_SPACING_M)
+    if too_far.size:
+        i = too_far[0]
+        raise PathError(f"{where}: points {i} and {i + 1} are {spacing[i]:.3f} m apart "
+                        f"(at most {MAX_POINT_SPACING_M} m allowed)")
+    duplicate = np.flatnonzero(spacing < MIN_POINT_SPACING_M)
+    if duplicate.size:
+        i = duplicate[0]
+        raise PathError(f"{where}: points {i} and {i + 1} coincide")
+    return spacing
+
+
+def _parse_path_csv(path: Path) -> np.ndarray:
+    """The numbers of a path CSV, shape (n, 3), header and cells checked (not the points)."""
+    try:
+        with path.open(newline="") as handle:
+            rows = list(csv.reader(handle))
+    except FileNotFoundError as e:
+        raise PathError(f"{path}: path file not found") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise PathError(f"{path}: cannot read path file: {e}") from e
+    rows = [row for row in rows if row and any(cell.strip() for cell in row)]
+    if not rows:
+        raise PathError(f"{path}: empty file (expected header 'x,y,yaw')")
+    header = tuple(cell.strip() for cell in rows[0])
+    if header != CSV_HEADER:
+        raise PathError(f"{path}: header must be 'x,y,yaw', got {','.join(header)!r}")
+    values = np.empty((len(rows) - 1, 3))
+    for i, row in enumerate(rows[1:]):
+        line = i + 2
+        if len(row) != 3:
+            raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
+        for j, cell in enumerate(row):
+            try:
+                values[i, j] = float(cell)
+            except ValueError as e:
+                raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
+                                f"not a number: {cell!r}") from e
+    return values
+
+
+def read_path_csv(path: str | Path) -> np.ndarray:
+    """Read and validate a path CSV (header ``x,y,yaw``; m, m, rad; one point per row).
+
+    Returns:
+        Path points ``[x, y, yaw]`` as written (yaw not unwrapped), shape (n, 3).
+
+    Raises:
+        PathError: missing or unreadable file, wrong header, a row that is not three
+            numbers, or points that fail `check_path_points`; the message names the file.
+    """
+    path = Path(path)
+    points = _parse_path_csv(path)
+    check_path_points(points[:, 0], points[:, 1], points[:, 2], str(path))
+    return points
+
+
+def format_path_csv(points: np.ndarray, yaw_decimals: int = 6) -> str:
+    """CSV text that `read_path_csv` reads: the header, then one row ``x,y,yaw`` per point.
+
+    Args:
+        points: ``[x, y, yaw]`` rows, shape (n, 3); checked with `check_path_points`.
+        yaw_decimals: decimals of yaw (x and y get 6: micrometres).
+    """
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise PathError(f"path points must have shape (n, 3), got {points.shape}")
+    check_path_points(points[:, 0], points[:, 1], points[:, 2], "path points")
+    rows = [",".join(CSV_HEADER)]
+    rows.extend(f"{x:.6f},{y:.6f},{yaw:.{yaw_decimals}f}" for x, y, yaw in points)
+    return "\n".join(rows) + "\n"
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,31 +162,11 @@ class ReferencePath:
     @classmethod
     def from_arrays(cls, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, name: str = "") -> "ReferencePath":
         """Validate points (each shape (n,), n >= 2, finite, 0 < spacing <= 0.5 m)."""
-        where = name or "path"
-        arrays = [np.asarray(a, dtype=float) for a in (x, y, yaw)]
-        if any(a.ndim != 1 for a in arrays) or len({a.size for a in arrays}) != 1:
-            raise PathError(f"{where}: x, y, yaw must be 1-D arrays of equal length, got shapes "
-                            f"{[a.shape for a in arrays]}")
-        x_arr, y_arr, yaw_arr = arrays
-        if x_arr.size < 2:
-            raise PathError(f"{where}: needs at least 2 points, got {x_arr.size}")
-        for label, values in zip(CSV_HEADER, arrays):
-            bad = np.flatnonzero(~np.isfinite(values))
-            if bad.size:
-                raise PathError(f"{where}: point {bad[0]} has non-finite {label} = {values[bad[0]]}")
-        spacing = np.hypot(np.diff(x_arr), np.diff(y_arr))
-        too_far = np.flatnonzero(spacing > MAX_POINT_SPACING_M)
-        if too_far.size:
-            i = too_far[0]
-            raise PathError(f"{where}: points {i} and {i + 1} are {spacing[i]:.3f} m apart "
-                            f"(at most {MAX_POINT_SPACING_M} m allowed)")
-        duplicate = np.flatnonzero(spacing < MIN_POINT_SPACING_M)
-        if duplicate.size:
-            i = duplicate[0]
-            raise PathError(f"{where}: points {i} and {i + 1} coincide")
+        spacing = check_path_points(x, y, yaw, name or "path")
         s = np.concatenate(([0.0], np.cumsum(spacing)))
         # Unwrapped so interpolation between points never sweeps through +-pi.
-        arrays = [x_arr.copy(), y_arr.copy(), np.unwrap(yaw_arr), s]
+        arrays = [np.array(x, dtype=float), np.array(y, dtype=float),
+                  np.unwrap(np.asarray(yaw, dtype=float)), s]
         for array in arrays:
             array.setflags(write=False)  # a path is shared by tracker and metrics: read-only
         return cls(*arrays, name)
@@ -80,62 +174,26 @@ class ReferencePath:
     @classmethod
     def from_csv(cls, path: str | Path) -> "ReferencePath":
         """Load a CSV with header ``x,y,yaw`` (m, m, rad), one point per row."""
-        path = Path(path)
-        try:
-            with path.open(newline="") as handle:
-                rows = list(csv.reader(handle))
-        except FileNotFoundError as e:
-            raise PathError(f"{path}: path file not found") from e
-        except (OSError, UnicodeDecodeError) as e:
-            raise PathError(f"{path}: cannot read path file: {e}") from e
-        rows = [row for row in rows if row and any(cell.strip() for cell in row)]
-        if not rows:
-            raise PathError(f"{path}: empty file (expected header 'x,y,yaw')")
-        header = tuple(cell.strip() for cell in rows[0])
-        if header != CSV_HEADER:
-            raise PathError(f"{path}: header must be 'x,y,yaw', got {','.join(header)!r}")
-        values = np.empty((len(rows) - 1, 3))
-        for i, row in enumerate(rows[1:]):
-            line = i + 2
-            if len(row) != 3:
-                raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
-            for j, cell in enumerate(row):
-                try:
-                    values[i, j] = float(cell)
-                except ValueError as e:
-                    raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
-                                    f"not a number: {cell!r}") from e
-        return cls.from_arrays(values[:, 0], values[:, 1], values[:, 2], name=str(path))
+        points = _parse_path_csv(Path(path))
+        return cls.from_arrays(points[:, 0], points[:, 1], points[:, 2], name=str(path))
 
     @classmethod
     def double_lane_change(cls, x_start: float = -20.0, x_end: float = 180.0,
                            spacing: float = 0.25) -> "ReferencePath":
-        """The double lane change of the architecture spec (Section IV of the paper).
-
-        z1 = 2.4/25 (X - 27.19) - 1.2, z2 = 2.4/21.95 (X - 56.46) - 1.2,
-        Y = 4.05/2 (1 + tanh z1) - 5.7/2 (1 + tanh z2),
-        yaw = atan(4.05 sech^2(z1) 1.2/25 - 5.7 sech^2(z2) 1.2/21.95).
-        Sampled every ``spacing`` m in X from ``x_start`` to ``x_end``.
-        """
+        """`double_lane_change_curve` sampled every ``spacing`` m in X from ``x_start`` to
+        ``x_end``."""
         if not (0.0 < spacing <= MAX_POINT_SPACING_M / 1.5):
             raise PathError(f"double_lane_change: spacing must be in (0, {MAX_POINT_SPACING_M / 1.5:.3f}] m, got {spacing}")
         if not x_end > x_start:
             raise PathError(f"double_lane_change: x_end ({x_end}) must be > x_start ({x_start})")
         x = np.arange(x_start, x_end + 0.5 * spacing, spacing)
-        z1 = 2.4 / 25.0 * (x - 27.19) - 1.2
-        z2 = 2.4 / 21.95 * (x - 56.46) - 1.2
-        y = 4.05 / 2.0 * (1.0 + np.tanh(z1)) - 5.7 / 2.0 * (1.0 + np.tanh(z2))
-        yaw = np.arctan(4.05 / np.cosh(z1) ** 2 * (1.2 / 25.0)
-                        - 5.7 / np.cosh(z2) ** 2 * (1.2 / 21.95))
+        y, yaw = double_lane_change_curve(x)
         return cls.from_arrays(x, y, yaw, name="double_lane_change")
 
-    def to_csv(self, path: str | Path) -> None:
+    def to_csv(self, path: str | Path, yaw_decimals: int = 8) -> None:
         """Write the CSV that ``from_csv`` reads (yaw wrapped to [-pi, pi))."""
-        with Path(path).open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(CSV_HEADER)
-            for x, y, yaw in zip(self.x, self.y, wrap_angle(self.yaw)):
-                writer.writerow((f"{x:.6f}", f"{y:.6f}", f"{yaw:.8f}"))
+        points = np.column_stack([self.x, self.y, wrap_angle(np.asarray(self.yaw))])
+        Path(path).write_text(format_path_csv(points, yaw_decimals), encoding="ascii")
 
     @property
     def length(self) -> float:

@@ -35,7 +35,7 @@ from firmware_sim.config import NS_PER_MS, NS_PER_S, EcuConfig
 from firmware_sim.errors import ConfigError
 from firmware_sim.guard import GuardLimits, guard_command
 from firmware_sim.modes import VALID_COMMAND_MODES, ModeEvents, transition
-from firmware_sim.rx import PlantMeasurement, RxKind, RxState
+from firmware_sim.rx import RxKind, RxState
 from firmware_sim.safe_stop import safe_stop_command
 from firmware_sim.timing import TimingRecorder
 from firmware_sim.tx import DiagRecord, FaultBit, OVERRUNS_MAX, Transmitter
@@ -57,13 +57,6 @@ def _default_controller_factory(name: str) -> Controller:
 def _default_path_loader(path: Path) -> Any:
     from controller.reference import ReferencePath
     return ReferencePath.from_csv(path)
-
-
-def _vehicle_sample(measurement: PlantMeasurement, target_speed: float) -> VehicleSample:
-    return VehicleSample(vx=measurement.vx, vy=measurement.vy, yaw_rate=measurement.yaw_rate,
-                         x=measurement.x, y=measurement.y, yaw=measurement.yaw,
-                         steer_angle=measurement.steer_angle,
-                         drive_torque=measurement.drive_torque, target_speed=target_speed)
 
 
 @dataclass(frozen=True)
@@ -376,7 +369,7 @@ class Ecu:
             faults |= FaultBit.MODEL_RESET
             if not self._select_path(planner.path_id):
                 return _Request(math.nan, math.nan, faults=faults, failed=True)
-        sample: VehicleSample | None = _vehicle_sample(measurement, planner.target_speed)
+        sample: VehicleSample | None = VehicleSample.from_measurement(measurement, planner.target_speed)
         if self.mode is CtrlMode.DEGRADED:
             sample = self._predict(sample, sample_age_ns)
         command, debug = self._step_controller(sample) if sample is not None else (None, None)

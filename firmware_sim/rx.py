@@ -23,6 +23,8 @@ from can_defs.errors import CanDefsError
 from can_defs.frames import (HANDSHAKE_TICK, PLANT_SAMPLE_FRAME_IDS, TICK_STEP_MS, FrameId,
                              PlannerReq, VehDyn, VehPoseXY, VehPoseYaw)
 
+from models.measurement import VehicleMeasurement
+
 _LOG = logging.getLogger(__name__)
 
 #: IDs the ECU receives; anything else on the bus is somebody else's traffic.
@@ -32,17 +34,11 @@ PLANT_IDS = PLANT_SAMPLE_FRAME_IDS
 
 
 @dataclass(frozen=True)
-class PlantMeasurement:
-    """One consistent plant sample (SI units; ``counter`` is the shared alive counter)."""
+class PlantMeasurement(VehicleMeasurement):
+    """One consistent plant sample: the eight measured signals of
+    `models.measurement.VehicleMeasurement` (SI units) and ``counter``, the alive counter
+    its three frames share."""
 
-    vx: float
-    vy: float
-    yaw_rate: float
-    x: float
-    y: float
-    yaw: float
-    steer_angle: float
-    drive_torque: float
     counter: int
 
 

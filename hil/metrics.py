@@ -18,8 +18,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from controller.reference import ReferencePath, lateral_error, wrap_angle
+from controller.reference import ReferencePath, lateral_error
 from hil.errors import MetricsError
+from models.measurement import wrap_angle  # re-exported for the studies
 
 __all__ = ["ComputeTimeStats", "ErrorStats", "PathErrors", "TrackingMetrics", "path_errors",
            "tracking_metrics", "wrap_angle"]

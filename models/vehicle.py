@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.errors import VehicleCommandError, VehicleDivergedError
+from models.measurement import VehicleMeasurement, wrap_angle
 from models.tyre import tyre_forces
 from models.vehicle_params import VehicleParams, load_vehicle_params
 
@@ -73,18 +74,8 @@ class VehicleCommand:
     steer_angle: float
 
 
-@dataclass(frozen=True)
-class VehicleOutputs:
-    """What the CAN contract carries. Yaw wrapped to [-pi, pi); steer and torque measured."""
-
-    vx: float
-    vy: float
-    yaw_rate: float
-    x: float
-    y: float
-    yaw: float
-    steer_angle: float
-    drive_torque: float
+#: What the plant reports: the CAN contract's eight measured signals (one shared type).
+VehicleOutputs = VehicleMeasurement
 
 
 @dataclass(frozen=True)
@@ -453,10 +444,9 @@ class FourWheelVehicle:
     def outputs(self) -> VehicleOutputs:
         """The signals of VEH_DYN / VEH_POSE_*: yaw wrapped to [-pi, pi)."""
         s = self._batch.state[0]
-        yaw = (s[YAW] + math.pi) % (2.0 * math.pi) - math.pi
-        return VehicleOutputs(vx=float(s[VX]), vy=float(s[VY]), yaw_rate=float(s[YAW_RATE]),
-                              x=float(s[POS_X]), y=float(s[POS_Y]), yaw=float(yaw),
-                              steer_angle=float(s[STEER]), drive_torque=float(s[TORQUE]))
+        return VehicleMeasurement(vx=float(s[VX]), vy=float(s[VY]), yaw_rate=float(s[YAW_RATE]),
+                                  x=float(s[POS_X]), y=float(s[POS_Y]), yaw=wrap_angle(float(s[YAW])),
+                                  steer_angle=float(s[STEER]), drive_torque=float(s[TORQUE]))
 
     def diagnostics(self) -> VehicleDiagnostics:
         """Slips, forces and loads of the four wheels at the current state."""

@@ -1,8 +1,9 @@
 """Test doubles for the closed-loop runner (no tests here): a kinematic plant, a pure-pursuit
 controller and a scripted controller.
 
-Deliberately simple and independent of models/ and of the MPCs, so the runner's timing and
-bookkeeping are tested on their own.
+Deliberately simple and independent of the vehicle models and of the MPCs, so the runner's
+timing and bookkeeping are tested on their own; the plant reports the shared
+`models.measurement.VehicleMeasurement` record, as the four-wheel plant does.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import numpy as np
 from controller.base import STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug, \
     VehicleSample
 from controller.reference import PathTracker, ReferencePath
+from models.measurement import VehicleMeasurement, wrap_angle
 
 WHEELBASE_M = 2.7
 
@@ -22,18 +24,6 @@ WHEELBASE_M = 2.7
 class KinematicCommand:
     drive_torque: float
     steer_angle: float
-
-
-@dataclass(frozen=True)
-class KinematicOutputs:
-    vx: float
-    vy: float
-    yaw_rate: float
-    x: float
-    y: float
-    yaw: float
-    steer_angle: float
-    drive_torque: float
 
 
 @dataclass
@@ -64,10 +54,9 @@ class KinematicPlant:
         self.y += self.vx * math.sin(self.yaw) * dt
         self.yaw += self.vx / WHEELBASE_M * math.tan(self.steer) * dt
 
-    def outputs(self) -> KinematicOutputs:
-        wrapped = (self.yaw + math.pi) % (2 * math.pi) - math.pi
-        return KinematicOutputs(self.vx, 0.0, self.vx / WHEELBASE_M * math.tan(self.steer),
-                                self.x, self.y, wrapped, self.steer, self.torque)
+    def outputs(self) -> VehicleMeasurement:
+        return VehicleMeasurement(self.vx, 0.0, self.vx / WHEELBASE_M * math.tan(self.steer),
+                                  self.x, self.y, wrap_angle(self.yaw), self.steer, self.torque)
 
 
 class PurePursuit(Controller):

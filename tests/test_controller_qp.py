@@ -18,8 +18,9 @@ from controller.dkmpc import Dkmpc
 from controller.eso_dkmpc import EsoDkmpc
 from controller.lmpc import Lmpc
 from controller.pose_kinematics import rollout_pose
-from controller.reference import ReferencePath, lateral_error, wrap_angle
+from controller.reference import ReferencePath, lateral_error
 from controller.tuning import load_tuning
+from models.measurement import wrap_angle
 from test_controller_doubles import TS, BicycleDouble, koopman_arrays, koopman_double
 
 SPEED = 10.0

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from controller.errors import PathError
-from controller.reference import PathTracker, ReferencePath, lateral_error, wrap_angle
+from controller.reference import PathTracker, ReferencePath, lateral_error
 
 
 def hairpin(gap: float = 3.0, length: float = 30.0, spacing: float = 0.2) -> ReferencePath:
@@ -128,7 +128,3 @@ def test_reference_beyond_the_end_continues_straight() -> None:
     print(poses)
     assert poses[0, 0] == pytest.approx(110.0, abs=0.01) and poses[0, 1] == pytest.approx(path.y[-1], abs=0.01)
 
-
-def test_wrap_angle() -> None:
-    assert wrap_angle(math.pi) == pytest.approx(-math.pi)
-    assert wrap_angle(-3 * math.pi / 2) == pytest.approx(math.pi / 2)
