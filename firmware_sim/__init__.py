@@ -3,6 +3,7 @@
 Modules: `ecu` (the node: cyclic executive), `rx` / `tx` (frames in and out), `modes`
 (mode state machine), `guard` (last check of every command), `safe_stop`, `clock`
 (lockstep TICK clock and real-time schedule), `timing` (per-cycle timing record),
-`config`, `errors`, `cli` (``python -m firmware_sim``), `overhead` (cost measurement) and
-`testing` (helpers for tests). Importing the package imports nothing heavy (no torch).
+`config`, `errors` and `cli` (``python -m firmware_sim``). Its test harness is
+`hil.ecu_harness`, its cost measurement `studies.ecu_overhead`. Importing the package
+imports nothing heavy (no torch).
 """

@@ -11,7 +11,7 @@ Where the ECU runs depends on the bus:
 
 Results: the plant's true time series (5 ms ticks), the ECU's frames per control cycle,
 the tracking metrics of hil/metrics.py on the true pose at the control instants (every
-25 ms, as hil/closed_loop.py computes them), and the frame log of the recorder.
+25 ms, as studies/closed_loop.py computes them), and the frame log of the recorder.
 """
 from __future__ import annotations
 

@@ -14,11 +14,11 @@ controller-closed-loop: setup
 # Per-step compute time of each controller (DLC 35 km/h, mu 0.85): results/controller_timing.md
 controller-bench: setup
 	@mkdir -p results
-	OPENBLAS_NUM_THREADS=1 $(PY) -m controller.bench --out results/controller_timing.md
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.controller_timing --out results/controller_timing.md
 
 # ESO-DKMPC's observer poles and horizon decay against DKMPC, both lane changes (~1 min):
 # results/eso_dkmpc_sweep.{md,png,json}
 eso-sweep: setup
 	@mkdir -p results
-	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.eso_sweep --out results
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.eso_sweep --out results
 	@$(MAKE) --no-print-directory readme  # README.md includes these results

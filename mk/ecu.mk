@@ -9,4 +9,4 @@ ecu-test: setup
 
 # ECU cost without a control law (lockstep and real time); writes results/ecu_overhead.json
 ecu-overhead: setup
-	$(PY) -m firmware_sim.overhead --out results/ecu_overhead.json
+	$(PY) -m studies.ecu_overhead --out results/ecu_overhead.json

@@ -6,7 +6,7 @@
 # Needs the trained artefact models/artifacts/dk_d5.npz (make train); drives are cached in
 # results/fig7_drives.npz (add FIG7_ARGS=--resimulate to rerun the plant).
 fig7: setup
-	$(PY) -m models.fig7 $(FIG7_ARGS)
+	$(PY) -m studies.fig7 $(FIG7_ARGS)
 
 test-eso: setup
 	$(PY) -m pytest -q tests/test_eso.py tests/test_eso_dk.py tests/test_eso_fig7.py

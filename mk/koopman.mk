@@ -19,7 +19,7 @@ train: setup
 # are cached in build/table1/ (d = 5 reuses the committed artefact when it matches).
 table1: setup
 	@test -f $(KOOPMAN_DATA)/READY || $(PY) -m models.data generate --out $(KOOPMAN_DATA)
-	$(PY) -m models.table1 --data $(KOOPMAN_DATA)
+	$(PY) -m studies.table1 --data $(KOOPMAN_DATA)
 
 test-koopman: setup
 	$(PY) -m pytest -q tests/test_koopman.py tests/test_koopman_train.py tests/test_koopman_synthetic.py tests/test_koopman_baselines.py

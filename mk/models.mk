@@ -13,6 +13,6 @@ data: setup
 
 # Steady-state handling diagram (PNGs + JSON) and the parameter table, into results/.
 handling: setup
-	$(PY) -m models.handling diagram --out results
-	$(PY) -m models.handling table > results/vehicle_params.md
+	$(PY) -m studies.handling diagram --out results
+	$(PY) -m studies.handling table > results/vehicle_params.md
 	@echo "wrote results/vehicle_params.md"

@@ -9,7 +9,7 @@
 RUN_ARGS ?=
 
 run: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.run_all --interface $(CAN_INTERFACE) --channel $(CAN_CHANNEL) \
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.run_all --interface $(CAN_INTERFACE) --channel $(CAN_CHANNEL) \
 		--out results --logs results/logs $(RUN_ARGS)
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
@@ -17,7 +17,7 @@ run: setup
 # no CAN (see docs/readme/85-vcan.md). Slow (UML system calls); for checking, not timing:
 #   make run-uml RUN_ARGS="--controllers lmpc eso-dkmpc --duration 2"
 run-uml: setup
-	$(PY) -m hil.vcan --timeout 3600 -- $(PY) -m hil.run_all --interface socketcan --channel vcan0 \
+	$(PY) -m hil.vcan --timeout 3600 -- $(PY) -m studies.run_all --interface socketcan --channel vcan0 \
 		--out results/uml --logs results/uml/logs $(RUN_ARGS)
 
 HIL_TESTS := tests/test_hil_nodes.py tests/test_hil_time_master.py tests/test_hil_run.py \

@@ -3,7 +3,7 @@
 .PHONY: tables dlc-path
 
 tables: setup
-	$(PY) -m hil.study --out results
+	$(PY) -m studies.paper_tables --out results
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # Regenerates hil/paths/dlc.csv from the architecture's double-lane-change formula.

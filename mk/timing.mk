@@ -1,4 +1,4 @@
-# ECU timing as on a vehicle (issue 9, hil/timing/):
+# ECU timing as on a vehicle (issue 9, studies/timing/ and the bus nodes in hil/timing/):
 #   make timing   - ECU and plant as separate processes pinned to separate cores (SCHED_FIFO
 #                   where permitted), 40 Hz control per controller, idle and under a busy-loop
 #                   load on both cores -> results/timing.md, results/timing_{idle,stress}.png
@@ -13,11 +13,11 @@ TIMING_SECONDS ?= 120
 TIMING_NMPC_SECONDS ?= 30
 
 timing: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.timing.bench --seconds $(TIMING_SECONDS) \
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.bench --seconds $(TIMING_SECONDS) \
 		--nmpc-seconds $(TIMING_NMPC_SECONDS) --out results/timing.md --work build/timing
 
 bench: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m hil.timing.compute --out results/bench.md
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.compute --out results/bench.md
 
 timing-test: setup
 	$(PY) -m pytest -q -s tests/test_timing.py tests/test_timing_units.py

@@ -1,4 +1,4 @@
-"""hil.closed_loop: HIL timing, recording and failure handling (with doubles), and short
+"""studies.closed_loop: HIL timing, recording and failure handling (with doubles), and short
 runs of the real controllers on the real plant."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from controller.base import STEER_LIMIT_RAD
 from controller.registry import create_controller
-from hil.closed_loop import ABORT_LATERAL_ERROR_M, run_closed_loop
+from studies.closed_loop import ABORT_LATERAL_ERROR_M, run_closed_loop
 from hil.errors import StudyError
 from hil.scenario import SpeedProfile, load_scenario
 from tests.test_closed_loop_doubles import (KinematicCommand, KinematicPlant, PurePursuit,

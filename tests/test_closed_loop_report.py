@@ -1,4 +1,4 @@
-"""hil.study and hil.report: the study's files, tables and acceptance checks, run with the
+"""studies.paper_tables and studies.report: the study's files, tables and acceptance checks, run with the
 test doubles (kinematic plant, pure pursuit) so it takes seconds."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-import hil.closed_loop as closed_loop
-from hil.report import PAPER_TRACKING, compute_time_table, tracking_table
+import studies.closed_loop as closed_loop
+from studies.report import PAPER_TRACKING, compute_time_table, tracking_table
 from hil.scenario import load_scenario
-from hil.study import acceptance_checks, main, run_study, summary_text
+from studies.paper_tables import acceptance_checks, main, run_study, summary_text
 from tests.test_closed_loop_doubles import KinematicCommand, KinematicPlant, PurePursuit
 
 

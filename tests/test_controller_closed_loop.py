@@ -1,7 +1,7 @@
 """All four controllers on the four-wheel plant through the paper's two double lane changes.
 
 Slow (NMPC takes ~30 s a run): ``pytest -m slow tests/test_controller_closed_loop.py``.
-Uses the study's runner (hil.closed_loop) so the figures match ``make tables``.
+Uses the study's runner (studies.closed_loop) so the figures match ``make tables``.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ pytestmark = pytest.mark.slow
 @pytest.mark.parametrize("scenario_name", ["dlc_high_mu", "dlc_low_mu"])
 @pytest.mark.parametrize("name", CONTROLLER_NAMES)
 def test_double_lane_change_completes_within_two_metres(name: str, scenario_name: str) -> None:
-    from hil.closed_loop import run_closed_loop
+    from studies.closed_loop import run_closed_loop
     from hil.scenario import load_scenario
     from models.koopman import DEFAULT_ARTIFACT
 

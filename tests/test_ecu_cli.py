@@ -17,7 +17,7 @@ from can_defs.frames import HANDSHAKE_TICK, CtrlMode
 
 from firmware_sim import cli
 from firmware_sim.errors import PathArgumentError
-from firmware_sim.testing import PeerNodes, commands, decode_messages
+from hil.ecu_harness import PeerNodes, commands, decode_messages
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -79,7 +79,7 @@ def test_controller_choices_are_the_registrys():
 
 
 def test_importing_the_ecu_never_imports_torch():
-    code = ("import sys, firmware_sim, firmware_sim.cli, firmware_sim.ecu, firmware_sim.testing, "
+    code = ("import sys, firmware_sim, firmware_sim.cli, firmware_sim.ecu, hil.ecu_harness, "
             "controller.dead_reckoning; print(sorted(m for m in sys.modules if 'torch' in m))")
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
                             text=True, timeout=60)

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from firmware_sim.ecu import Ecu
 from firmware_sim.modes import VALID_COMMAND_MODES
-from firmware_sim.testing import PeerNodes, ScriptedController, commands, decode_messages, pump
+from hil.ecu_harness import PeerNodes, ScriptedController, commands, decode_messages, pump
 
 RX_IDS = [FrameId.HIL_SYNC, FrameId.VEH_DYN, FrameId.VEH_POSE_XY, FrameId.VEH_POSE_YAW,
           FrameId.PLANNER_REQ, 0x7FF]

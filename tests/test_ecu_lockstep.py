@@ -1,7 +1,7 @@
 """The ECU in lockstep over a python-can virtual bus: handshake, task ticks, ACK order,
 timeouts, modes, torn samples, E2E errors, unknown paths, guard and determinism.
 
-The ECU runs with a scripted controller (firmware_sim.testing), so these tests check the
+The ECU runs with a scripted controller (hil.ecu_harness), so these tests check the
 node, not a control law. Each test drives time tick by tick through HIL_SYNC.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ from can_defs.frames import (HANDSHAKE_TICK, CtrlDiag, CtrlMode, FrameId, HilSyn
 
 from controller.base import Command
 from firmware_sim.ecu import Ecu
-from firmware_sim.testing import PeerNodes, ScriptedController, commands, decode_messages, diags, pump
+from hil.ecu_harness import PeerNodes, ScriptedController, commands, decode_messages, diags, pump
 
 PATHS = {1: Path("one.csv"), 2: Path("two.csv")}
 

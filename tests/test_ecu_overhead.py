@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from firmware_sim import overhead
+from studies import ecu_overhead as overhead
 
 
 def test_overhead_measurement_writes_a_summary(tmp_path, capsys):

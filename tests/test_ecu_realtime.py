@@ -13,7 +13,7 @@ from can_defs.frames import CtrlMode
 
 from controller.base import Command, SolverStatus, StepDebug, VehicleSample
 from firmware_sim.ecu import Ecu
-from firmware_sim.testing import PeerNodes, ScriptedController, commands, diags, pump
+from hil.ecu_harness import PeerNodes, ScriptedController, commands, diags, pump
 
 PATHS = {1: Path("one.csv")}
 

@@ -62,7 +62,7 @@ def _fake_result(rmse: float, max_abs: float, completed: bool = True) -> SimpleN
 def test_sweep_table_marks_the_shipped_setting_and_who_beats_dkmpc() -> None:
     """The sweep's bookkeeping on a fake runner: DKMPC first, the shipped setting marked
     once, 'beats DKMPC' only when every scenario's RMSE is lower and the run completed."""
-    from hil.eso_sweep import ObserverSetting, run_sweep, sweep_table
+    from studies.eso_sweep import ObserverSetting, run_sweep, sweep_table
 
     scenarios = [SimpleNamespace(name="road_a"), SimpleNamespace(name="road_b")]
     better, worse = ObserverSetting(0.5, 0.5, 0.85), ObserverSetting(0.9, 0.9, 1.0)
@@ -89,7 +89,7 @@ def test_sweep_table_marks_the_shipped_setting_and_who_beats_dkmpc() -> None:
 
 
 def test_sweep_cli_names_a_bad_scenario(tmp_path, capsys) -> None:
-    from hil.eso_sweep import main
+    from studies.eso_sweep import main
 
     assert main(["--out", str(tmp_path), "--scenarios", "no_such_road", "--no-progress"]) == 1
     assert "no_such_road" in capsys.readouterr().err
@@ -101,7 +101,7 @@ def test_eso_dkmpc_beats_dkmpc_on_both_lane_changes() -> None:
     study's closed loop (``make tables`` runs the same): lower e_Y RMSE than DKMPC on the
     high-mu and the low-mu double lane change, both completed within 2 m."""
     from controller.registry import create_controller
-    from hil.closed_loop import run_closed_loop
+    from studies.closed_loop import run_closed_loop
     from hil.scenario import load_scenario
     from models.koopman import DEFAULT_ARTIFACT
 

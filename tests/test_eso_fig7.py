@@ -1,9 +1,9 @@
-"""Fig. 7 evaluation pieces (models/fig7.py) on synthetic data: alignment and the metric."""
+"""Fig. 7 evaluation pieces (studies/fig7.py) on synthetic data: alignment and the metric."""
 from __future__ import annotations
 
 import numpy as np
 
-from models.fig7 import DriveSettings, drive_profile, observer_params, predict_along, prediction_rmse
+from studies.fig7 import DriveSettings, drive_profile, observer_params, predict_along, prediction_rmse
 from models.koopman import KoopmanModel
 
 A = np.array([[0.999, 0.0, 0.0], [0.0, 0.95, -0.2], [0.0, 0.05, 0.9]])

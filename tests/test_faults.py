@@ -1,4 +1,4 @@
-"""Fault injection (hil/faults.py), the campaign's judge (hil/fault_campaign.py) and the
+"""Fault injection (hil/faults.py), the campaign's judge (studies/fault_campaign.py) and the
 ``python -m hil faults`` flags: every bus fault does exactly what it says to the frames,
 deterministically for a seed; bad specs name the field; the independent command check
 catches a bad command; a short lockstep run with the plant silent shows DEGRADED within
@@ -17,7 +17,7 @@ from can_defs.codec import decode, encode
 from can_defs.frames import (CtrlMode, FrameId, HilSync, PlannerReq, SteerTorqueCmd, VehDyn,
                              VehPoseXY, VehPoseYaw)
 from hil.commands.faults import faults_table, parse_pairs
-from hil.fault_campaign import (DEGRADED, FaultCase, check_commands, mode_sequence, run_case)
+from studies.fault_campaign import (DEGRADED, FaultCase, check_commands, mode_sequence, run_case)
 from hil.faults import FaultInjector, FaultSpec, FaultSpecError, OffsetSteeringVehicle
 from hil.scenario import load_scenario
 

@@ -39,7 +39,7 @@ from controller.base import Command, SolverStatus, StepDebug, VehicleSample
 from firmware_sim.config import EcuConfig
 from firmware_sim.ecu import Ecu
 from firmware_sim.modes import VALID_COMMAND_MODES
-from firmware_sim.testing import ScriptedController
+from hil.ecu_harness import ScriptedController
 
 EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "10000"))
 STEER_LIMIT_RAD = 0.3

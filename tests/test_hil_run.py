@@ -3,7 +3,7 @@ pure simulation, E2E of everything the ECU sends, and the ECU surviving a plant 
 
 Bound of the CAN-vs-simulation comparison, and why: both runs have the same timing (the
 controller runs at t = 0, 25, ... ms on the newest 10 ms plant sample, zero-order hold;
-hil/closed_loop.py models exactly the lockstep contract). What differs is what the
+studies/closed_loop.py models exactly the lockstep contract). What differs is what the
 controller sees: CAN quantises the sample (VX 0.01 m/s, VY 0.001 m/s, YAW_RATE and YAW
 1e-4 rad(/s), X/Y 1 mm, TARGET_SPEED 0.01 m/s), the command (STEER 1e-4 rad, TORQUE
 0.1 N m), and the ECU needs one control cycle (INIT -> STANDBY -> ACTIVE) before its first
@@ -50,7 +50,7 @@ def can_run(short_scenario, tmp_path_factory):
 
 def test_lockstep_over_can_matches_the_pure_simulation(short_scenario, can_run):
     from controller.registry import create_controller
-    from hil.closed_loop import run_closed_loop
+    from studies.closed_loop import run_closed_loop
 
     pure = run_closed_loop(short_scenario, create_controller(CONTROLLER))
     assert pure.completed

@@ -1,7 +1,7 @@
 """hil.replay: feeding logs into the ECU, the lockstep protocol, and the comparison.
 
 Fast tests use synthetic logs made with can_defs and the ECU with a scripted controller
-(firmware_sim.testing); the recorded-log regression tests are in test_replay_logs.py.
+(hil.ecu_harness); the recorded-log regression tests are in test_replay_logs.py.
 """
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import pytest
 from can_defs.codec import FrameSender, encode
 from can_defs.frames import (HANDSHAKE_TICK, CtrlDiag, CtrlMode, FrameId, HilSync, HilSyncAck,
                              PlannerReq, QpStatus, SteerTorqueCmd, VehDyn, VehPoseXY, VehPoseYaw)
-from firmware_sim.testing import ScriptedController
-from hil import replay as replay_module
+from hil.ecu_harness import ScriptedController
+from hil import replay_feed
 from hil.logio import LogContents
 from hil.replay import (OutputFrame, ReplayError, compare_outputs, exact_masks, read_reference,
                         replay_log, run_replay, write_reference)
@@ -197,7 +197,7 @@ def _patch_ecu(monkeypatch: pytest.MonkeyPatch, **kwargs: object) -> list[Protoc
         made.append(ProtocolCheckingEcu(bus, **kwargs))
         return made[-1]
 
-    monkeypatch.setattr(replay_module, "_make_ecu", make)
+    monkeypatch.setattr(replay_feed, "_make_ecu", make)
     return made
 
 

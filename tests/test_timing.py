@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import pytest
 
-from hil.timing.report import RunFigures, percentile_table, run_figures, summary_table
-from hil.timing.runner import run_timing
+from studies.timing.report import RunFigures, percentile_table, run_figures, summary_table
+from studies.timing.runner import run_timing
 
 SECONDS = 20.0
 HALF_PERIOD_MS = 12.5

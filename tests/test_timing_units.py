@@ -14,7 +14,7 @@ import pytest
 from firmware_sim.timing import (CONTEXT_FIELDS, TIMING_FIELDS, TimingRecorder,
                                  apply_realtime_policy, load_timing)
 from hil.timing.hub import HubError, LoopbackCanHub, ProtocolError, send_to_frame
-from hil.timing.stress import StressLoad
+from studies.timing.stress import StressLoad
 
 
 def _bus(port: int) -> can.BusABC:
@@ -157,7 +157,7 @@ def test_realtime_policy_notes_a_cpu_that_does_not_exist():
 # ------------------------------------------------------------------ long path
 def test_repeated_lane_change_is_continuous_and_long_enough(tmp_path):
     from controller.reference import ReferencePath
-    from hil.timing.paths import write_repeated_lane_change
+    from studies.timing.paths import write_repeated_lane_change
 
     file = write_repeated_lane_change(tmp_path / "path.csv", 1200.0)
     path = ReferencePath.from_csv(file)  # the ECU's own loader validates spacing
@@ -175,8 +175,8 @@ def test_repeated_lane_change_is_continuous_and_long_enough(tmp_path):
 # ------------------------------------------------------------------ run window
 def test_run_figures_count_only_cycles_and_overruns_inside_the_window():
     from firmware_sim.timing import TimingRecord
-    from hil.timing.report import run_figures
-    from hil.timing.runner import TimingRun
+    from studies.timing.report import run_figures
+    from studies.timing.runner import TimingRun
 
     n = 100
     start = 10.0 + 0.025 * np.arange(n)            # 10.0 .. 12.475 s
@@ -238,7 +238,7 @@ def test_stress_load_dies_with_its_parent_even_when_the_parent_is_killed():
     import subprocess
     import sys
 
-    code = ("from hil.timing.stress import StressLoad; import time; "
+    code = ("from studies.timing.stress import StressLoad; import time; "
             "s = StressLoad((0,)).start(); print(s._processes[0].pid, flush=True); time.sleep(60)")
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     child_pid = int(parent.stdout.readline())

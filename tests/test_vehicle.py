@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from models.bicycle import nominal_model_params
-from models.handling import steady_state
+from studies.handling import steady_state
 from models.errors import VehicleCommandError, VehicleParamsError
 from models.vehicle import (ACCEL_Y_FILT, POS_Y, STEER, VX, VY, YAW, YAW_RATE, FourWheelVehicle,
                             VehicleBatch, VehicleCommand)

@@ -10,7 +10,7 @@ One run: the scenario's ``[faults]`` table (hil/faults.py) plus faults from flag
 ``ids=0x100/0x101``, ``true`` / ``false``); repeatable. It prints the run's verdict
 (mode sequence, detection, max |e_Y|, invalid commands, crashes) as JSON.
 
-``--campaign``: every fault of hil/fault_campaign.py (what ``make faults`` runs), writing
+``--campaign``: every fault of studies/fault_campaign.py (what ``make faults`` runs), writing
 ``results/faults.md``, ``faults.json`` and ``faults_vehicle.png``.
 """
 from __future__ import annotations
@@ -112,7 +112,7 @@ def main(args: argparse.Namespace) -> int:
     import dataclasses
     import json
 
-    from hil import fault_campaign
+    from studies import fault_campaign
     from hil.scenario import load_scenario
 
     if args.campaign:

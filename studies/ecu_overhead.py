@@ -1,4 +1,4 @@
-"""Measure the ECU's own cost, without a control law: ``python -m firmware_sim.overhead``.
+"""Measure the ECU's own cost, without a control law: ``python -m studies.ecu_overhead``.
 
 Runs the ECU with `ScriptedController` (a one-line law) on a private python-can virtual
 bus, fed by peer nodes in the same process:
@@ -28,7 +28,7 @@ import can
 import numpy as np
 
 from firmware_sim.ecu import Ecu
-from firmware_sim.testing import PeerNodes, ScriptedController, pump
+from hil.ecu_harness import PeerNodes, ScriptedController, pump
 from firmware_sim.timing import PERCENTILES
 
 
@@ -109,7 +109,7 @@ def measure_realtime(seconds: float) -> dict[str, object]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run both measurements and write the JSON summary."""
-    parser = argparse.ArgumentParser(prog="python -m firmware_sim.overhead", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m studies.ecu_overhead", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cycles", type=int, default=2000, help="lockstep control cycles")
     parser.add_argument("--seconds", type=float, default=5.0, help="real-time run length, s")

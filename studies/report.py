@@ -1,7 +1,7 @@
 """Tables (markdown) and figures (matplotlib, Agg) of the double-lane-change study.
 
-Works from the plain per-run summaries of ``hil.study`` (the dicts written to
-``results/study_metrics.json``) and, for figures, the traces of ``hil.closed_loop``.
+Works from the plain per-run summaries of ``studies.paper_tables`` (the dicts written to
+``results/study_metrics.json``) and, for figures, the traces of ``studies.closed_loop``.
 The paper's CarSim/Simulink figures are printed beside ours for reference only: different
 plant, different tuning, so the comparison is of trends, not of values.
 """
@@ -17,7 +17,7 @@ matplotlib.use("Agg")  # files only; never a display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hil.closed_loop import ClosedLoopTrace  # noqa: E402
+from studies.closed_loop import ClosedLoopTrace  # noqa: E402
 
 #: Paper Tables II and III (CarSim/Simulink): controller -> (e_Y Max/Avg/RMSE in m,
 #: heading error Max/Avg/RMSE in rad).
@@ -56,7 +56,7 @@ def tracking_table(title: str, runs: Sequence[Mapping[str, Any]], scenario: str)
 
     Args:
         title: heading line.
-        runs: per-run summaries (``hil.study.run_summary``) of one scenario.
+        runs: per-run summaries (``studies.paper_tables.run_summary``) of one scenario.
         scenario: scenario name, to look up the paper's values.
     """
     paper = PAPER_TRACKING.get(scenario, {})

@@ -1,11 +1,11 @@
 """``make timing``: the ECU's deadlines, jitter and latency, as on a vehicle (issue 9).
 
-    python -m hil.timing.bench [--seconds 120] [--nmpc-seconds 30]
+    python -m studies.timing.bench [--seconds 120] [--nmpc-seconds 30]
         [--controllers eso-dkmpc,dkmpc,lmpc,nmpc] [--conditions idle,stress]
         [--scheduling rt|normal] [--out results/timing.md] [--work build/timing]
 
 For each load condition (``idle``; ``stress``: a busy loop pinned to each core, see
-`hil.timing.stress`) and each controller, `hil.timing.runner.run_timing` runs the ECU
+`studies.timing.stress`) and each controller, `studies.timing.runner.run_timing` runs the ECU
 (CPU 0, SCHED_FIFO 50) against the plant (CPU 1, SCHED_FIFO 40) over the loopback CAN
 hub, 40 Hz control for ``--seconds`` (default ``TIMING_SECONDS`` from the environment,
 else 120 s); NMPC for ``--nmpc-seconds`` only, as it does not keep up with 25 ms.
@@ -26,10 +26,10 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from hil.errors import HilError  # noqa: E402
-from hil.timing.report import (SETTLE_S, RunFigures, as_json, goal_lines,  # noqa: E402
+from studies.timing.report import (SETTLE_S, RunFigures, as_json, goal_lines,  # noqa: E402
                                percentile_table, plot_histograms, run_figures, summary_table)
-from hil.timing.runner import Placement, run_timing  # noqa: E402
-from hil.timing.stress import BUSY_LOOP, StressLoad  # noqa: E402
+from studies.timing.runner import Placement, run_timing  # noqa: E402
+from studies.timing.stress import BUSY_LOOP, StressLoad  # noqa: E402
 
 CONDITIONS = ("idle", "stress")
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
@@ -62,7 +62,7 @@ def _names(text: str, allowed: tuple[str, ...], what: str) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the report; ``error: ...`` and exit 1 on failure."""
-    parser = argparse.ArgumentParser(prog="python -m hil.timing.bench",
+    parser = argparse.ArgumentParser(prog="python -m studies.timing.bench",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=None,
                         help="run length per controller (default TIMING_SECONDS, else 120)")
@@ -125,7 +125,7 @@ def _report(figures: list[RunFigures], seconds: float, args: argparse.Namespace,
     scheduling = figures[0].scheduling if figures else {}
     lines = [
         "# ECU timing (issue 9)", "",
-        f"`python -m hil.timing.bench --seconds {seconds:g} --nmpc-seconds {args.nmpc_seconds:g}` "
+        f"`python -m studies.timing.bench --seconds {seconds:g} --nmpc-seconds {args.nmpc_seconds:g}` "
         f"(`make timing`), started {started} on `{platform.node()}` "
         f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs).", "",
         "- Transport: python-can's `socketcand` interface (TCP_NODELAY) to `hil.timing.hub`, a "

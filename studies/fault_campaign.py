@@ -506,9 +506,9 @@ def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, com
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m hil.fault_campaign [--out results] [--only NAME ...]``; exit 1 when a run
+    """``python -m studies.fault_campaign [--out results] [--only NAME ...]``; exit 1 when a run
     crashed, sent an invalid command, left the path without a safe stop or missed a bound."""
-    parser = argparse.ArgumentParser(prog="python -m hil.fault_campaign", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m studies.fault_campaign", description=__doc__.split("\n")[0])
     add_arguments(parser)
     return run_from_args(parser.parse_args(argv))
 

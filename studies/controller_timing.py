@@ -1,6 +1,6 @@
 """Per-step compute time of the controllers on the double lane change (benchmark, not a test).
 
-    python -m controller.bench [--controllers lmpc,dkmpc,...] [--out results/controller_timing.md]
+    python -m studies.controller_timing [--controllers lmpc,dkmpc,...] [--out results/controller_timing.md]
 
 Each controller drives ``models.vehicle.FourWheelVehicle`` (mu 0.85, 35 km/h, the paper's
 high-mu case) along ``ReferencePath.double_lane_change()`` for ``--steps`` control steps.
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     names = [n.strip() for n in args.controllers.split(",") if n.strip()]
     rows = [f"Per-step time on `{platform.node()}` ({platform.processor() or platform.machine()}, "
             f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the start), "
-            f"`python -m controller.bench --steps {args.steps}`, "
+            f"`python -m studies.controller_timing --steps {args.steps}`, "
             "DLC 35 km/h, mu 0.85, FourWheelVehicle.", "",
             "| controller | step wall p50 / p99 / max (ms) | step CPU p50 / p99 (ms) | solver p50 / p99 (ms) "
             "| iterations p50 / max | fallbacks | max abs e_Y (m) |",

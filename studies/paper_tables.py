@@ -1,5 +1,5 @@
 """The double-lane-change study without CAN (``make tables``): every controller on both of
-the paper's scenarios, in closed loop with the four-wheel plant (``hil.closed_loop``).
+the paper's scenarios, in closed loop with the four-wheel plant (``studies.closed_loop``).
 
 Writes to ``--out`` (default ``results/``):
 
@@ -11,7 +11,7 @@ Writes to ``--out`` (default ``results/``):
 - ``study_metrics.json``: every number above plus the acceptance checks;
 - ``traces/<scenario>__<controller>.npz``: the full time series of every run.
 
-Usage: ``python -m hil.study [--scenarios ...] [--controllers ...] [--out DIR] [--strict]``.
+Usage: ``python -m studies.paper_tables [--scenarios ...] [--controllers ...] [--out DIR] [--strict]``.
 Exit status: 0 when every run could be built and run (whatever the checks say; ``--strict``
 also requires the checks), 1 otherwise, 2 for bad arguments.
 """
@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from hil.closed_loop import ClosedLoopResult, ClosedLoopTrace, control_steps, run_closed_loop
+from studies.closed_loop import ClosedLoopResult, ClosedLoopTrace, control_steps, run_closed_loop
 from hil.errors import HilError
-from hil.report import compute_time_table, display_name, plot_scenario, tracking_table
+from studies.report import compute_time_table, display_name, plot_scenario, tracking_table
 from hil.scenario import Scenario, load_scenario
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
@@ -217,7 +217,7 @@ def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Pa
     checks = acceptance_checks(runs, [s.name for s in scenarios], list(controllers))
     (out / "study_checks.md").write_text(checks_markdown(checks))
     document = {
-        "generated_by": "python -m hil.study",
+        "generated_by": "python -m studies.paper_tables",
         "machine": machine,
         "scenarios": {s.name: {"description": s.description, "mu": s.mu,
                                "duration_s": s.duration_s, "source": s.source.name}
@@ -255,7 +255,7 @@ def summary_text(document: Mapping[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hil.study", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m studies.paper_tables", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS),
                         help="scenario names or TOML files (default: %(default)s)")

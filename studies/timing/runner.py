@@ -26,9 +26,9 @@ from typing import Any
 
 from firmware_sim.timing import TimingRecord, apply_realtime_policy, load_timing
 from hil.errors import HilError
-from hil.timing.paths import write_repeated_lane_change
+from studies.timing.paths import write_repeated_lane_change
 from hil.timing.plant_side import CHANNEL
-from hil.timing.stress import die_with_parent
+from studies.timing.stress import die_with_parent
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SPEED_KMH = 35.0

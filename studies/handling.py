@@ -1,6 +1,6 @@
 """Steady-state handling of the plant, and the parameter table for the README.
 
-``python -m models.handling diagram --out results`` drives the plant to steady state
+``python -m studies.handling diagram --out results`` drives the plant to steady state
 (constant speed held by a P controller on the drive torque, constant steer; points that
 do not settle are left out) over a steer
 sweep at 20 m/s and a speed sweep at a small steer angle, for mu 0.85 and 0.5, and writes
@@ -10,7 +10,7 @@ sweep at 20 m/s and a speed sweep at a small steer angle, for mu 0.85 and 0.5, a
   (linear range and 0.03 rad), with the linear bicycle's vx / (L + K_us vx^2);
 - ``handling.json``: the numbers behind both figures.
 
-``python -m models.handling table`` prints the parameter table (Markdown) from
+``python -m studies.handling table`` prints the parameter table (Markdown) from
 ``models/vehicle.toml``, with each value's source comment.
 """
 from __future__ import annotations
@@ -164,7 +164,7 @@ def parameter_table(path: Path = DEFAULT_PARAMS_PATH) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="python -m models.handling", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m studies.handling", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
     diagram = sub.add_parser("diagram", help="steady-state handling diagram PNGs")

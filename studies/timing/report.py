@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.timing.runner import TimingRun
+from studies.timing.runner import TimingRun
 
 SETTLE_S = 1.0
 PERIOD_MS = 25.0

@@ -9,7 +9,7 @@ a real SocketCAN bus.
 Writes (``--out``, default ``results/``):
 
 - ``run_table2_high_mu.md``, ``run_table3_low_mu.md``: e_Y / heading error Max / Avg /
-  RMSE per controller over CAN (hil/report.py's layout, the paper's values beside);
+  RMSE per controller over CAN (studies/report.py's layout, the paper's values beside);
 - ``run_fig8_high_mu.png``, ``run_fig9_low_mu.png``: speed, steer, trajectory, e_Y;
 - ``run_ecu_time.md``: ECU task time per control cycle, from CTRL_DIAG.CYCLE_TIME_US;
 - ``run_metrics.json``: every run's summary;
@@ -52,10 +52,10 @@ def _outputs(scenario_name: str) -> tuple[str, str, str]:
 
 
 def report_trace(result: Any, path: Any, target_speed: Any) -> Any:
-    """A ``hil.closed_loop.ClosedLoopTrace`` of an over-CAN run at its control instants
-    (what hil/report.py plots): plant truth from the plant node, solver facts from
+    """A ``studies.closed_loop.ClosedLoopTrace`` of an over-CAN run at its control instants
+    (what studies/report.py plots): plant truth from the plant node, solver facts from
     CTRL_DIAG; fields the bus does not carry are NaN."""
-    from hil.closed_loop import ClosedLoopTrace
+    from studies.closed_loop import ClosedLoopTrace
     from hil.metrics import path_errors
 
     plant, ecu = result.plant_trace, result.ecu_trace
@@ -95,7 +95,7 @@ def report_trace(result: Any, path: Any, target_speed: Any) -> Any:
 
 
 def run_summary(result: Any) -> dict[str, Any]:
-    """``hil.session.HilRunResult.summary`` plus what hil/report.py's tables read."""
+    """``hil.session.HilRunResult.summary`` plus what studies/report.py's tables read."""
     from hil.metrics import ComputeTimeStats
 
     summary = result.summary()
@@ -109,7 +109,7 @@ def run_summary(result: Any) -> dict[str, Any]:
 
 def ecu_time_table(runs: Sequence[dict[str, Any]], bus: str) -> str:
     """Markdown table of the ECU's task time per cycle as reported in CTRL_DIAG."""
-    from hil.report import display_name
+    from studies.report import display_name
 
     lines = ["### ECU task time per control cycle over CAN (CTRL_DIAG.CYCLE_TIME_US)", "",
              "| controller | scenario | cycles | mean (ms) | median (ms) | p99 (ms) | max (ms) "
@@ -153,7 +153,7 @@ def summary_text(runs: Sequence[dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the scenarios x controllers over CAN and write the tables, figures and logs."""
-    parser = argparse.ArgumentParser(prog="python -m hil.run_all", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m studies.run_all", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS))
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="cut every scenario to this many seconds (quick checks)")
     args = parser.parse_args(argv)
 
-    from hil.report import plot_scenario, tracking_table
+    from studies.report import plot_scenario, tracking_table
     from hil.scenario import load_scenario
     from hil.session import RunOptions, reference_path, run_hil
 

@@ -1,6 +1,6 @@
 """ESO-DKMPC's observer settings in closed loop (``make eso-sweep``): why the shipped tuning.
 
-Runs ESO-DKMPC on both double lane changes of the study (``hil.closed_loop``, no CAN) for
+Runs ESO-DKMPC on both double lane changes of the study (``studies.closed_loop``, no CAN) for
 a grid of observer settings: the two error poles of eq. 24 (``eso_pole``,
 ``eso_second_pole``) and how ``w_hat`` is spread over the horizon (``disturbance_decay``:
 1 holds it, as eq. 15 does). DKMPC (no observer) and the shipped tuning are run beside
@@ -13,7 +13,7 @@ Writes to ``--out`` (default ``results/``):
 - ``eso_dkmpc_sweep.png``: each setting's e_Y RMSE divided by DKMPC's, per scenario;
 - ``eso_dkmpc_sweep.json``: the same numbers.
 
-Usage: ``python -m hil.eso_sweep [--out DIR] [--scenarios ...]``.
+Usage: ``python -m studies.eso_sweep [--out DIR] [--scenarios ...]``.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from hil.closed_loop import ClosedLoopResult, run_closed_loop
+from studies.closed_loop import ClosedLoopResult, run_closed_loop
 from hil.errors import HilError
 from hil.scenario import Scenario, load_scenario
 
@@ -164,7 +164,7 @@ def sweep_table(rows: Sequence[SweepRow], scenario_names: Sequence[str]) -> str:
         cells.append("-" if row.setting is None else ("yes" if beats else "no"))
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "e_Y over every 25 ms control step (closed loop, four-wheel plant, no CAN; "
-              "`python -m hil.eso_sweep`). Poles: the two error poles of eq. 24 in every lifted "
+              "`python -m studies.eso_sweep`). Poles: the two error poles of eq. 24 in every lifted "
               "direction (`models.eso.design_gains`). 'held': w_hat constant over the horizon as "
               "in eq. 15; 'decay d^i': prediction step i adds d^i w_hat."]
     return "\n".join(lines) + "\n"
@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     from controller.errors import ControllerError
     from models.errors import ModelError
 
-    parser = argparse.ArgumentParser(prog="python -m hil.eso_sweep", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m studies.eso_sweep", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS),
                         help="scenario names or TOML files (default: both lane changes)")
@@ -227,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     table = sweep_table(rows, names)
     (args.out / "eso_dkmpc_sweep.md").write_text("### ESO-DKMPC observer settings against DKMPC\n\n" + table)
     (args.out / "eso_dkmpc_sweep.json").write_text(
-        json.dumps({"generated_by": "python -m hil.eso_sweep", "scenarios": names,
+        json.dumps({"generated_by": "python -m studies.eso_sweep", "scenarios": names,
                     "rows": [r.as_dict() for r in rows]}, indent=2) + "\n")
     if len(names) >= 2:
         plot_sweep(rows, names, args.out / "eso_dkmpc_sweep.png")

@@ -2,9 +2,9 @@
 paper's averages beside them, and where the time of the ESO-DKMPC step and of the ECU's
 whole control task goes (cProfile).
 
-    python -m hil.timing.compute [--steps 520] [--profile-steps 300] [--out results/bench.md]
+    python -m studies.timing.compute [--steps 520] [--profile-steps 300] [--out results/bench.md]
 
-The timing itself is `controller.bench.run_one` (the controller's closed loop on the
+The timing itself is `studies.controller_timing.run_one` (the controller's closed loop on the
 four-wheel plant, 35 km/h, mu 0.85, the double lane change; wall and thread-CPU time
 measured around ``step()``), run here for the four controllers in one process, one after
 the other. The paper (Sec. IV, CasADi / IPOPT on an Intel i7 at 1.10 GHz) reports average
@@ -29,7 +29,7 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
-from controller.bench import PLANT_SUBSTEPS, SPEED_MPS, run_one  # noqa: E402
+from studies.controller_timing import PLANT_SUBSTEPS, SPEED_MPS, run_one  # noqa: E402
 from controller.registry import CONTROLLER_NAMES  # noqa: E402
 
 #: Paper's average computation time per step, ms (CasADi / IPOPT, Intel i7 @ 1.10 GHz).
@@ -91,7 +91,7 @@ def _top(profile: cProfile.Profile, total_label: str, n: int = TOP_FUNCTIONS) ->
 
 
 def profile_step(name: str, steps: int) -> list[str]:
-    """cProfile around ``step()`` of ``name`` in the closed loop of controller.bench."""
+    """cProfile around ``step()`` of ``name`` in the closed loop of studies.controller_timing."""
     from controller.base import VehicleSample
     from controller.reference import ReferencePath
     from controller.registry import create_controller
@@ -144,7 +144,7 @@ def profile_ecu_task(name: str) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Benchmark, profiles, Markdown report."""
-    parser = argparse.ArgumentParser(prog="python -m hil.timing.compute",
+    parser = argparse.ArgumentParser(prog="python -m studies.timing.compute",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=520, help="control steps per controller")
     parser.add_argument("--profile-steps", type=int, default=300)
@@ -155,10 +155,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     load = os.getloadavg()[0]
     lines = ["# Controller compute time per step (issue 9, `make bench`)", "",
-             f"`python -m hil.timing.compute --steps {args.steps}` on `{platform.node()}` "
+             f"`python -m studies.timing.compute --steps {args.steps}` on `{platform.node()}` "
              f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load "
              f"average {load:.2f} at the start), one process, BLAS single-threaded. Closed "
-             "loop on the four-wheel plant, DLC at 35 km/h, mu 0.85 (`controller.bench.run_one`)"
+             "loop on the four-wheel plant, DLC at 35 km/h, mu 0.85 (`studies.controller_timing.run_one`)"
              "; the first step (set-up) left out. Paper: average per step, CasADi / IPOPT, "
              "Intel i7 @ 1.10 GHz. Ours: OSQP (QP controllers) and CasADi / IPOPT (NMPC).", "",
              *bench_table(args.steps), ""]

@@ -1,0 +1,17 @@
+"""Studies and benchmarks: everything that writes ``results/`` (the paper's tables and
+figures, the HIL runs over CAN, sweeps, the fault campaign, timing and compute-time
+benchmarks).
+
+Each module is a command (``python -m studies.<name>``, run by a ``make`` target) built on
+the run-time packages: it imports ``can_defs``, ``models``, ``controller``,
+``firmware_sim`` and ``hil``, and nothing there imports it back.
+
+- `closed_loop`: closed-loop simulation without CAN (the study's runner); `report`: its
+  tables and plots.
+- `paper_tables`: ``make tables`` (paper Tables II / III, Figs 8 / 9, compute time).
+- `run_all`: ``make run`` (the two double lane changes with the four controllers over CAN).
+- `eso_sweep`: ``make eso-sweep``; `fault_campaign`: ``make faults``.
+- `fig7`: ``make fig7``; `table1`: ``make table1``; `handling`: ``make handling``.
+- `controller_timing`: ``make controller-bench``; `ecu_overhead`: ``make ecu-overhead``.
+- `timing`: ``make timing`` and ``make bench``.
+"""
