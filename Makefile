@@ -58,3 +58,8 @@ clean:
 .PHONY: readme
 readme:
 	$(PYTHON) docs/build_readme.py
+
+# The node, frame and signal tables of docs/can-contract.md, from can_defs/vehicle.dbc.
+.PHONY: contract-tables
+contract-tables: setup
+	$(PY) -m can_defs.contract_tables

@@ -1,4 +1,4 @@
-"""CRC-8 SAE J1850 of the E2E protection (can-contract.md, "End-to-end protection").
+"""CRC-8 SAE J1850 of the E2E protection (docs/can-contract.md, "End-to-end protection").
 
 Parameters: polynomial 0x1D, initial value 0xFF, final XOR 0xFF, no reflection
 (CRC-8/SAE-J1850 of the CRC catalogue; check value over ASCII "123456789" is 0x4B).

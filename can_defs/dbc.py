@@ -9,7 +9,7 @@ import cantools
 from can_defs.errors import DbcLoadError
 
 DBC_PATH: Path = Path(__file__).resolve().parent / "vehicle.dbc"
-"""The CAN matrix of the contract (`can-contract.md`), for this codec and third-party nodes."""
+"""The CAN matrix of the contract (`docs/can-contract.md`), for this codec and third-party nodes."""
 
 
 @lru_cache(maxsize=None)

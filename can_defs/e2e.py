@@ -1,4 +1,4 @@
-"""Receiver side of the E2E protection (can-contract.md, "Receiving rules").
+"""Receiver side of the E2E protection (docs/can-contract.md, "End-to-end protection").
 
 Pure logic: no clock, no bus, no cantools. `check` never raises on any payload; it
 classifies each frame and says whether the receiver may use it. What to do next (hold,

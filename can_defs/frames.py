@@ -1,4 +1,4 @@
-"""Typed frames of the CAN contract (can-contract.md, "Frames" and "Signals").
+"""Typed frames of the CAN contract (docs/can-contract.md, "Frames" and "Signals").
 
 One frozen dataclass per frame, holding physical values in SI units; field names are the
 DBC signal names in snake case (``YAW_RATE`` -> ``yaw_rate``). The E2E signals CRC and

@@ -1,4 +1,4 @@
-"""The ESO-DKMPC controller ECU on a CAN bus (``can-contract.md``).
+"""The ESO-DKMPC controller ECU on a CAN bus (``docs/can-contract.md``).
 
 Modules: `ecu` (the node: cyclic executive), `rx` / `tx` (frames in and out), `modes`
 (mode state machine), `guard` (last check of every command), `safe_stop`, `clock`

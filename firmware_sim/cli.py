@@ -101,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``python -m firmware_sim``."""
     parser = _ArgumentParser(
         prog="python -m firmware_sim",
-        description="ESO-DKMPC controller ECU on a CAN bus (contract: can-contract.md).")
+        description="ESO-DKMPC controller ECU on a CAN bus. The bus contract (frames, timing, "
+                    "modes, fault reaction) is docs/can-contract.md in the repository.")
     parser.add_argument("--interface", default=None,
                         help="python-can interface (default: CAN_INTERFACE, then python-can's config)")
     parser.add_argument("--channel", default=None,

@@ -1,6 +1,6 @@
 """Fixed settings of the ECU: contract thresholds and the safe-stop / guard limits.
 
-The thresholds marked *contract* come from ``can-contract.md`` and must not be tuned; the
+The thresholds marked *contract* come from ``docs/can-contract.md`` and must not be tuned; the
 others are the ECU's own choice, documented in ``docs/readme/80-ecu.md``.
 """
 from __future__ import annotations

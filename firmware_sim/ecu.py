@@ -4,7 +4,7 @@ Each control task (every 25 ms): inputs -> events -> mode transition -> compute 
 dead reckoning or safe stop) -> guard -> TX STEER_TORQUE_CMD and CTRL_DIAG. The control law
 is the registry's `Controller`; this module holds no control math.
 
-Two time bases (``can-contract.md``, "Timing semantics"):
+Two time bases (``docs/can-contract.md``, "Timing semantics"):
 
 - lockstep: HIL_SYNC.TICK is the clock. The handshake TICK 0xFFFFFFFF resets it to "before
   tick 0"; each new TICK runs the control task instants in (previous TICK, TICK], sends

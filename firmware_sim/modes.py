@@ -1,6 +1,6 @@
 """The ECU mode state machine as a pure function: ``transition(mode, events) -> (mode, reasons)``.
 
-Rules (``can-contract.md``, "Fault reaction of the ECU"), evaluated once per control task,
+Rules (``docs/can-contract.md``, "Modes and fault reaction"), evaluated once per control task,
 one transition per evaluation:
 
 - FAULT is latched: nothing leaves it; a failed model or path load enters it from any mode.

@@ -7,7 +7,7 @@ ECU's consistency check (one counter = one sample) holds by construction.
 
 It receives STEER_TORQUE_CMD through an E2E receiver and applies the newest accepted
 command only while CMD_VALID = 1; otherwise it holds the last applied steering angle and
-applies zero drive torque (can-contract.md, "Receiving rules"). The steering command is
+applies zero drive torque (docs/can-contract.md, "Receiving rules"). The steering command is
 saturated at +-0.3 rad as the contract's actuator does (the vehicle model saturates too).
 
 The node holds no clock: the time master (lockstep or wall clock) calls

@@ -5,7 +5,7 @@ A node is anything with ``frames_due(tick_ms)``, ``receive(message, tick_ms)`` a
 ``advance(tick_ms, dt_s)`` (see `HilNode`). Both masters use a base tick of 5 ms, the
 greatest common divisor of the contract's periods (10 ms plant, 25 ms planner and ECU).
 
-Lockstep, exactly as can-contract.md "Timing semantics" says:
+Lockstep, exactly as docs/can-contract.md "Timing semantics" says:
 
 1. Handshake: HIL_SYNC with TICK = 0xFFFFFFFF every 100 ms of wall clock until the ECU
    answers HIL_SYNC_ACK with TICK = 0xFFFFFFFF (it does so once ready); give up after

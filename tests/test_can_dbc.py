@@ -1,5 +1,7 @@
-"""The DBC describes exactly the contract's signal table (tests/data/can_contract.csv,
-a machine-readable copy of can-contract.md "Signals" plus the E2E signals CRC and CNT)."""
+"""The DBC describes exactly the contract's signal table (tests/data/can_contract.csv, a
+machine-readable copy of the contract specification's signal table plus the E2E signals
+CRC and CNT, kept by hand and independent of the DBC: the tables of docs/can-contract.md
+are generated from the DBC, so they cannot serve as this check)."""
 from __future__ import annotations
 
 import csv

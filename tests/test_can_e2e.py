@@ -1,4 +1,4 @@
-"""Receiver-side E2E checks (can-contract.md "Receiving rules")."""
+"""Receiver-side E2E checks (docs/can-contract.md "End-to-end protection")."""
 from __future__ import annotations
 
 import pytest

@@ -1,4 +1,4 @@
-"""A third-party plant, planner and time master written from can-contract.md alone (raw
+"""A third-party plant, planner and time master written from docs/can-contract.md alone (raw
 bytes with python-can, struct and bit arithmetic; no can_defs, no hil nodes) drives the
 project's ECU. If the ECU needed anything beyond the contract, this test would not get it
 to steer the car along the path.
