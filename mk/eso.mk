@@ -5,8 +5,10 @@
 # results/fig7_<case>.png, results/fig7_rmse.md, results/fig7_gain_sweep.md.
 # Needs the trained artefact models/artifacts/dk_d5.npz (make train); drives are cached in
 # results/fig7_drives.npz (add FIG7_ARGS=--resimulate to rerun the plant).
+## Fig. 7: DK vs ESO-DK prediction under nominal, low-mu and +200 kg -> results/fig7_*
 fig7: setup
 	$(PY) -m studies.fig7 $(FIG7_ARGS)
 
+## tests of the extended state observer and the Fig. 7 study
 test-eso: setup
 	$(PY) -m pytest -q tests/test_eso.py tests/test_eso_dk.py tests/test_eso_fig7.py

@@ -10,13 +10,16 @@
 FUZZ_EXAMPLES ?= 200000
 FAULTS_ARGS ?=
 
+## fault injection campaign, every fault in the high-mu lane change -> results/faults.*
 faults: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m hil faults --campaign --out results $(FAULTS_ARGS)
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
+## the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000)
 fuzz: setup
 	FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(PY) -m pytest -q -s -p no:cacheprovider -p no:logging --timeout=0 \
 		tests/test_fuzz_ecu.py
 
+## tests of the fault injection and the fuzz test (10000 examples)
 faults-test: setup
 	$(PY) -m pytest -q tests/test_faults.py tests/test_fuzz_ecu.py

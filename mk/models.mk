@@ -7,11 +7,13 @@ DATA_SEED ?= 0
 
 # The nominal data set for the Koopman training; generated only when missing (READY is
 # written last, so an interrupted run is regenerated).
+## generate the nominal training data set in DATA_DIR when missing
 data: setup
 	@if [ -f $(DATA_DIR)/READY ]; then echo "$(DATA_DIR) is up (delete it to regenerate)"; \
 	else $(PY) -m models.data generate --out $(DATA_DIR) --hours $(DATA_HOURS) --seed $(DATA_SEED); fi
 
 # Steady-state handling diagram (PNGs + JSON) and the parameter table, into results/.
+## steady-state handling diagram and vehicle parameter table -> results/
 handling: setup
 	$(PY) -m studies.handling diagram --out results
 	$(PY) -m studies.handling table > results/vehicle_params.md

@@ -9,6 +9,7 @@ REPLAY_RESULTS := results/replay
 
 # Regenerate the reference outputs (<log name>.ref.log) of the test logs from the current
 # ECU build, after an intended change of the ECU or a controller; review their git diff.
+## regenerate the reference outputs of the test logs after an intended ECU change
 replay-refs: setup
 	@for log in $(REPLAY_LOGS); do \
 		$(PY) -m hil replay $$log --write-ref > /dev/null || exit 1; \
@@ -17,16 +18,19 @@ replay-refs: setup
 
 # Re-record the test logs themselves (rarely: after a change of the contract or the HIL),
 # then their references.
+## re-record the test logs (after a contract or HIL change), then their references
 replay-logs: setup
 	$(PY) $(REPLAY_LOG_DIR)/make_logs.py
 	$(MAKE) replay-refs
 
+## tests of log reading, replay, decode and play
 replay-test: setup
 	$(PY) -m pytest -q tests/test_logio.py tests/test_replay.py tests/test_replay_logs.py \
 		tests/test_replay_cli.py tests/test_decode_log.py tests/test_play.py
 
 # The figures of docs/readme/90-replay.md: replay reports of the test logs and a decoded
 # log (CSV + plot) in results/replay/.
+## replay reports and a decoded log of the test logs -> results/replay/
 replay-report: setup
 	@mkdir -p $(REPLAY_RESULTS)
 	@for log in $(REPLAY_LOGS); do \

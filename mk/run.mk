@@ -8,6 +8,7 @@
 
 RUN_ARGS ?=
 
+## the paper's two lane changes, four controllers, ECU and plant over CAN -> results/run_*
 run: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.run_all --interface $(CAN_INTERFACE) --channel $(CAN_CHANNEL) \
 		--out results --logs results/logs $(RUN_ARGS)
@@ -16,6 +17,7 @@ run: setup
 # `make run` on a real SocketCAN vcan0 inside user-mode Linux, for machines whose kernel has
 # no CAN (see docs/readme/85-vcan.md). Slow (UML system calls); for checking, not timing:
 #   make run-uml RUN_ARGS="--controllers lmpc eso-dkmpc --duration 2"
+## make run on a real SocketCAN vcan0 inside user-mode Linux (slow)
 run-uml: setup
 	$(PY) -m hil.vcan --timeout 3600 -- $(PY) -m studies.run_all --interface socketcan --channel vcan0 \
 		--out results/uml --logs results/uml/logs $(RUN_ARGS)
@@ -23,9 +25,11 @@ run-uml: setup
 HIL_TESTS := tests/test_hil_nodes.py tests/test_hil_time_master.py tests/test_hil_run.py \
 	tests/test_hil_third_party.py
 
+## tests of the HIL nodes, the time master and hil run
 hil-test: setup
 	$(PY) -m pytest -q $(HIL_TESTS)
 
 # The real SocketCAN path: host vcan0 if present, else user-mode Linux (see README).
+## the real SocketCAN path: host vcan0, else user-mode Linux
 vcan-test: setup
 	$(PY) -m pytest -q -s tests/test_vcan.py

@@ -2,10 +2,12 @@
 # Figs 8/9, compute time). See docs/readme/70-study.md.
 .PHONY: tables dlc-path
 
+## paper Tables II/III and Figs 8/9 without CAN -> results/table2_*, table3_*
 tables: setup
 	$(PY) -m studies.paper_tables --out results
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # Regenerates hil/paths/dlc.csv from the architecture's double-lane-change formula.
+## regenerate hil/paths/dlc.csv from the double-lane-change formula
 dlc-path: setup
 	$(PY) -m hil.path_files

@@ -12,12 +12,15 @@
 TIMING_SECONDS ?= 120
 TIMING_NMPC_SECONDS ?= 30
 
+## real-time test: ECU and plant as processes, idle and under load -> results/timing.md
 timing: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.bench --seconds $(TIMING_SECONDS) \
 		--nmpc-seconds $(TIMING_NMPC_SECONDS) --out results/timing.md --work build/timing
 
+## per-step compute time of the four controllers and a profile -> results/bench.md
 bench: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.compute --out results/bench.md
 
+## the 20 s real-time test of ESO-DKMPC (part of make test)
 timing-test: setup
 	$(PY) -m pytest -q -s tests/test_timing.py tests/test_timing_units.py
