@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 APT_STAMP := .venv/.apt-installed
-# Debian packages for the real SocketCAN path under user-mode Linux (see README).
+# Debian packages for the real SocketCAN path under user-mode Linux (see docs/vcan.md).
 APT_PACKAGES := user-mode-linux kmod iproute2 can-utils
 
 .DEFAULT_GOAL := help
@@ -75,7 +75,7 @@ test-fast: setup
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis
 
-# README.md is assembled from docs/readme/*.md (one section per capability).
+# README.md is assembled from docs/readme/*.md; the manuals are docs/<capability>.md.
 .PHONY: readme
 ## assemble README.md from docs/readme/*.md and the results files they include
 readme:

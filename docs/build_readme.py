@@ -1,7 +1,10 @@
-"""Assemble README.md from the per-capability sections in docs/readme/ (``make readme``).
+"""Assemble README.md from the sections in docs/readme/ (``make readme``).
 
-Each capability keeps its section in its own file so parallel work does not collide; this
-joins them in file-name order and puts a contents list after the introduction.
+The README is short (at most 300 lines, checked by ``tests/test_build_readme.py``): what
+the project is, the two commands, a tour, the layout and one paragraph per capability
+linking to its manual ``docs/<capability>.md``. The sections live in their own files so
+parallel work does not collide; this joins them in file-name order and puts a contents
+list after the introduction.
 
 A line ``@include results/FILE.md`` in a section is replaced by that file, as the make
 target named beside it last wrote it: tables of measured figures are never copied by hand,

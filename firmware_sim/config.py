@@ -1,7 +1,7 @@
 """Fixed settings of the ECU: contract thresholds and the safe-stop / guard limits.
 
 The thresholds marked *contract* come from ``docs/can-contract.md`` and must not be tuned; the
-others are the ECU's own choice, documented in ``docs/readme/80-ecu.md``.
+others are the ECU's own choice, documented in ``docs/ecu.md``.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-# can_defs: CAN contract (DBC, codec, E2E). Targets for the README figures.
+# can_defs: CAN contract (DBC, codec, E2E). Tests and the codec benchmark (docs/can-defs.md).
 .PHONY: can-test can-bench
 
 ## tests of the contract code: CRC, DBC, codec, E2E, interoperability

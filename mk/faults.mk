@@ -1,4 +1,4 @@
-# Fault injection and fuzzing of the ECU (issue 10; docs/readme/96-faults.md).
+# Fault injection and fuzzing of the ECU (issue 10; docs/faults.md).
 #   make faults   every fault in the high-mu double lane change, lockstep on the virtual
 #                 bus (32 runs, about 3-4 min here): results/faults.md, faults.json,
 #                 faults_vehicle.png; FAULTS_ARGS="--only NAME ..." for a subset

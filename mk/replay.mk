@@ -1,5 +1,5 @@
 # Issue 8: CAN log replay, decode and play (hil/logio.py, hil/replay.py, hil/decode_log.py,
-# hil/player.py; docs/readme/90-replay.md).
+# hil/player.py; docs/replay.md).
 .PHONY: replay-refs replay-logs replay-test replay-report
 
 REPLAY_LOG_DIR := tests/data/logs
@@ -28,7 +28,7 @@ replay-test: setup
 	$(PY) -m pytest -q tests/test_logio.py tests/test_replay.py tests/test_replay_logs.py \
 		tests/test_replay_cli.py tests/test_decode_log.py tests/test_play.py
 
-# The figures of docs/readme/90-replay.md: replay reports of the test logs and a decoded
+# The figures of docs/replay.md: replay reports of the test logs and a decoded
 # log (CSV + plot) in results/replay/.
 ## replay reports and a decoded log of the test logs -> results/replay/
 replay-report: setup

@@ -15,7 +15,7 @@ run: setup
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # `make run` on a real SocketCAN vcan0 inside user-mode Linux, for machines whose kernel has
-# no CAN (see docs/readme/85-vcan.md). Slow (UML system calls); for checking, not timing:
+# no CAN (see docs/vcan.md). Slow (UML system calls); for checking, not timing:
 #   make run-uml RUN_ARGS="--controllers lmpc eso-dkmpc --duration 2"
 ## make run on a real SocketCAN vcan0 inside user-mode Linux (slow)
 run-uml: setup
@@ -29,7 +29,7 @@ HIL_TESTS := tests/test_hil_nodes.py tests/test_hil_time_master.py tests/test_hi
 hil-test: setup
 	$(PY) -m pytest -q $(HIL_TESTS)
 
-# The real SocketCAN path: host vcan0 if present, else user-mode Linux (see README).
+# The real SocketCAN path: host vcan0 if present, else user-mode Linux (see docs/vcan.md).
 ## the real SocketCAN path: host vcan0, else user-mode Linux
 vcan-test: setup
 	$(PY) -m pytest -q -s tests/test_vcan.py

@@ -1,5 +1,5 @@
 # Issue 6, part 4: the closed-loop double-lane-change study without CAN (paper Tables II/III,
-# Figs 8/9, compute time). See docs/readme/70-study.md.
+# Figs 8/9, compute time). See docs/study.md.
 .PHONY: tables dlc-path
 
 ## paper Tables II/III and Figs 8/9 without CAN -> results/table2_*, table3_*

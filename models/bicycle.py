@@ -5,7 +5,7 @@ geometry and tyre curves, not the plant's internal state (load transfer, combine
 wheel dynamics, actuator lags). ``nominal_model_params()`` builds them from
 ``models/vehicle.toml``.
 
-Cornering stiffness identification (documented in docs/readme/30-plant.md): for each
+Cornering stiffness identification (documented in docs/plant.md): for each
 axle, the plant's own tyre function ``models.tyre.tyre_forces`` is evaluated at the static
 wheel load, zero slip ratio and lateral slips tan(alpha) = +-1e-4 rad (far inside the
 linear range); the central difference is the tyre's slope at zero slip, and the axle's
