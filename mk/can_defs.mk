@@ -9,3 +9,5 @@ can-test: setup
 can-bench: setup
 	@mkdir -p results
 	$(PY) -m can_defs.bench | tee results/can_defs_bench.txt
+	$(PROVENANCE_STAMP) results/can_defs_bench.txt --command "make can-bench" \
+		--inputs $(PROVENANCE_DBC) --modules can_defs.bench

@@ -18,6 +18,8 @@ controller-closed-loop: setup
 controller-bench: setup
 	@mkdir -p results
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.controller_timing --out results/controller_timing.md
+	$(PROVENANCE_STAMP) results/controller_timing.md --command "make controller-bench" \
+		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.controller_timing
 
 # ESO-DKMPC's observer poles and horizon decay against DKMPC, both lane changes (~1 min):
 # results/eso_dkmpc_sweep.{md,png,json}
@@ -25,4 +27,6 @@ controller-bench: setup
 eso-sweep: setup
 	@mkdir -p results
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.eso_sweep --out results
+	$(PROVENANCE_STAMP) $(addprefix results/eso_dkmpc_sweep.,md png json) --command "make eso-sweep" \
+		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.eso_sweep
 	@$(MAKE) --no-print-directory readme  # README.md includes these results

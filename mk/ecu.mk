@@ -12,3 +12,5 @@ ecu-test: setup
 ## the ECU's own cost without a control law -> results/ecu_overhead.json
 ecu-overhead: setup
 	$(PY) -m studies.ecu_overhead --out results/ecu_overhead.json
+	$(PROVENANCE_STAMP) results/ecu_overhead.json --command "make ecu-overhead" \
+		--inputs $(PROVENANCE_HIL) --modules studies.ecu_overhead

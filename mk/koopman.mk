@@ -22,6 +22,9 @@ train: setup
 table1: setup
 	@test -f $(KOOPMAN_DATA)/READY || $(PY) -m models.data generate --out $(KOOPMAN_DATA)
 	$(PY) -m studies.table1 --data $(KOOPMAN_DATA)
+	$(PROVENANCE_STAMP) results/table1.md results/table1.json results/fig6_prediction_errors.png \
+		results/prediction_horizon_rmse.png --command "$(call provenance_command,table1,KOOPMAN_DATA)" \
+		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.table1 models.data
 
 ## tests of the Koopman model, its training and the baselines
 test-koopman: setup

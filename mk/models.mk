@@ -18,3 +18,6 @@ handling: setup
 	$(PY) -m studies.handling diagram --out results
 	$(PY) -m studies.handling table > results/vehicle_params.md
 	@echo "wrote results/vehicle_params.md"
+	$(PROVENANCE_STAMP) results/handling.json results/handling_lateral_accel.png results/handling_yaw_gain.png \
+		results/vehicle_params.md --command "make handling" \
+		--inputs $(PROVENANCE_VEHICLE) --modules studies.handling

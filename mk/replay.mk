@@ -41,3 +41,7 @@ replay-report: setup
 	done
 	$(PY) -m hil decode $(REPLAY_LOG_DIR)/faults_lmpc.asc --csv $(REPLAY_RESULTS)/faults_lmpc.csv \
 		--plot $(REPLAY_RESULTS)/faults_lmpc.png | tee $(REPLAY_RESULTS)/faults_lmpc_decode.txt
+	$(PROVENANCE_STAMP) $(foreach log,$(REPLAY_LOGS),$(REPLAY_RESULTS)/$(notdir $(log)).json $(REPLAY_RESULTS)/$(notdir $(log)).txt) \
+		$(addprefix $(REPLAY_RESULTS)/faults_lmpc,.csv .png _decode.txt) --command "make replay-report" \
+		--inputs $(REPLAY_LOGS) $(addsuffix .json,$(REPLAY_LOGS)) $(PROVENANCE_HIL) \
+		--modules hil.commands.replay hil.commands.decode

@@ -16,10 +16,15 @@ TIMING_NMPC_SECONDS ?= 30
 timing: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.bench --seconds $(TIMING_SECONDS) \
 		--nmpc-seconds $(TIMING_NMPC_SECONDS) --out results/timing.md --work build/timing
+	$(PROVENANCE_STAMP) results/timing.md results/timing_idle.png results/timing_stress.png \
+		--command "$(call provenance_command,timing,TIMING_SECONDS TIMING_NMPC_SECONDS)" \
+		--inputs $(PROVENANCE_HIL) --modules studies.timing.bench
 
 ## per-step compute time of the four controllers and a profile -> results/bench.md
 bench: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.compute --out results/bench.md
+	$(PROVENANCE_STAMP) results/bench.md --command "make bench" \
+		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.timing.compute
 
 ## the 20 s real-time test of ESO-DKMPC (part of make test)
 timing-test: setup

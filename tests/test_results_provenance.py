@@ -1,0 +1,134 @@
+"""Provenance of results/: every committed results file is stamped and current, or named in
+results/KNOWN_STALE.md (which the README shows); and stamp / check on a scratch repository."""
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from studies import provenance
+from studies.provenance import (check, committed_results, known_stale, known_stale_pattern,
+                                load_manifest, module_sources, stamp)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_committed_results_are_current_or_known_stale() -> None:
+    rows = known_stale(ROOT)
+    stamps = load_manifest(ROOT)
+    problems = [entry.describe() for entry in check(ROOT) if not known_stale_pattern(entry.path, rows)]
+    problems += [f"{name}: no stamp in results/PROVENANCE.json -> regenerate it with its make target "
+                 "(or name it in results/KNOWN_STALE.md)"
+                 for name in committed_results(ROOT)
+                 if name not in stamps and not known_stale_pattern(name, rows)]
+    assert not problems, "stale results files:\n" + "\n".join(problems)
+
+
+def test_known_stale_list_names_only_stale_committed_files() -> None:
+    rows = known_stale(ROOT)
+    committed = committed_results(ROOT)
+    stale = {entry.path for entry in check(ROOT)}
+    stamps = load_manifest(ROOT)
+    unmatched = [pattern for pattern in rows
+                 if not any(known_stale_pattern(name, {pattern: ""}) for name in committed)]
+    assert not unmatched, f"KNOWN_STALE.md rows that name no committed results file: {unmatched}"
+    current = [name for name in committed
+               if known_stale_pattern(name, rows) and name in stamps and name not in stale]
+    assert not current, f"regenerated and current, remove them from results/KNOWN_STALE.md: {current}"
+
+
+def test_readme_shows_the_known_stale_list() -> None:
+    sections = "".join(p.read_text() for p in sorted((ROOT / "docs" / "readme").glob("*.md")))
+    assert "@include results/KNOWN_STALE.md" in sections
+    listed = (ROOT / "results" / "KNOWN_STALE.md").read_text().strip().splitlines()
+    assert listed[-1] in (ROOT / "README.md").read_text()
+
+
+def test_every_make_target_writing_results_stamps_them() -> None:
+    for mk in sorted((ROOT / "mk").glob("*.mk")):
+        text = mk.read_text()
+        writes = ("--out results" in text or "> results/" in text or "tee results/" in text
+                  or "REPLAY_RESULTS)/" in text)
+        if writes:
+            assert "$(PROVENANCE_STAMP)" in text, f"{mk.name} writes results/ but stamps nothing"
+
+
+# ---------------------------------------------------------------------------- scratch repo
+
+def _git(root: Path, *args: str) -> None:
+    subprocess.run(["git", *args], cwd=root, check=True, capture_output=True)
+
+
+@pytest.fixture()
+def repo(tmp_path: Path) -> Path:
+    """A git repository with a package ``pkg`` (``study`` imports ``helper``, lazily
+    ``plugin`` by name), a data file and one results file, all committed."""
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text('"""pkg."""\n')
+    (tmp_path / "pkg" / "helper.py").write_text("VALUE = 1\n")
+    (tmp_path / "pkg" / "plugin.py").write_text("NAME = 'p'\n")
+    (tmp_path / "pkg" / "study.py").write_text(
+        "import json\nfrom . import helper\n\ndef run():\n    import importlib\n"
+        "    return importlib.import_module('pkg.plugin')\n")
+    (tmp_path / "pkg" / "unused.py").write_text("X = 0\n")
+    (tmp_path / "data.toml").write_text("a = 1\n")
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "out.md").write_text("| a |\n")
+    _git(tmp_path, "init", "-q")
+    _git(tmp_path, "-c", "user.name=t", "-c", "user.email=t@t", "add", ".")
+    _git(tmp_path, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init")
+    return tmp_path
+
+
+def test_module_sources_follow_project_imports(repo: Path) -> None:
+    names = {p.relative_to(repo).as_posix() for p in module_sources(["pkg.study"], repo)}
+    assert names == {"pkg/__init__.py", "pkg/study.py", "pkg/helper.py", "pkg/plugin.py"}
+
+
+def test_stamp_then_check_finds_changed_inputs(repo: Path) -> None:
+    new = stamp("results/out.md", "make out", inputs=["data.toml"], modules=["pkg.study"], root=repo)
+    entry = new["results/out.md"]
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True,
+                          text=True, check=True).stdout.strip()
+    assert entry["commit"] == head  # only results/ changed: not dirty
+    assert entry["command"] == "make out" and entry["inputs"] == ["data.toml"]
+    assert check(repo) == []
+
+    (repo / "pkg" / "unused.py").write_text("X = 1\n")  # not an input: still current
+    assert check(repo) == []
+
+    (repo / "data.toml").write_text("a = 2\n")
+    [stale] = check(repo)
+    assert stale.path == "results/out.md" and stale.command == "make out"
+    assert "data.toml" in stale.describe() and "make out" in stale.describe()
+
+    stamp("results/out.md", "make out", inputs=["data.toml"], modules=["pkg.study"], root=repo)
+    assert check(repo) == []
+    (repo / "pkg" / "plugin.py").write_text("NAME = 'q'\n")  # a lazily imported module
+    [stale] = check(repo)
+    assert "pkg/plugin.py" in stale.describe()
+
+
+def test_dirty_tree_is_marked_and_hand_edited_results_are_stale(repo: Path) -> None:
+    (repo / "data.toml").write_text("a = 3\n")  # uncommitted change outside results/
+    entry = stamp(repo / "results" / "out.md", "make out", inputs=["data.toml"], modules=[],
+                  root=repo)["results/out.md"]
+    assert entry["commit"].endswith("-dirty")
+    (repo / "results" / "out.md").write_text("| b |\n")
+    [stale] = check(repo)
+    assert "changed since its stamp" in stale.describe()
+
+
+def test_known_stale_rows_and_errors(repo: Path) -> None:
+    (repo / "results" / "KNOWN_STALE.md").write_text(
+        "| Files | Regenerates them | Why |\n|---|---|---|\n"
+        "| `results/run_*`, `results/out.md` | `make run` | long |\n")
+    rows = known_stale(repo)
+    assert rows == {"results/run_*": "make run", "results/out.md": "make run"}
+    assert known_stale_pattern("results/run_a.png", rows) == "results/run_*"
+    assert known_stale_pattern("results/other.md", rows) is None
+    with pytest.raises(provenance.ProvenanceError, match="does not exist"):
+        stamp("results/none.md", "make x", root=repo)
+    with pytest.raises(provenance.ProvenanceError, match="no source file"):
+        stamp("results/out.md", "make x", modules=["pkg.nothing"], root=repo)
