@@ -19,10 +19,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from controller.base import Command, SolverStatus, StepDebug, VehicleSample
-from controller.lifted_mpc import LiftedMpc, decayed_sums
+from controller.lifted_mpc import LiftedMpc, PredictionMaps, decayed_sums
 from controller.mpc_base import Plan
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains, innovated_disturbance
+from models.eso_dk import observer_params
 
 if TYPE_CHECKING:
     from models.koopman import KoopmanModel
@@ -41,13 +42,32 @@ class EsoDkmpc(LiftedMpc):
         return cls(KoopmanModel.load(), tuning.eso_dkmpc, tuning.longitudinal)
 
     def __init__(self, model: "KoopmanModel", tuning: EsoDkmpcTuning, longitudinal: LongitudinalTuning) -> None:
-        gains = design_gains(model.A, tuning.eso_pole, second_pole=tuning.eso_second_pole, structure="matrix")
-        self.observer = ExtendedStateObserver(
-            EsoParams(model.A, model.B, model.offset, gains.beta1, gains.beta2))
-        self._observer_running = False
+        self._eso_tuning = tuning
+        # Per linear model (one, or one per speed quantum of a scheduled model): observer
+        # parameters and the disturbance's horizon map C_P D_i (Np + 1, n_x, n_z).
+        self._observer_cache: dict[int, tuple["KoopmanModel", EsoParams, np.ndarray]] = {}
         super().__init__(model, tuning, longitudinal)
-        decayed = decayed_sums(model.A, tuning.prediction_horizon, tuning.disturbance_decay)
-        self._free_from_disturbance = model.C_P @ decayed  # (Np + 1, n_x, n_z)
+        params, _ = self._observer_for(self.prediction_maps(model.speed_knots[0] if self._scheduled else 0.0))
+        self.observer = ExtendedStateObserver(params)
+        self._observer_running = False
+
+    def _observer_for(self, maps: PredictionMaps) -> tuple[EsoParams, np.ndarray]:
+        """(ESO parameters, disturbance map) of the linear model behind ``maps``, cached.
+
+        The matrix-structured gains beta1 = (p1 + p2 - 1) I - A place the error poles of
+        eq. 24 whatever A is, so every speed's observer has the same error dynamics.
+        """
+        local = maps.model
+        cached = self._observer_cache.get(id(local))
+        if cached is None or cached[0] is not local:
+            tuning = self._eso_tuning
+            gains = design_gains(local.A, tuning.eso_pole, second_pole=tuning.eso_second_pole, structure="matrix")
+            params = observer_params(local if self._scheduled else self.model, gains.beta1, gains.beta2)
+            decayed = decayed_sums(local.A, tuning.prediction_horizon, tuning.disturbance_decay)
+            if len(self._observer_cache) > 2048:
+                self._observer_cache.clear()
+            cached = self._observer_cache[id(local)] = (local, params, local.C_P @ decayed)
+        return cached[1], cached[2]
 
     def reset(self) -> None:
         """Forget plans, progress and the observer state."""
@@ -63,9 +83,12 @@ class EsoDkmpc(LiftedMpc):
             return self.observer.disturbance_estimate
         return innovated_disturbance(self.observer.state, lifted_state, self.observer.params)
 
-    def disturbance_response(self, lifted_state: np.ndarray) -> np.ndarray:
-        """States' share (Np + 1, 3) of w_hat, shaped over the horizon by the decay."""
-        return self._free_from_disturbance @ self.disturbance(lifted_state)
+    def disturbance_response(self, lifted_state: np.ndarray, maps: PredictionMaps) -> np.ndarray:
+        """States' share (Np + 1, 3) of w_hat, shaped over the horizon by the decay; the
+        observer runs on the model of this step's speed (scheduled form)."""
+        params, free_from_disturbance = self._observer_for(maps)
+        self.observer.params = params
+        return free_from_disturbance @ self.disturbance(lifted_state)
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
         accepted = self.observer.update(self.lifted_state, np.array([command.drive_torque, command.steer_angle]))

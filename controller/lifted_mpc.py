@@ -1,17 +1,20 @@
 """The Koopman MPCs' prediction (DKMPC, ESO-DKMPC): eq. 15 in the lifted space.
 
-z[i+1] = A z[i] + B [T, delta_i] + offset + w_i, with T the P controller's torque and
+z[i+1] = A z[i] + B_k [T, delta_i] + offset + w_i, with T the P controller's torque and
 w_i the disturbance estimate at prediction step i (zero for DKMPC; ESO-DKMPC adds it
-through ``disturbance_response``). Because A, B and the hold structure are constant, the
-steer-to-state map is computed once at build time:
+through ``disturbance_response``). B_k = B for the paper's linear model; for a bilinear
+model B_k = B(z_k) = B + [N_T z_k, N_delta z_k], the input matrix at the measured lifted
+state, held over the horizon so the prediction stays linear in U and the MPC a QP:
 
     states[i] = C_P A^i z0 + C_P S_i (B_T T + offset) + [disturbance part] + gain[i] @ U,
     S_i = sum_{j<i} A^j,   gain[i] = C_P sum_{j<i} A^{i-1-j} B_delta hold[j]
 
-so a step costs two small matrix-vector products besides the lift and the QP.
+gain[i] is linear in B_delta: gain = G @ B_delta with G (Np + 1, 3, Nc, n_z) built once, so
+a step costs a few small matrix-vector products besides the lift and the QP.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -39,29 +42,67 @@ def decayed_sums(A: np.ndarray, n_pred: int, decay: float) -> np.ndarray:
     return sums
 
 
-class LiftedMpc(QpSteeringMpc):
-    """Steering MPC on a ``KoopmanModel`` (A, B, offset, C_P, lift). DKMPC as is."""
+@dataclass(frozen=True)
+class PredictionMaps:
+    """The horizon maps of one linear lifted model (A, B, offset), built once per model.
 
-    def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
-        self.model = model
-        super().__init__(tuning, longitudinal)
-        n_pred, n_z = tuning.prediction_horizon, model.n_z
+    free_from_lifted (Np + 1, n_x, n_z) = C_P A^i; free_from_drift (Np + 1, n_x, n_z) =
+    C_P S_i; gain_basis (Np + 1, n_x, Nc, n_z) with G[i, :, c] = sum_j hold[j, c] C_P
+    A^(i-1-j) (the response to a unit steer column b, so gain[i] = G[i] @ b); gain
+    (Np + 1, n_x, Nc) for the model's own B; the model itself (its B and offset).
+    """
+
+    model: "KoopmanModel"
+    free_from_lifted: np.ndarray
+    free_from_drift: np.ndarray
+    gain_basis: np.ndarray
+    gain: np.ndarray
+
+    @classmethod
+    def build(cls, model: "KoopmanModel", hold: np.ndarray) -> "PredictionMaps":
+        """Maps of ``model`` for the held-input map ``hold`` (Np, Nc)."""
+        n_pred, n_z = hold.shape[0], model.n_z
         powers = np.empty((n_pred + 1, n_z, n_z))
         powers[0] = np.eye(n_z)
         for i in range(n_pred):
             powers[i + 1] = model.A @ powers[i]
-        sums = decayed_sums(model.A, n_pred, 1.0)
-        # Lifted response to one steer input applied at step j, seen at step i > j.
-        impulse = powers[:n_pred] @ model.B[:, STEER]  # (Np, n_z): A^k B_delta
-        lifted_gain = np.zeros((n_pred + 1, n_z, tuning.control_horizon))
+        free_from_lifted = model.C_P @ powers
+        gain_basis = np.zeros((n_pred + 1, model.n_x, hold.shape[1], n_z))
         for i in range(1, n_pred + 1):
-            lifted_gain[i] = impulse[i - 1::-1].T @ self.hold[:i]  # sum_j A^{i-1-j} B_d hold[j]
-        self._free_from_lifted = model.C_P @ powers  # (Np + 1, n_x, n_z)
-        self._free_from_drift = model.C_P @ sums  # (Np + 1, n_x, n_z)
-        self._gain = model.C_P @ lifted_gain  # (Np + 1, n_x, Nc)
+            gain_basis[i] = np.einsum("jc,jxz->xcz", hold[:i], free_from_lifted[i - 1::-1])
+        return cls(model, free_from_lifted, model.C_P @ decayed_sums(model.A, n_pred, 1.0), gain_basis,
+                   gain_basis @ model.B[:, STEER])
+
+
+class LiftedMpc(QpSteeringMpc):
+    """Steering MPC on a ``KoopmanModel`` (A, B, offset, C_P, lift). DKMPC as is.
+
+    The scheduled form's maps are those of ``model.at_speed(vx)`` at the measured speed,
+    built on first use and cached per speed quantum (as LMPC caches its bicycle).
+    """
+
+    def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
+        self.model = model
+        super().__init__(tuning, longitudinal)
+        self._scheduled = model.form == "scheduled"
+        self._bilinear = model.form == "bilinear"
+        self._maps_cache: dict[int, PredictionMaps] = {}
+        self._fixed_maps = None if self._scheduled else PredictionMaps.build(model, self.hold)
         self.lifted_state: np.ndarray | None = None  # z_k of the last step
 
-    def disturbance_response(self, lifted_state: np.ndarray) -> np.ndarray | float:
+    def prediction_maps(self, speed: float) -> PredictionMaps:
+        """The maps of the model at ``speed`` (the one model unless scheduled)."""
+        if self._fixed_maps is not None:
+            return self._fixed_maps
+        local = self.model.at_speed(speed)
+        maps = self._maps_cache.get(id(local))
+        if maps is None or maps.model is not local:
+            if len(self._maps_cache) > 2048:
+                self._maps_cache.clear()
+            maps = self._maps_cache[id(local)] = PredictionMaps.build(local, self.hold)
+        return maps
+
+    def disturbance_response(self, lifted_state: np.ndarray, maps: PredictionMaps) -> np.ndarray | float:
         """The disturbance estimate's share of the states at steps 0..Np, (Np + 1, 3); 0 for DKMPC."""
         return 0.0
 
@@ -69,7 +110,12 @@ class LiftedMpc(QpSteeringMpc):
         """States [vx, vy, yaw_rate] at steps 0..Np: free (Np + 1, 3), gain (Np + 1, 3, Nc)."""
         lifted = self.model.lift(sample.state())
         self.lifted_state = lifted
-        drift = self.model.B[:, TORQUE] * drive_torque + self.model.offset
-        free = (self._free_from_lifted @ lifted + self._free_from_drift @ drift
-                + self.disturbance_response(lifted))
-        return free, self._gain
+        maps = self.prediction_maps(sample.vx)
+        input_matrix, gain = maps.model.B, maps.gain
+        if self._bilinear:
+            input_matrix = self.model.input_matrix(lifted)
+            gain = maps.gain_basis @ input_matrix[:, STEER]
+        drift = input_matrix[:, TORQUE] * drive_torque + maps.model.offset
+        free = (maps.free_from_lifted @ lifted + maps.free_from_drift @ drift
+                + self.disturbance_response(lifted, maps))
+        return free, gain

@@ -12,7 +12,7 @@ provenance_command = $(strip make $(1) $(foreach v,$(2),$(if $(strip $($(v))),$(
 # The data files the studies read.
 PROVENANCE_VEHICLE := models/vehicle.toml
 PROVENANCE_TUNING := controller/tuning.toml
-PROVENANCE_ARTEFACT := models/artifacts/dk_d5.npz models/artifacts/dk_d5.json
+PROVENANCE_ARTEFACT := models/artifacts/dk_d5.npz models/artifacts/dk_d5.json models/artifacts/dk_paper_nominal.npz models/artifacts/dk_paper_nominal.json
 PROVENANCE_SCENARIOS := $(sort $(wildcard hil/scenarios/*.toml))
 PROVENANCE_PATHS := $(sort $(wildcard hil/paths/*.csv))
 PROVENANCE_DBC := can_defs/vehicle.dbc

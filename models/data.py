@@ -1,19 +1,25 @@
 """Data set generator: ``python -m models.data generate --out DIR --hours H --seed S``.
 
-Drives ``VehicleBatch`` (nominal mass and mu) through many runs at once and writes one CSV
-per run plus ``manifest.json`` (seed, parameters, content hash, list of runs), then an
-empty ``READY`` file once everything is on disk.
+Drives ``VehicleBatch`` through many runs at once and writes one CSV per run plus
+``manifest.json`` (seed, profile, parameters, content hash, list of runs with their mu),
+then an empty ``READY`` file once everything is on disk.
+
+Two profiles (``--profile``, ``PROFILES``): ``nominal`` (the paper's set-up, used for Fig. 7:
+nominal mass and mu, 5-30 m/s) and ``wide`` (the range the controller meets: 3-35 m/s,
+mu drawn per run in [0.3, 1.0], more segments at and beyond the tyres' limit, steering up
+to the actuator limit; the default artefact's data, ``make train``).
 
 Each run (``run_duration`` s, sampled at Ts = 0.025 s) is a chain of segments of 4-12 s.
 Every segment draws
 - a steering shape: step, ramp, sine, chirp, random smooth (low-pass filtered noise),
-  or straight; its amplitude is a lateral acceleration level (70 % of segments up to
-  0.6 mu g, 30 % between 0.6 and 1.0 mu g: near and at the handling limit), turned into
+  or straight; its amplitude is a lateral acceleration level (nominal: 70 % of segments up
+  to 0.6 mu g, 30 % between 0.6 and 1.0 mu g: near and at the handling limit; wide: 40 %
+  between 0.6 and 1.3 mu g, i.e. into saturation), turned into
   a wheel angle for the current speed with the steady-state bicycle relation
   delta = a_y (L / vx^2 + K_us), so the same level means the same severity at any speed;
-- a longitudinal mode: speed hold with a P controller to a target speed in [5, 30] m/s
-  (which gives accelerating and decelerating phases), coasting (zero torque) or braking
-  (constant negative torque), with guards keeping the speed in about [4, 31] m/s.
+- a longitudinal mode: speed hold with a P controller to a target speed in the profile's
+  range (which gives accelerating and decelerating phases), coasting (zero torque) or
+  braking (constant negative torque), with guards keeping the speed about 1 m/s inside it.
 
 The recorded ``torque`` and ``steer`` are the COMMANDS (DRIVE_TORQUE_CMD, STEER_ANGLE_CMD,
 held for one Ts), because the MPC chooses commands; the actuators' short lags are part of
@@ -24,6 +30,7 @@ for (spin: |vy| > 0.3 vx or |r| > 1.5 rad/s, or vx < 2 m/s); the cut is in the m
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import math
@@ -52,15 +59,49 @@ STEER_SHAPE_WEIGHTS = (0.18, 0.14, 0.2, 0.16, 0.24, 0.08)
 LONG_MODES = ("hold", "coast", "brake")
 LONG_MODE_WEIGHTS = (0.6, 0.2, 0.2)
 
-SPEED_MIN, SPEED_MAX = 5.0, 30.0
-SPEED_GUARD_LOW, SPEED_GUARD_HIGH = 4.0, 31.0
 #: P gain of the speed-hold controller (1/s) and the target speed rate limit (m/s^2).
 SPEED_GAIN = 0.8
 TARGET_RATE = 2.5
 
 
 class GeneratorError(ModelError):
-    """Bad generator settings (hours, duration, output directory)."""
+    """Bad generator settings (hours, duration, output directory, profile)."""
+
+
+@dataclass(frozen=True)
+class DataProfile:
+    """The operating range a data set covers.
+
+    Speeds in m/s (targets drawn in [speed_min, speed_max], guards 1 m/s outside); mu per
+    run uniform in [mu_min, mu_max] (equal bounds: fixed mu); ``limit_share`` of segments
+    at lateral levels in [0.6, limit_level_max] mu g, the rest in [0.03, 0.6] mu g.
+    """
+
+    speed_min: float
+    speed_max: float
+    mu_min: float
+    mu_max: float
+    limit_share: float
+    limit_level_max: float
+
+    @property
+    def guard_low(self) -> float:
+        return self.speed_min - 1.0
+
+    @property
+    def guard_high(self) -> float:
+        return self.speed_max + 1.0
+
+
+def profiles(params: VehicleParams) -> dict[str, DataProfile]:
+    """The named profiles; ``nominal`` keeps the vehicle file's mu."""
+    return {
+        "nominal": DataProfile(5.0, 30.0, params.mu, params.mu, 0.3, 1.0),
+        "wide": DataProfile(3.0, 35.0, 0.3, 1.0, 0.4, 1.3),
+    }
+
+
+PROFILE_NAMES = ("nominal", "wide")
 
 
 @dataclass(frozen=True)
@@ -73,6 +114,7 @@ class RunPlan:
     """
 
     initial_speed: float
+    mu: float
     steer_shape: np.ndarray
     lateral_level: np.ndarray
     long_mode: np.ndarray
@@ -122,8 +164,11 @@ def _steer_shape(rng: np.random.Generator, kind: str, n: int, ts: float) -> tupl
     return np.zeros(n), {}
 
 
-def plan_run(rng: np.random.Generator, duration: float, ts: float, params: VehicleParams) -> RunPlan:
-    """Draw the manoeuvre of one run (segments of 4-12 s) from ``rng``."""
+def plan_run(rng: np.random.Generator, duration: float, ts: float, params: VehicleParams,
+             profile: DataProfile | None = None) -> RunPlan:
+    """Draw the manoeuvre of one run (segments of 4-12 s) and its mu from ``rng``."""
+    profile = profile if profile is not None else profiles(params)["nominal"]
+    mu = float(rng.uniform(profile.mu_min, profile.mu_max)) if profile.mu_max > profile.mu_min else profile.mu_min
     n = int(round(duration / ts))
     steer_shape = np.zeros(n)
     lateral_level = np.zeros(n)
@@ -131,16 +176,16 @@ def plan_run(rng: np.random.Generator, duration: float, ts: float, params: Vehic
     long_value = np.zeros(n)
     segments: list[dict] = []
     start = 0
-    mu_g = params.mu * params.gravity
+    mu_g = mu * params.gravity
     while start < n:
         length = min(n - start, int(round(rng.uniform(4.0, 12.0) / ts)))
         kind = str(rng.choice(STEER_SHAPES, p=STEER_SHAPE_WEIGHTS))
         shape, detail = _steer_shape(rng, kind, length, ts)
-        near_limit = bool(rng.random() < 0.3)
-        level = mu_g * (rng.uniform(0.6, 1.0) if near_limit else rng.uniform(0.03, 0.6))
+        near_limit = bool(rng.random() < profile.limit_share)
+        level = mu_g * (rng.uniform(0.6, profile.limit_level_max) if near_limit else rng.uniform(0.03, 0.6))
         mode = int(rng.choice(len(LONG_MODES), p=LONG_MODE_WEIGHTS))
         if LONG_MODES[mode] == "hold":
-            value = rng.uniform(SPEED_MIN, SPEED_MAX)
+            value = rng.uniform(profile.speed_min, profile.speed_max)
         elif LONG_MODES[mode] == "brake":
             value = -rng.uniform(300.0, params.max_brake_torque)
         else:
@@ -154,7 +199,7 @@ def plan_run(rng: np.random.Generator, duration: float, ts: float, params: Vehic
                          "near_limit": near_limit, "longitudinal": LONG_MODES[mode],
                          "long_value": round(value, 3)})
         start += length
-    return RunPlan(float(rng.uniform(SPEED_MIN, SPEED_MAX)), steer_shape, lateral_level,
+    return RunPlan(float(rng.uniform(profile.speed_min, profile.speed_max)), mu, steer_shape, lateral_level,
                    long_mode, long_value, segments)
 
 
@@ -170,8 +215,9 @@ def understeer_gradient(params: VehicleParams) -> float:
 class _Commander:
     """Turns the plans into commands at each Ts from the measured speed (vectorised)."""
 
-    def __init__(self, plans: list[RunPlan], params: VehicleParams, ts: float) -> None:
+    def __init__(self, plans: list[RunPlan], params: VehicleParams, ts: float, profile: DataProfile) -> None:
         self.params = params
+        self.profile = profile
         self.ts = ts
         self.steer_shape = np.stack([p.steer_shape for p in plans])
         self.lateral_level = np.stack([p.lateral_level for p in plans])
@@ -187,6 +233,7 @@ class _Commander:
         """(steer_cmd, torque_cmd), each (n_runs,), for sample ``k`` at speed ``vx``."""
         p = self.params
         speed = np.maximum(vx, 3.0)
+        low, high, floor = self.profile.guard_low, self.profile.guard_high, self.profile.speed_min
         lateral = self.steer_shape[:, k] * self.lateral_level[:, k]
         steer = np.clip(lateral * (p.wheelbase / speed ** 2 + self.k_us), -p.steer_limit, p.steer_limit)
 
@@ -194,9 +241,9 @@ class _Commander:
         if k > 0:
             new_segment = mode != self.long_mode[:, k - 1]
             self.recovering &= ~new_segment
-        self.recovering |= (mode != 0) & (vx < SPEED_GUARD_LOW)
-        wanted = np.where(mode == 0, self.long_value[:, k], np.maximum(vx, SPEED_MIN + 3.0))
-        wanted = np.where(self.recovering, SPEED_MIN + 3.0, wanted)
+        self.recovering |= (mode != 0) & (vx < low)
+        wanted = np.where(mode == 0, self.long_value[:, k], np.maximum(vx, floor + 3.0))
+        wanted = np.where(self.recovering, floor + 3.0, wanted)
         step = TARGET_RATE * self.ts
         self.target = np.where(mode == 0, self.target + np.clip(wanted - self.target, -step, step), wanted)
         resistance = (self.model.drag_factor * vx * np.abs(vx)
@@ -204,19 +251,20 @@ class _Commander:
         hold = p.radius * (p.mass * SPEED_GAIN * (self.target - vx) + resistance)
         torque = np.where(mode == 1, 0.0, np.where(mode == 2, self.long_value[:, k], hold))
         torque = np.where(self.recovering, hold, torque)
-        torque = np.where(vx > SPEED_GUARD_HIGH, -0.5 * p.max_brake_torque, torque)
+        torque = np.where(vx > high, -0.5 * p.max_brake_torque, torque)
         torque = np.clip(torque, -p.max_brake_torque, p.max_drive_torque)
         return steer, torque
 
 
 def simulate_runs(plans: list[RunPlan], params: VehicleParams, ts: float,
-                  progress: bool = True) -> tuple[list[dict[str, np.ndarray]], list[int]]:
-    """Simulate all ``plans`` together; returns per-run columns and valid lengths."""
+                  progress: bool = True, profile: DataProfile | None = None
+                  ) -> tuple[list[dict[str, np.ndarray]], list[int]]:
+    """Simulate all ``plans`` together (each on its own mu); per-run columns and valid lengths."""
     n_runs = len(plans)
     n_samples = len(plans[0].steer_shape)
-    batch = VehicleBatch(params, n_runs)
+    batch = VehicleBatch(params, n_runs, mu=np.array([p.mu for p in plans]))
     batch.reset(np.array([p.initial_speed for p in plans]))
-    commander = _Commander(plans, params, ts)
+    commander = _Commander(plans, params, ts, profile if profile is not None else profiles(params)["nominal"])
     names = (*RUN_COLUMNS, *EXTRA_COLUMNS)
     record = {name: np.zeros((n_runs, n_samples)) for name in names}
     valid_length = np.full(n_runs, n_samples)
@@ -255,22 +303,25 @@ def _sha256(path: Path) -> str:
 def generate_dataset(out_dir: str | Path, hours: float = DEFAULT_HOURS, seed: int = 0,
                      run_duration: float = DEFAULT_RUN_DURATION, ts: float = DEFAULT_TS,
                      params: VehicleParams | None = None, progress: bool = True,
-                     min_run_seconds: float = 5.0) -> dict:
-    """Generate the data set into ``out_dir``; returns the manifest (also written)."""
+                     min_run_seconds: float = 5.0, profile: str = "nominal") -> dict:
+    """Generate the data set of ``profile`` into ``out_dir``; returns the manifest (also written)."""
+    if profile not in PROFILE_NAMES:
+        raise GeneratorError(f"profile: must be one of {PROFILE_NAMES}, got {profile!r}")
     if not (math.isfinite(hours) and hours > 0):
         raise GeneratorError(f"hours: must be > 0, got {hours!r}")
     if not (math.isfinite(run_duration) and run_duration >= 5.0):
         raise GeneratorError(f"run_duration: must be >= 5 s, got {run_duration!r}")
     params = params if params is not None else load_vehicle_params()
+    coverage = profiles(params)[profile]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for stale in (*out.glob("run_*.csv"), out / "manifest.json", out / "READY"):
         stale.unlink(missing_ok=True)
     n_runs = max(1, int(round(hours * 3600.0 / run_duration)))
     rng = np.random.default_rng(seed)
-    plans = [plan_run(rng, run_duration, ts, params) for _ in range(n_runs)]
+    plans = [plan_run(rng, run_duration, ts, params, coverage) for _ in range(n_runs)]
     started = wallclock.perf_counter()
-    runs, lengths = simulate_runs(plans, params, ts, progress)
+    runs, lengths = simulate_runs(plans, params, ts, progress, coverage)
     elapsed = wallclock.perf_counter() - started
     entries = []
     for index, (plan, columns, length) in enumerate(zip(plans, runs, lengths)):
@@ -282,12 +333,13 @@ def generate_dataset(out_dir: str | Path, hours: float = DEFAULT_HOURS, seed: in
         entries.append({"index": index, "file": path.name, "samples": length,
                         "duration_s": round(length * ts, 3),
                         "cut": length < len(plan.steer_shape),
-                        "initial_speed": round(plan.initial_speed, 3),
+                        "initial_speed": round(plan.initial_speed, 3), "mu": round(plan.mu, 4),
                         "sha256": _sha256(path), "segments": plan.segments})
     content = hashlib.sha256("".join(e["sha256"] for e in entries if e["file"]).encode()).hexdigest()
     kept = [e for e in entries if e["file"]]
     manifest = {
         "generator": "models.data", "generator_version": GENERATOR_VERSION, "seed": seed,
+        "profile": profile, "coverage": dataclasses.asdict(coverage),
         "hours_requested": hours, "run_duration_s": run_duration, "ts": ts,
         "columns": list(RUN_COLUMNS) + list(EXTRA_COLUMNS),
         "inputs": {"torque": "DRIVE_TORQUE_CMD (N m), held for one Ts",
@@ -313,11 +365,13 @@ def main(argv: list[str] | None = None) -> int:
     gen.add_argument("--hours", type=float, default=DEFAULT_HOURS, help="hours of driving")
     gen.add_argument("--seed", type=int, default=0, help="random seed (deterministic output)")
     gen.add_argument("--run-duration", type=float, default=DEFAULT_RUN_DURATION, help="seconds per run")
+    gen.add_argument("--profile", choices=PROFILE_NAMES, default="nominal",
+                     help="operating range: nominal (Fig. 7) or wide (3-35 m/s, mu 0.3-1.0, saturation)")
     gen.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
         manifest = generate_dataset(args.out, args.hours, args.seed, args.run_duration,
-                                    progress=not args.no_progress)
+                                    progress=not args.no_progress, profile=args.profile)
     except ModelError as exc:
         if args.debug:
             raise

@@ -118,6 +118,8 @@ class EsoParams:
     """Observer model and gains of eq. 13, validated on construction.
 
     A (n_z, n_z), B (n_z, n_u), offset (n_z,) in physical units (the KoopmanModel's);
+    ``bilinear`` N (n_u, n_z, n_z) of a bilinear model, else None: the observer's model
+    input is then B(z_k) u = B u + sum_j u_j N_j z_k with the MEASURED z_k (as the MPC);
     beta1, beta2 scalars or (n_z, n_z) matrices, stored as (n_z, n_z) matrices; g1, g2
     correction functions (identity by default). ``spectral_radius`` is that of Theta
     (eq. 24); gains giving a radius >= 1 raise ``EsoGainError`` naming the radius.
@@ -130,6 +132,7 @@ class EsoParams:
     beta2: Gain
     g1: CorrectionFunction = identity_correction
     g2: CorrectionFunction = identity_correction
+    bilinear: np.ndarray | None = None
     spectral_radius: float = field(init=False)
     update_matrix: np.ndarray = field(init=False, repr=False)
     update_offset: np.ndarray = field(init=False, repr=False)
@@ -146,6 +149,11 @@ class EsoParams:
         for name, value in (("B", B), ("offset", offset)):
             if not np.all(np.isfinite(value)):
                 raise EsoShapeError(f"{name} has non-finite entries")
+        if self.bilinear is not None:
+            bilinear = np.asarray(self.bilinear, dtype=float)
+            if bilinear.shape != (B.shape[1], n_z, n_z) or not np.all(np.isfinite(bilinear)):
+                raise EsoShapeError(f"bilinear must be finite ({B.shape[1]}, {n_z}, {n_z}), got shape {bilinear.shape}")
+            object.__setattr__(self, "bilinear", _frozen_copy(bilinear))
         if not (callable(self.g1) and callable(self.g2)):
             raise EsoShapeError("g1 and g2 must be callables mapping (n_z,) -> (n_z,)")
         beta1 = _gain_matrix(self.beta1, n_z, "beta1")
@@ -227,6 +235,8 @@ def eso_update(
     if not math.isfinite(stacked @ stacked):
         return state
     next_stacked = params.update_matrix @ stacked + params.update_offset
+    if params.bilinear is not None:  # B(z_k) u: the input matrix at the measured z_k
+        next_stacked[: params.n_z] += u @ (params.bilinear @ lifted_measurement)
     if not math.isfinite(next_stacked @ next_stacked):
         return state
     return EsoState(next_stacked[: params.n_z], next_stacked[params.n_z :])

@@ -35,6 +35,12 @@ class LiftedLinearModel(Protocol):
         ...
 
 
+def observer_params(model: LiftedLinearModel, beta1: np.ndarray | float, beta2: np.ndarray | float) -> EsoParams:
+    """The ESO of eq. 13 on ``model`` (A, B, offset and, for a bilinear model, N) with these gains."""
+    bilinear = getattr(model, "N", None) if getattr(model, "form", "linear") == "bilinear" else None
+    return EsoParams(model.A, model.B, model.offset, beta1, beta2, bilinear=bilinear)
+
+
 def rollout_lifted(
     model: LiftedLinearModel,
     z0: np.ndarray,
@@ -53,7 +59,9 @@ def rollout_lifted(
         raise EsoShapeError(f"z0 must be (batch, {model.n_z}), got {z.shape}")
     if inputs.ndim != 3 or inputs.shape[0] != z.shape[0] or inputs.shape[2] != model.n_u:
         raise EsoShapeError(f"inputs must be ({z.shape[0]}, n_steps, {model.n_u}), got {inputs.shape}")
-    # Input, offset and held disturbance enter every step identically: add them up front.
+    # Input, offset and held disturbance enter every step identically: add them up front;
+    # a bilinear model's state-dependent input term is added per step (with the predicted z).
+    bilinear = getattr(model, "N", None) if getattr(model, "form", "linear") == "bilinear" else None
     forced = inputs @ model.B.T + model.offset
     if disturbance is not None:
         held = np.asarray(disturbance, dtype=float)
@@ -63,7 +71,10 @@ def rollout_lifted(
     out = np.empty(inputs.shape[:2] + (model.n_z,))
     a_t = model.A.T
     for i in range(inputs.shape[1]):
-        z = z @ a_t + forced[:, i]
+        z_next = z @ a_t + forced[:, i]
+        if bilinear is not None:
+            z_next += np.einsum("bj,jac,bc->ba", inputs[:, i], bilinear, z)
+        z = z_next
         out[:, i] = z
     return out
 
@@ -113,5 +124,5 @@ class EsoDkPredictor:
     def predict_one_step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x[k+1|k] (n_x,) from x[k] (n_x,) and u[k] (n_u,) (eq. 15 with N_p = 1)."""
         z = self.model.lift(np.asarray(x, dtype=float))
-        z_next = self.model.A @ z + self.model.B @ np.asarray(u, dtype=float) + self.model.offset
+        z_next = rollout_lifted(self.model, z[None], np.asarray(u, dtype=float)[None, None])[0, 0]
         return self.model.C_P @ (z_next + self.disturbance_estimate)

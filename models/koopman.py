@@ -1,22 +1,42 @@
 """Deep Koopman model at run time: numpy only (no torch), cheap enough for a 25 ms loop.
 
+Two model forms share this class (``form`` in the artefact):
+
+- ``linear``, the paper's (eqs. 5-7): z+ = A z + B u + offset. Its response to a change of
+  input does not depend on the state (superposition), so its yaw response to a steering
+  step is the same at 10 and at 25 m/s (docs/koopman.md, "Why the model form").
+- ``bilinear`` (control-affine Koopman, Bruder et al. 2021): z+ = A z + B u + offset +
+  sum_j u_j N_j z, i.e. an input matrix B(z) = B + [N_1 z, ..., N_m z] that depends on the
+  lifted state. Evaluated at the measured z_k the MPC's prediction stays linear in the
+  inputs (``input_matrix``), so the MPC stays a QP.
+- ``scheduled`` (a speed-scheduled lift, an LPV Koopman model): z+ = A(v) z + B(v) u +
+  offset(v), the matrices interpolated linearly between speed knots, v the measured speed
+  at the start of the prediction, held over it (as LMPC holds its bicycle's speed).
+  ``at_speed(v)`` gives the linear model of that speed, so the MPC stays a QP.
+
+The lifted state is z = [x; psi(x); Phi(x)]: the physical state, an optional fixed
+dictionary psi of physics-motivated functions (``DICTIONARY``: vy/vx, r/vx, vx r, vx^2,
+the terms a single-track model is linear in) and the d learned features Phi of the encoder.
+
 The network is trained in min-max normalised coordinates (``models/koopman_train.py``):
 
     x_n = D_x x + c_x,   u_n = D_u u + c_u                 (D = diag(1/(hi - lo)), c = -lo/(hi - lo))
-    z_n = [x_n; Phi(x_n)]                                  (eq. 6 in normalised units)
-    z_n+ = A_n z_n + B_n u_n                               (eq. 5)
+    z_n = [x_n; psi_n; Phi(x_n)]                           (eq. 6 in normalised units)
+    z_n+ = A_n z_n + B_n u_n + sum_j u_n,j N_n,j z_n       (eq. 5; N_n = 0 in the linear form)
 
 This module works in PHYSICAL units. The lifted state keeps the physical state on top,
 ``z = [x; Phi(x_n)]`` so that ``x = C_P z`` with ``C_P = [I, 0]`` (eq. 7) holds in SI units.
-With ``S = blkdiag(diag(hi_x - lo_x), I_d)`` and ``s = [lo_x; 0]`` we have ``z = S z_n + s``,
-hence
+With ``S = blkdiag(diag(hi_x - lo_x), diag(hi_psi - lo_psi), I_d)`` and
+``s = [lo_x; lo_psi; 0]`` we have ``z = S z_n + s``; with ``M_j = S N_n,j S^-1`` and
+``u_n,j = d_j u_j + c_j``, hence
 
-    z+ = S z_n+ + s = S A_n S^-1 (z - s) + S B_n (D_u u + c_u) + s
-       = A z + B u + offset
+    z+ = S z_n+ + s = S A_n S^-1 (z - s) + S B_n (D_u u + c_u) + s + sum_j (d_j u_j + c_j) M_j (z - s)
+       = A z + B u + offset + sum_j u_j N_j z
 
-    A      = S A_n S^-1                                    (n_z, n_z)
-    B      = S B_n D_u                                     (n_z, n_u)
-    offset = s - A s + S B_n c_u                           (n_z,)
+    A        = S A_n S^-1 + sum_j c_j M_j                  (n_z, n_z)
+    N_j      = d_j M_j                                     (n_u, n_z, n_z) stacked
+    B[:, j]  = d_j (S B_n[:, j] - M_j s)                   (n_z, n_u)
+    offset   = s - A s + S B_n c_u                         (n_z,)
 
 The affine term ``offset`` is the price of the affine normalisation; the ESO and the MPC
 carry it as a known constant. The normalisation of the encoder input is folded into its
@@ -27,6 +47,7 @@ encoder with no layers gives a purely linear model ``z = x``.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,8 +60,77 @@ from models.errors import ModelError
 ARTIFACT_DIR = Path(__file__).resolve().parent / "artifacts"
 #: Default trained artefact (d = 5 learned features); the ``.json`` sits beside it.
 DEFAULT_ARTIFACT = ARTIFACT_DIR / "dk_d5.npz"
-#: Version of the artefact layout written by ``save_artifact``.
-ARTIFACT_FORMAT = 1
+#: Version of the artefact layout written by ``save_artifact``: 2 adds ``form``, ``dictionary``
+#: and the bilinear ``N_n``; format-1 artefacts load as the linear form without dictionary.
+ARTIFACT_FORMAT = 2
+MODEL_FORMS = ("linear", "bilinear", "scheduled")
+#: Default speed knots (m/s) of the scheduled form: denser where 1/vx changes fast.
+DEFAULT_SPEED_KNOTS = (3.0, 6.0, 10.0, 15.0, 20.0, 27.0, 35.0)
+#: Speed resolution (m/s) of the cached per-speed models of the scheduled form.
+SPEED_QUANTUM = 0.05
+
+
+def knot_weights(knots: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """Hat-function weights of linear interpolation: speed (...,) -> (..., K), rows sum to 1.
+
+    Speeds outside the knots take the end knot's matrices (no extrapolation).
+    """
+    knots = np.asarray(knots, dtype=float)
+    v = np.clip(np.asarray(speed, dtype=float), knots[0], knots[-1])
+    upper = np.clip(np.searchsorted(knots, v, side="right"), 1, len(knots) - 1)
+    lower = upper - 1
+    frac = (v - knots[lower]) / (knots[upper] - knots[lower])
+    weights = np.zeros(v.shape + (len(knots),))
+    np.put_along_axis(weights, lower[..., None], (1.0 - frac)[..., None], axis=-1)
+    np.put_along_axis(weights, upper[..., None], frac[..., None], axis=-1)
+    return weights
+
+#: Speed floor (m/s) of the dictionary's 1/vx terms: below it the car barely moves laterally.
+DICTIONARY_MIN_SPEED = 1.0
+
+
+def _vx(state: np.ndarray) -> np.ndarray:
+    return np.maximum(state[..., 0], DICTIONARY_MIN_SPEED)
+
+
+#: Fixed lifting functions of the state [vx, vy, yaw_rate] (name -> (..., 3) -> (...)).
+#: A single-track model's accelerations are linear in these: slip angles ~ vy/vx, r/vx;
+#: the Coriolis term vx r; speed-dependent drag ~ vx^2 (scaled to keep magnitudes alike).
+DICTIONARY: dict[str, Any] = {
+    "vy/vx": lambda x: x[..., 1] / _vx(x),
+    "r/vx": lambda x: x[..., 2] / _vx(x),
+    "vx*r": lambda x: x[..., 0] * x[..., 2],
+    "vx^2/100": lambda x: x[..., 0] ** 2 / 100.0,
+}
+#: The same functions on Python floats (vx, vy, r, vx floored) for the single-state hot path.
+_SCALAR_DICTIONARY: dict[str, Any] = {
+    "vy/vx": lambda vx, vy, r, vxf: vy / vxf,
+    "r/vx": lambda vx, vy, r, vxf: r / vxf,
+    "vx*r": lambda vx, vy, r, vxf: vx * r,
+    "vx^2/100": lambda vx, vy, r, vxf: vx * vx / 100.0,
+}
+#: State names the dictionary's formulas assume, in order.
+DICTIONARY_STATES = ("vx", "vy", "yaw_rate")
+
+
+def dictionary_features(names: Sequence[str], states: np.ndarray) -> np.ndarray:
+    """psi(x): states (..., 3) in the order of DICTIONARY_STATES -> (..., len(names))."""
+    states = np.asarray(states, dtype=float)
+    out = np.empty(states.shape[:-1] + (len(names),))
+    for i, name in enumerate(names):
+        out[..., i] = DICTIONARY[name](states)
+    return out
+
+
+def check_dictionary(names: Sequence[str], state_names: Sequence[str]) -> tuple[str, ...]:
+    """The dictionary's names validated against DICTIONARY and the state names."""
+    names = tuple(names)
+    unknown = [n for n in names if n not in DICTIONARY]
+    if unknown:
+        raise KoopmanError(f"unknown dictionary functions {unknown}; known: {sorted(DICTIONARY)}")
+    if names and tuple(state_names) != DICTIONARY_STATES:
+        raise KoopmanError(f"the dictionary needs the states {DICTIONARY_STATES}, got {tuple(state_names)}")
+    return names
 
 
 class KoopmanError(ModelError):
@@ -97,34 +187,68 @@ class NormalisedKoopman:
     B_n: np.ndarray
     state_scaling: MinMaxScaling
     input_scaling: MinMaxScaling
+    #: Bilinear matrices (n_u, n_z, n_z); None for the linear form.
+    N_n: np.ndarray | None = None
+    dictionary: tuple[str, ...] = ()
+    #: Min-max bounds of the dictionary features (len(dictionary),); None without one.
+    dictionary_scaling: MinMaxScaling | None = None
+    #: Learned constant term c_n (n_z,) of the bilinear form (None: the paper's bias-free eq. 5).
+    affine_n: np.ndarray | None = None
+    #: Speed knots (K,) of the scheduled form; A_n, B_n, affine_n then carry a leading K axis.
+    speed_knots: tuple[float, ...] = ()
 
-    def to_physical(self) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray, np.ndarray]:
+    def to_physical(self) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray, np.ndarray,
+                                   np.ndarray | None]:
         """Fold the normalisation into the matrices (derivation in the module docstring).
 
-        Returns (encoder acting on physical x, A (n_z, n_z), B (n_z, n_u), offset (n_z,)).
+        Returns (encoder acting on physical x, A (n_z, n_z), B (n_z, n_u), offset (n_z,),
+        N (n_u, n_z, n_z) or None). The scheduled form folds each knot alike (the weights
+        sum to one, so interpolating the physical matrices interpolates the model): A (K,
+        n_z, n_z), B (K, n_z, n_u), offset (K, n_z).
         """
-        n_x = self.state_scaling.low.size
+        if self.speed_knots:
+            parts = [dataclasses.replace(self, A_n=self.A_n[m], B_n=self.B_n[m], speed_knots=(),
+                                         affine_n=None if self.affine_n is None else self.affine_n[m])
+                     .to_physical() for m in range(len(self.speed_knots))]
+            encoder = parts[0][0]
+            return (encoder, np.stack([p[1] for p in parts]), np.stack([p[2] for p in parts]),
+                    np.stack([p[3] for p in parts]), None)
         n_z = self.A_n.shape[0]
-        span = self.state_scaling.high - self.state_scaling.low
-        s_diag = np.concatenate([span, np.ones(n_z - n_x)])
-        s_vec = np.concatenate([self.state_scaling.low, np.zeros(n_z - n_x)])
+        low, high = [self.state_scaling.low], [self.state_scaling.high]
+        if self.dictionary_scaling is not None:
+            low.append(self.dictionary_scaling.low)
+            high.append(self.dictionary_scaling.high)
+        low_known, high_known = np.concatenate(low), np.concatenate(high)
+        n_known = low_known.size
+        s_diag = np.concatenate([high_known - low_known, np.ones(n_z - n_known)])
+        s_vec = np.concatenate([low_known, np.zeros(n_z - n_known)])
         A = (s_diag[:, None] * self.A_n) / s_diag[None, :]
         SB = s_diag[:, None] * self.B_n
-        B = SB * self.input_scaling.scale[None, :]
-        offset = s_vec - A @ s_vec + SB @ self.input_scaling.shift
+        d_u, c_u = self.input_scaling.scale, self.input_scaling.shift
+        B = SB * d_u[None, :]
+        N = None
+        if self.N_n is not None:
+            M = (s_diag[None, :, None] * self.N_n) / s_diag[None, None, :]  # S N_n,j S^-1
+            A = A + np.einsum("j,jab->ab", c_u, M)
+            N = d_u[:, None, None] * M
+            B = B - (M @ s_vec).T * d_u[None, :]
+        offset = s_vec - A @ s_vec + SB @ c_u
+        if self.affine_n is not None:
+            offset = offset + s_diag * self.affine_n
         encoder = [(np.array(w, dtype=float), np.array(b, dtype=float)) for w, b in self.encoder]
         if encoder:
             w0, b0 = encoder[0]
             encoder[0] = (w0 * self.state_scaling.scale[None, :], b0 + w0 @ self.state_scaling.shift)
-        return encoder, A, B, offset
+        return encoder, A, B, offset, N
 
 
 class KoopmanModel:
-    """Lifted linear model ``z+ = A z + B u + offset``, ``x = C_P z``, in physical units.
+    """Lifted model ``z+ = A z + B u + offset (+ sum_j u_j N_j z)``, ``x = C_P z``, physical units.
 
-    Attributes: ``A`` (n_z, n_z), ``B`` (n_z, n_u), ``offset`` (n_z,), ``C_P`` (n_x, n_z),
-    ``ts`` (s), ``n_x``, ``n_u``, ``n_z``, ``state_names``, ``input_names``, ``metadata``
-    (the artefact's JSON, or {} when built from arrays).
+    Attributes: ``A`` (n_z, n_z), ``B`` (n_z, n_u), ``offset`` (n_z,), ``N`` (n_u, n_z, n_z)
+    (zeros for the linear form), ``form`` ("linear" | "bilinear"), ``dictionary`` (names of
+    the fixed lifting functions), ``C_P`` (n_x, n_z), ``ts`` (s), ``n_x``, ``n_u``, ``n_z``,
+    ``state_names``, ``input_names``, ``metadata`` (the artefact's JSON, or {} from arrays).
     """
 
     def __init__(
@@ -137,25 +261,54 @@ class KoopmanModel:
         state_names: Sequence[str],
         input_names: Sequence[str],
         metadata: dict[str, Any] | None = None,
+        *,
+        bilinear: np.ndarray | None = None,
+        dictionary: Sequence[str] = (),
+        speed_knots: Sequence[float] = (),
     ) -> None:
         """Build from arrays in physical units.
 
         ``encoder``: [(W (h_out, h_in), b (h_out,)), ...] acting on the PHYSICAL state
         (normalisation already folded in), tanh after every layer but the last; the last
-        layer gives the d learned features. An empty encoder means d = 0 (z = x).
+        layer gives the d learned features. An empty encoder means d = 0 (z = [x; psi]).
+        ``bilinear``: N (n_u, n_z, n_z), or None for the linear form. ``dictionary``: names
+        from ``DICTIONARY`` lifted between x and the learned features. ``speed_knots`` (K,)
+        increasing: the scheduled form, A (K, n_z, n_z), B (K, n_z, n_u), offset (K, n_z)
+        one per knot; ``A``/``B``/``offset`` then hold the matrices of the first knot and
+        ``at_speed(v)`` those of speed v.
         """
         self.state_names = tuple(state_names)
         self.input_names = tuple(input_names)
         self.n_x = len(self.state_names)
         self.n_u = len(self.input_names)
+        self.speed_knots = np.asarray(speed_knots, dtype=float).reshape(-1)
+        self.A_knots = self.B_knots = self.offset_knots = None
+        if self.speed_knots.size:
+            if self.speed_knots.size < 2 or np.any(np.diff(self.speed_knots) <= 0):
+                raise KoopmanError(f"speed knots must be >= 2 increasing speeds (of the first state, "
+                                   f"{self.state_names[0]}), got {self.speed_knots}")
+            self.A_knots = np.ascontiguousarray(A, dtype=float)
+            self.B_knots = np.ascontiguousarray(B, dtype=float)
+            self.offset_knots = np.ascontiguousarray(offset, dtype=float)
+            if not (self.A_knots.ndim == 3 and len(self.A_knots) == self.speed_knots.size
+                    and self.B_knots.shape[0] == self.speed_knots.size
+                    and self.offset_knots.shape[0] == self.speed_knots.size):
+                raise KoopmanError(f"a scheduled model needs one A, B, offset per knot ({self.speed_knots.size}), "
+                                   f"got A {self.A_knots.shape}, B {self.B_knots.shape}, offset {self.offset_knots.shape}")
+            A, B, offset = self.A_knots[0], self.B_knots[0], self.offset_knots[0]
         self.A = np.ascontiguousarray(A, dtype=float)
         self.B = np.ascontiguousarray(B, dtype=float)
         self.n_z = self.A.shape[0] if self.A.ndim == 2 else -1
         self.offset = (
             np.zeros(self.n_z) if offset is None else np.ascontiguousarray(offset, dtype=float).reshape(-1)
         )
+        self._at_speed: dict[int, KoopmanModel] = {}
         self.ts = float(ts)
         self.metadata = dict(metadata or {})
+        self.dictionary = check_dictionary(dictionary, self.state_names)
+        self.form = "scheduled" if self.speed_knots.size else ("linear" if bilinear is None else "bilinear")
+        self.N = (np.zeros((self.n_u, self.n_z, self.n_z)) if bilinear is None
+                  else np.ascontiguousarray(bilinear, dtype=float))
         #: The learned quantities in normalised units when built by ``from_normalised``.
         self.normalised: NormalisedKoopman | None = None
         self._layers = [
@@ -163,8 +316,8 @@ class KoopmanModel:
             for w, b in encoder
         ]
         self._validate()
-        self.n_features = self.n_z - self.n_x
-        self.C_P = np.hstack([np.eye(self.n_x), np.zeros((self.n_x, self.n_features))])
+        self.n_features = self.n_z - self.n_x - len(self.dictionary)
+        self.C_P = np.hstack([np.eye(self.n_x), np.zeros((self.n_x, self.n_z - self.n_x))])
         # Work buffers for the single-state hot path (one per layer output).
         self._hidden = [np.empty(w.shape[0]) for w, _ in self._layers]
 
@@ -187,11 +340,17 @@ class KoopmanModel:
                 )
             width = w.shape[0]
         n_features = width if self._layers else 0
-        if self.n_x + n_features != self.n_z:
+        if self.n_x + len(self.dictionary) + n_features != self.n_z:
             raise KoopmanError(
-                f"n_z={self.n_z} != n_x={self.n_x} + encoder output {n_features}"
+                f"n_z={self.n_z} != n_x={self.n_x} + dictionary {len(self.dictionary)} + encoder output {n_features}"
             )
-        for name, arr in (("A", self.A), ("B", self.B), ("offset", self.offset)):
+        if self.N.shape != (self.n_u, self.n_z, self.n_z):
+            raise KoopmanError(f"N must be (n_u, n_z, n_z)=({self.n_u}, {self.n_z}, {self.n_z}), got {self.N.shape}")
+        for name, arr in (("A", self.A), ("B", self.B), ("offset", self.offset), ("N", self.N),
+                          ("A (knots)", self.A_knots), ("B (knots)", self.B_knots),
+                          ("offset (knots)", self.offset_knots)):
+            if arr is None:
+                continue
             if not np.all(np.isfinite(arr)):
                 raise KoopmanError(f"{name} has non-finite entries")
 
@@ -206,8 +365,9 @@ class KoopmanModel:
         metadata: dict[str, Any] | None = None,
     ) -> "KoopmanModel":
         """Build from the quantities as trained (normalised units); folds the scaling in."""
-        encoder, A, B, offset = learned.to_physical()
-        model = cls(A, B, offset, encoder, ts, state_names, input_names, metadata)
+        encoder, A, B, offset, N = learned.to_physical()
+        model = cls(A, B, offset, encoder, ts, state_names, input_names, metadata,
+                    bilinear=N, dictionary=learned.dictionary, speed_knots=learned.speed_knots)
         model.normalised = learned
         return model
 
@@ -238,12 +398,22 @@ class KoopmanModel:
             encoder = tuple(
                 (arrays[f"encoder_w{i}"], arrays[f"encoder_b{i}"]) for i in range(int(meta["n_encoder_layers"]))
             )
+            form = meta.get("form", "linear")
+            if form not in MODEL_FORMS:
+                raise KoopmanError(f"{json_path}: form {form!r} is not one of {MODEL_FORMS}")
+            dictionary = tuple(meta.get("dictionary", ()))
             learned = NormalisedKoopman(
                 encoder=encoder,
                 A_n=arrays["A_n"],
                 B_n=arrays["B_n"],
                 state_scaling=MinMaxScaling(np.array(meta["state_min"]), np.array(meta["state_max"])),
                 input_scaling=MinMaxScaling(np.array(meta["input_min"]), np.array(meta["input_max"])),
+                N_n=arrays["N_n"] if form == "bilinear" else None,
+                affine_n=arrays.get("affine_n"),
+                speed_knots=tuple(meta.get("speed_knots", ())) if form == "scheduled" else (),
+                dictionary=dictionary,
+                dictionary_scaling=(MinMaxScaling(np.array(meta["dictionary_min"]), np.array(meta["dictionary_max"]))
+                                    if dictionary else None),
             )
         except KeyError as e:
             raise KoopmanError(f"{npz_path}: missing array {e}") from e
@@ -262,6 +432,9 @@ class KoopmanModel:
             return self._lift_one(x)
         z = np.empty(x.shape[:-1] + (self.n_z,))
         z[..., : self.n_x] = x
+        n_known = self.n_x + len(self.dictionary)
+        if self.dictionary:
+            z[..., self.n_x : n_known] = dictionary_features(self.dictionary, x)
         if self._layers:
             h = x
             last = len(self._layers) - 1
@@ -269,12 +442,18 @@ class KoopmanModel:
                 h = h @ w.T + b
                 if i < last:
                     np.tanh(h, out=h)
-            z[..., self.n_x :] = h
+            z[..., n_known:] = h
         return z
 
     def _lift_one(self, x: np.ndarray) -> np.ndarray:
         z = np.empty(self.n_z)
         z[: self.n_x] = x
+        n_known = self.n_x + len(self.dictionary)
+        if self.dictionary:
+            # Scalar arithmetic: a few ns each, where numpy calls cost a microsecond.
+            vx = max(float(x[0]), DICTIONARY_MIN_SPEED)
+            for i, name in enumerate(self.dictionary):
+                z[self.n_x + i] = _SCALAR_DICTIONARY[name](float(x[0]), float(x[1]), float(x[2]), vx)
         h = x
         last = len(self._layers) - 1
         for i, ((w, b), out) in enumerate(zip(self._layers, self._hidden)):
@@ -284,12 +463,55 @@ class KoopmanModel:
                 np.tanh(out, out=out)
             h = out
         if self._layers:
-            z[self.n_x :] = h
+            z[n_known:] = h
         return z
 
+    def at_speed(self, speed: float) -> "KoopmanModel":
+        """The linear model of the scheduled form at ``speed`` (m/s, rounded to SPEED_QUANTUM,
+        cached); any other form returns itself."""
+        if self.form != "scheduled":
+            return self
+        key = round(float(np.clip(speed, self.speed_knots[0], self.speed_knots[-1])) / SPEED_QUANTUM)
+        model = self._at_speed.get(key)
+        if model is None:
+            weights = knot_weights(self.speed_knots, key * SPEED_QUANTUM)
+            model = KoopmanModel(np.tensordot(weights, self.A_knots, 1), np.tensordot(weights, self.B_knots, 1),
+                                 weights @ self.offset_knots, self._layers, self.ts, self.state_names,
+                                 self.input_names, self.metadata, dictionary=self.dictionary)
+            if len(self._at_speed) > 2048:
+                self._at_speed.clear()
+            self._at_speed[key] = model
+        return model
+
+    def matrices_for(self, speed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A (..., n_z, n_z), B (..., n_z, n_u), offset (..., n_z) at speeds (...,) (exact, no rounding)."""
+        if self.form != "scheduled":
+            shape = np.shape(speed)
+            return (np.broadcast_to(self.A, shape + self.A.shape), np.broadcast_to(self.B, shape + self.B.shape),
+                    np.broadcast_to(self.offset, shape + self.offset.shape))
+        weights = knot_weights(self.speed_knots, speed)
+        return (np.tensordot(weights, self.A_knots, 1), np.tensordot(weights, self.B_knots, 1),
+                weights @ self.offset_knots)
+
+    def input_matrix(self, lifted_state: np.ndarray) -> np.ndarray:
+        """B(z) = B + [N_1 z, ..., N_m z]: lifted_state (n_z,) -> (n_z, n_u).
+
+        Frozen at the measured z_k over a horizon it makes the prediction linear in the
+        inputs (the MPC stays a QP); equals ``B`` for the linear form.
+        """
+        if self.form == "linear":
+            return self.B
+        return self.B + (self.N @ lifted_state).T
+
     def step_lifted(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """One step of eq. 5 with the affine term: z (..., n_z), u (..., n_u) -> (..., n_z)."""
-        return z @ self.A.T + u @ self.B.T + self.offset
+        """One step of eq. 5 with the affine (and bilinear) terms: z (..., n_z), u (..., n_u) -> (..., n_z)."""
+        if self.form == "scheduled":  # the matrices of z's own speed
+            A, B, offset = self.matrices_for(np.asarray(z)[..., 0])
+            return np.einsum("...ab,...b->...a", A, z) + np.einsum("...ab,...b->...a", B, u) + offset
+        z_next = z @ self.A.T + u @ self.B.T + self.offset
+        if self.form == "bilinear":
+            z_next = z_next + np.einsum("...j,jab,...b->...a", u, self.N, z)
+        return z_next
 
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """Open-loop rollout in the lifted space from ``lift(x0)`` with the given inputs.
@@ -306,17 +528,30 @@ class KoopmanModel:
                 f"predict expects inputs of shape ({x0.shape[0]}, n_steps, {self.n_u}), got {inputs.shape}"
             )
         z = self.lift(x0)
+        if self.form == "scheduled":  # matrices of each start's speed, held (as the MPC does)
+            A, B, offset = self.matrices_for(x0[:, 0])
+            forced = np.einsum("kab,ksb->ksa", B, inputs) + offset[:, None]
+            out = np.empty((x0.shape[0], inputs.shape[1], self.n_x))
+            for i in range(inputs.shape[1]):
+                z = np.einsum("kab,kb->ka", A, z) + forced[:, i]
+                out[:, i] = z[:, : self.n_x]
+            return out
         # The input contribution of all steps at once, then the cheap recursion.
         forced = inputs @ self.B.T + self.offset
         out = np.empty((x0.shape[0], inputs.shape[1], self.n_x))
         a_t = self.A.T
         for i in range(inputs.shape[1]):
-            z = z @ a_t + forced[:, i]
+            z_next = z @ a_t + forced[:, i]
+            if self.form == "bilinear":
+                z_next += np.einsum("bj,jac,bc->ba", inputs[:, i], self.N, z)
+            z = z_next
             out[:, i] = z[:, : self.n_x]
         return out
 
     def spectral_radius(self) -> float:
         """Largest |eigenvalue| of A (unitless); close to but not above 1 for a stable plant."""
+        if self.form == "scheduled":  # the largest over the knots
+            return float(max(np.max(np.abs(np.linalg.eigvals(a))) for a in self.A_knots))
         return float(np.max(np.abs(np.linalg.eigvals(self.A))))
 
 
@@ -333,6 +568,10 @@ def save_artifact(
     npz_path = Path(path).with_suffix(".npz")
     json_path = npz_path.with_suffix(".json")
     arrays: dict[str, np.ndarray] = {"A_n": np.asarray(learned.A_n), "B_n": np.asarray(learned.B_n)}
+    if learned.N_n is not None:
+        arrays["N_n"] = np.asarray(learned.N_n)
+    if learned.affine_n is not None:
+        arrays["affine_n"] = np.asarray(learned.affine_n)
     for i, (w, b) in enumerate(learned.encoder):
         arrays[f"encoder_w{i}"] = np.asarray(w)
         arrays[f"encoder_b{i}"] = np.asarray(b)
@@ -345,7 +584,13 @@ def save_artifact(
         state_max=learned.state_scaling.high.tolist(),
         input_min=learned.input_scaling.low.tolist(),
         input_max=learned.input_scaling.high.tolist(),
+        form="scheduled" if learned.speed_knots else ("linear" if learned.N_n is None else "bilinear"),
+        speed_knots=list(learned.speed_knots),
+        dictionary=list(learned.dictionary),
     )
+    if learned.dictionary_scaling is not None:
+        meta.update(dictionary_min=learned.dictionary_scaling.low.tolist(),
+                    dictionary_max=learned.dictionary_scaling.high.tolist())
     npz_path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(npz_path, **arrays)
     json_path.write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")

