@@ -4,6 +4,6 @@ Modules: `ecu` (the node: cyclic executive), `rx` / `tx` (frames in and out), `m
 (mode state machine), `guard` (last check of every command), `safe_stop`, `clock`
 (lockstep TICK clock and real-time schedule), `timing` (per-cycle timing record),
 `config`, `errors` and `cli` (``python -m firmware_sim``). Its test harness is
-`hil.ecu_harness`, its cost measurement `studies.ecu_overhead`. Importing the package
+`hil.ecu_harness`, its cost measurement the ECU overhead of `studies.bench`. Importing the package
 imports nothing heavy (no torch).
 """

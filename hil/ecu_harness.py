@@ -1,7 +1,7 @@
 """Test helpers for driving an `Ecu` without a plant: a scripted controller and the peer
 nodes (plant, planner, time master) on their own bus object.
 
-Used by ``tests/test_ecu*.py`` and ``studies.ecu_overhead``; also handy to poke an ECU by
+Used by ``tests/test_ecu*.py`` and the ECU overhead of ``studies.bench``; also handy to poke an ECU by
 hand. Not imported by the ECU.
 """
 from __future__ import annotations

@@ -1,5 +1,6 @@
-# Controllers (controller/): tests, the closed-loop check and the per-step timing benchmark.
-.PHONY: controller-test controller-closed-loop controller-bench eso-sweep
+# Controllers (controller/): tests, the closed-loop check and the ESO sweep (their compute
+# time per step: `make bench`, mk/bench.mk).
+.PHONY: controller-test controller-closed-loop eso-sweep
 
 CONTROLLER_TESTS := tests/test_reference.py tests/test_controller_tuning.py tests/test_controller_doubles.py \
 	tests/test_controller_qp.py tests/test_controller_nmpc.py tests/test_controller_registry.py
@@ -12,14 +13,6 @@ controller-test: setup
 ## the four controllers through both lane changes on the four-wheel plant (slow)
 controller-closed-loop: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -s -m slow tests/test_controller_closed_loop.py
-
-# Per-step compute time of each controller (DLC 35 km/h, mu 0.85): results/controller_timing.md
-## per-step compute time of each controller -> results/controller_timing.md
-controller-bench: setup
-	@mkdir -p results
-	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.controller_timing --out results/controller_timing.md
-	$(PROVENANCE_STAMP) results/controller_timing.md --command "make controller-bench" \
-		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.controller_timing
 
 # ESO-DKMPC's observer poles and horizon decay against DKMPC, both lane changes (~1 min):
 # results/eso_dkmpc_sweep.{md,png,json}

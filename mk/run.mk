@@ -13,7 +13,7 @@ run: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.run_all --interface $(CAN_INTERFACE) --channel $(CAN_CHANNEL) \
 		--out results --logs results/logs $(RUN_ARGS)
 	$(PROVENANCE_STAMP) $(addprefix results/run_,table2_high_mu.md table3_low_mu.md fig8_high_mu.png \
-		fig9_low_mu.png ecu_time.md metrics.json) \
+		fig9_low_mu.png metrics.json) \
 		--command "$(call provenance_command,run,RUN_ARGS)$(if $(filter-out virtual,$(CAN_INTERFACE)), CAN_INTERFACE=$(CAN_INTERFACE) CAN_CHANNEL=$(CAN_CHANNEL))" \
 		--inputs $(PROVENANCE_HIL) --modules studies.run_all
 	@$(MAKE) --no-print-directory readme  # README.md includes these results

@@ -4,10 +4,9 @@
 #                   load on both cores -> results/timing.md, results/timing_{idle,stress}.png
 #                   (2 min per controller, NMPC 30 s: about 15 min; TIMING_SECONDS=20 for a
 #                   quick run)
-#   make bench    - per-step compute time of the four controllers side by side with the
-#                   paper's, and a profile of the ESO-DKMPC step -> results/bench.md
+#   (the compute time per step of the controllers is `make bench`, mk/bench.mk)
 #   make timing-test - the 20 s real-time test of ESO-DKMPC (also part of `make test`)
-.PHONY: timing bench timing-test
+.PHONY: timing timing-test
 
 TIMING_SECONDS ?= 120
 TIMING_NMPC_SECONDS ?= 30
@@ -19,12 +18,6 @@ timing: setup
 	$(PROVENANCE_STAMP) results/timing.md results/timing_idle.png results/timing_stress.png \
 		--command "$(call provenance_command,timing,TIMING_SECONDS TIMING_NMPC_SECONDS)" \
 		--inputs $(PROVENANCE_HIL) --modules studies.timing.bench
-
-## per-step compute time of the four controllers and a profile -> results/bench.md
-bench: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.timing.compute --out results/bench.md
-	$(PROVENANCE_STAMP) results/bench.md --command "make bench" \
-		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.timing.compute
 
 ## the 20 s real-time test of ESO-DKMPC (part of make test)
 timing-test: setup

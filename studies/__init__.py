@@ -8,10 +8,11 @@ the run-time packages: it imports ``can_defs``, ``models``, ``controller``,
 
 - `closed_loop`: closed-loop simulation without CAN (the study's runner); `report`: its
   tables and plots.
-- `paper_tables`: ``make tables`` (paper Tables II / III, Figs 8 / 9, compute time).
+- `paper_tables`: ``make tables`` (paper Tables II / III, Figs 8 / 9).
 - `run_all`: ``make run`` (the two double lane changes with the four controllers over CAN).
 - `eso_sweep`: ``make eso-sweep``; `fault_campaign`: ``make faults``.
 - `fig7`: ``make fig7``; `table1`: ``make table1``; `handling`: ``make handling``.
-- `controller_timing`: ``make controller-bench``; `ecu_overhead`: ``make ecu-overhead``.
-- `timing`: ``make timing`` and ``make bench``.
+- `bench`: ``make bench``, the one compute-time benchmark (every controller's step on the
+  same recorded samples, the ECU's overhead); `machine`: the machine in results headers.
+- `timing`: ``make timing``, the real-time test of the ECU.
 """

@@ -6,7 +6,6 @@ Writes to ``--out`` (default ``results/``):
 - ``table2_high_mu.md``, ``table3_low_mu.md``: e_Y and heading error Max / Avg / RMSE per
   controller, the paper's Tables II / III beside them;
 - ``fig8_high_mu.png``, ``fig9_low_mu.png``: speed, steer, trajectory, e_Y (Figs 8 / 9);
-- ``compute_time.md``: wall-clock time per control step (mean, median, p99, max);
 - ``study_checks.md``: the issue's acceptance checks, PASS / FAIL with the figures;
 - ``study_metrics.json``: every number above plus the acceptance checks;
 - ``traces/<scenario>__<controller>.npz``: the full time series of every run.
@@ -19,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import traceback
 from collections.abc import Mapping, Sequence
@@ -33,7 +30,8 @@ from tqdm import tqdm
 
 from studies.closed_loop import ClosedLoopResult, ClosedLoopTrace, control_steps, run_closed_loop
 from hil.errors import HilError
-from studies.report import compute_time_table, display_name, plot_scenario, tracking_table
+from studies.machine import machine_description
+from studies.report import display_name, plot_scenario, tracking_table
 from hil.scenario import Scenario, load_scenario
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
@@ -155,19 +153,6 @@ def checks_markdown(checks: Sequence[Mapping[str, Any]]) -> str:
     return "".join(f"- {'PASS' if c['passed'] else 'FAIL'}: {c['check']} ({c['detail']})\n" for c in checks)
 
 
-def machine_description() -> str:
-    """CPU model, logical CPU count and Python version, for the compute-time table."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass  # not Linux: keep platform's answer
-    return f"{cpu}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}"
-
-
 def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Path,
               *, show_progress: bool = True, debug: bool = False) -> dict[str, Any]:
     """Run every controller on every scenario and write tables, figures, JSON and traces.
@@ -213,7 +198,6 @@ def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Pa
             tracking_table(f"{files.title} ({scenario.name})", scenario_runs, scenario.name))
         plot_scenario(traces[scenario.name], scenario.path_points()[:, :2],
                       f"{scenario.description}: closed loop, four-wheel plant", out / files.figure)
-    (out / "compute_time.md").write_text(compute_time_table(runs, machine))
     checks = acceptance_checks(runs, [s.name for s in scenarios], list(controllers))
     (out / "study_checks.md").write_text(checks_markdown(checks))
     document = {
@@ -277,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(summary_text(document))
-    print(f"\nwrote {args.out}/: tables, figures, compute_time.md, study_metrics.json, traces/")
+    print(f"\nwrote {args.out}/: tables, figures, study_checks.md, study_metrics.json, traces/")
     not_built = [r for r in document["runs"] if r.get("error")]
     if not_built:
         print(f"error: {len(not_built)} run(s) could not be built", file=sys.stderr)

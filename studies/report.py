@@ -35,8 +35,6 @@ PAPER_TRACKING: dict[str, dict[str, tuple[tuple[float, float, float], tuple[floa
         "eso-dkmpc": ((0.686, 0.107, 0.198), (0.063, 0.014, 0.023)),
     },
 }
-#: Paper Sec. IV-C: average computation time per step (s), i7 at 1.10 GHz, MATLAB.
-PAPER_MEAN_COMPUTE_S = {"lmpc": 2.36e-3, "dkmpc": 0.261, "eso-dkmpc": 0.370, "nmpc": 3.076}
 
 #: Display names and colours, fixed per controller so every figure reads alike.
 DISPLAY_NAME = {"eso-dkmpc": "ESO-DKMPC", "dkmpc": "DKMPC", "lmpc": "LMPC", "nmpc": "NMPC"}
@@ -91,37 +89,6 @@ def tracking_table(title: str, runs: Sequence[Mapping[str, Any]], scenario: str)
     not_run = [r for r in runs if r.get("error")]
     for run in not_run:
         lines.append(f"\n{display_name(run['controller'])} could not be built: {run['error']}")
-    return "\n".join(lines) + "\n"
-
-
-def compute_time_table(runs: Sequence[Mapping[str, Any]], machine: str) -> str:
-    """Markdown table of wall-clock time per control step, per controller and scenario."""
-    lines = [
-        "### Compute time per control step (closed loop, Ts = 25 ms)",
-        "",
-        "| controller | scenario | steps | mean (ms) | median (ms) | p99 (ms) | max (ms) "
-        "| solver's own mean (ms) | paper mean (ms) |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for run in runs:
-        if run.get("error"):
-            continue
-        timing = run["compute_time"]
-        paper = PAPER_MEAN_COMPUTE_S.get(run["controller"])
-        paper_cell = f"{paper * 1e3:.2f}" if paper is not None else "-"
-        lines.append(
-            f"| {display_name(run['controller'])} | {run['scenario']} | {timing['steps']} "
-            f"| {timing['mean_s'] * 1e3:.2f} | {timing['median_s'] * 1e3:.2f} "
-            f"| {timing['p99_s'] * 1e3:.2f} | {timing['max_s'] * 1e3:.2f} "
-            f"| {run['solver_time_mean_s'] * 1e3:.2f} | {paper_cell} |"
-        )
-    lines += [
-        "",
-        f"Measured with `time.perf_counter()` around `controller.step` (first step, with "
-        f"one-off set-up, left out) on {machine}, shared with other work: figures vary "
-        "between runs and machines. 'solver's own' is the solver's reported time "
-        "(OSQP solve time, IPOPT wall time). Paper: MATLAB on an i7 at 1.10 GHz.",
-    ]
     return "\n".join(lines) + "\n"
 
 

@@ -11,7 +11,6 @@ Writes (``--out``, default ``results/``):
 - ``run_table2_high_mu.md``, ``run_table3_low_mu.md``: e_Y / heading error Max / Avg /
   RMSE per controller over CAN (studies/report.py's layout, the paper's values beside);
 - ``run_fig8_high_mu.png``, ``run_fig9_low_mu.png``: speed, steer, trajectory, e_Y;
-- ``run_ecu_time.md``: ECU task time per control cycle, from CTRL_DIAG.CYCLE_TIME_US;
 - ``run_metrics.json``: every run's summary;
 - ``--logs`` (default ``results/logs/``): every frame of every run, candump ``.log``.
 
@@ -34,8 +33,6 @@ from hil.bus import resolve_bus_config
 from hil.errors import HilError
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
-#: CTRL_DIAG.CYCLE_TIME_US saturates at 0xFFFF us.
-CYCLE_TIME_SATURATED_S = 0xFFFF * 1e-6
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 #: Output names per scenario: (table, figure, title).
 OUTPUTS = {
@@ -105,31 +102,6 @@ def run_summary(result: Any) -> dict[str, Any]:
                    compute_time=ComputeTimeStats.of(cycle_s).as_dict() if cycle_s.size else None,
                    solver_time_mean_s=float(np.mean(solve_s)) if solve_s.size else float("nan"))
     return summary
-
-
-def ecu_time_table(runs: Sequence[dict[str, Any]], bus: str) -> str:
-    """Markdown table of the ECU's task time per cycle as reported in CTRL_DIAG."""
-    from studies.report import display_name
-
-    lines = ["### ECU task time per control cycle over CAN (CTRL_DIAG.CYCLE_TIME_US)", "",
-             "| controller | scenario | cycles | mean (ms) | median (ms) | p99 (ms) | max (ms) "
-             "| solver mean (ms) | overruns |", "|---|---|---|---|---|---|---|---|---|"]
-    for run in runs:
-        timing = run.get("compute_time")
-        if run.get("error") or not timing:
-            continue
-        lines.append(f"| {display_name(run['controller'])} | {run['scenario']} | {timing['steps']} "
-                     f"| {timing['mean_s'] * 1e3:.2f} | {timing['median_s'] * 1e3:.2f} "
-                     f"| {timing['p99_s'] * 1e3:.2f} | {timing['max_s'] * 1e3:.2f} "
-                     f"| {run['solver_time_mean_s'] * 1e3:.2f} | {run['ecu_overruns']} |")
-    lines += ["", f"Lockstep on {bus}; the first cycle (one-off set-up) left out. Wall-clock "
-              "figures of a shared machine: they vary between runs."]
-    saturated = [run for run in runs if run.get("compute_time")
-                 and run["compute_time"]["max_s"] >= CYCLE_TIME_SATURATED_S]
-    if saturated:
-        lines.append(f"{CYCLE_TIME_SATURATED_S * 1e3:.3f} ms is CYCLE_TIME_US saturated (16 bits, "
-                     "contract): those cycles took at least that long.")
-    return "\n".join(lines) + "\n"
 
 
 def summary_text(runs: Sequence[dict[str, Any]]) -> str:
@@ -217,10 +189,9 @@ def main(argv: list[str] | None = None) -> int:
         plot_scenario(traces.get(scenario.name, {}), path_xy, f"{title}, {bus.describe()}",
                       args.out / figure)
         written += [args.out / table, args.out / figure]
-    (args.out / "run_ecu_time.md").write_text(ecu_time_table(runs, bus.describe()))
     (args.out / "run_metrics.json").write_text(json.dumps({"bus": bus.describe(), "runs": runs},
                                                           indent=2) + "\n")
-    written += [args.out / "run_ecu_time.md", args.out / "run_metrics.json"]
+    written.append(args.out / "run_metrics.json")
     print()
     print(summary_text(runs))
     print(f"\nwrote {', '.join(str(p) for p in written)}; frame logs in {logs}/")

@@ -1,4 +1,4 @@
-"""Timing benchmarks of the ECU as on a vehicle (issue 9): `make timing`, `make bench`.
+"""The real-time test of the ECU as on a vehicle (issue 9): `make timing`.
 
 The bus nodes they start live in `hil.timing` (`hub`: the socketcand-protocol CAN bus
 between processes; `plant_side`: the plant process).
@@ -9,6 +9,6 @@ between processes; `plant_side`: the plant process).
 - `bench`: ``python -m studies.timing.bench`` (`make timing`), ECU and plant pinned to
   separate cores, idle and under stress, per controller -> results/timing.md + PNGs.
 - `report`: the tables and histograms of those runs.
-- `compute`: ``python -m studies.timing.compute`` (`make bench`): per-step time of the four
-  controllers side by side with the paper's, and a profile of the ESO-DKMPC step.
+
+The compute time per step of the controllers is `studies.bench` (`make bench`).
 """

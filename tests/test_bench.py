@@ -1,0 +1,80 @@
+"""`make bench` (studies/bench.py) on a few recorded samples: the table has a row for every
+controller of the registry (read at run time) and the ECU overhead, every figure finite and
+positive. Speeds are not asserted: they depend on the machine and its load."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from controller import registry
+from studies import bench
+
+STEPS = 6
+
+
+def _rows(markdown: str) -> dict[str, list[str]]:
+    """First cell -> the other cells, for every body row of the table."""
+    rows = {}
+    for line in markdown.splitlines():
+        if line.startswith("| ") and not line.startswith("| controller"):
+            cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_bench_times_every_registered_controller_on_the_same_samples(tmp_path: Path) -> None:
+    out, out_json = tmp_path / "bench.md", tmp_path / "bench.json"
+    assert bench.main(["--steps", str(STEPS), "--out", str(out), "--json", str(out_json)]) == 0
+    text = out.read_text()
+    print(text)
+    rows = _rows(text)
+    assert set(rows) == set(registry.CONTROLLERS) | {bench.ECU_OVERHEAD_ROW}
+    assert "Load average (1 / 5 / 15 min)" in text and "OPENBLAS_NUM_THREADS=1" in text
+    assert f"{STEPS} samples of `{bench.RECORDING_SCENARIO}`" in text
+
+    document = json.loads(out_json.read_text())
+    assert list(document["controllers"]) == list(registry.CONTROLLERS)
+    assert document["not_built"] == {}
+    for name, timing in document["controllers"].items():
+        for kind in ("wall", "cpu"):
+            figures = timing[kind]
+            assert figures["n"] == STEPS - 1, (name, kind)  # the set-up step left out
+            assert all(math.isfinite(figures[key]) and figures[key] > 0
+                       for key in ("p50_ms", "p99_ms", "max_ms")), (name, kind, figures)
+            assert figures["p50_ms"] <= figures["p99_ms"] <= figures["max_ms"]
+        assert 0 < timing["solver_share"] <= 1.0, name
+        assert timing["solver"]["p50_ms"] > 0, name
+    lmpc = rows[bench.BASELINE]
+    assert lmpc[6:8] == ["1.00", "1.00"]  # p50 / p99 ratios of the baseline to itself
+    for name in registry.CONTROLLERS:
+        assert float(rows[name][6]) > 0 and float(rows[name][7]) > 0, name
+    overhead = document["ecu_overhead"]
+    assert overhead["final_mode"] == "ACTIVE"
+    assert overhead["control_task"]["n"] == STEPS - 1 and overhead["control_task"]["p50_ms"] > 0
+    if bench.GOAL_CONTROLLER in rows:
+        assert f"{bench.GOAL_CONTROLLER} step within {bench.GOAL_RATIO:g}x" in text
+    assert bench.goal_line({}) is None
+
+
+def test_bench_reads_the_registry_at_run_time(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A controller added to the registry joins the table; one that cannot be built is named
+    with its error, the others are still timed, and the exit status is 1."""
+    table = {name: registry.CONTROLLERS[name] for name in ("lmpc", "dkmpc")}
+    monkeypatch.setattr(registry, "CONTROLLERS", {**table, "broken": ("controller.no_such_module", "X")})
+    out = tmp_path / "bench.md"
+    assert bench.main(["--steps", "3", "--no-ecu", "--out", str(out)]) == 1
+    text = out.read_text()
+    assert set(_rows(text)) == {"lmpc", "dkmpc"}
+    assert "broken: not built (ModuleNotFoundError" in text
+
+
+def test_bench_refuses_unknown_controllers_and_too_few_steps(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    assert bench.main(["--controllers", "lmpc,nope", "--out", str(tmp_path / "x.md")]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert bench.main(["--steps", "1", "--out", str(tmp_path / "x.md")]) == 1
+    assert capsys.readouterr().err.startswith("error:")
+    assert not (tmp_path / "x.md").exists()
