@@ -6,11 +6,8 @@ w_hat[k+1] = w_hat[k] - beta2 (z_k - z_hat_k), which already contains z_k
 (``disturbance_decay`` of the tuning; 1 = held over the horizon as in eq. 15). The gains
 place the two error poles of eq. 24 at ``eso_pole`` and ``eso_second_pole`` (a fast and a
 slow one, see ``models.eso.design_gains``). After the command u_k is known the observer
-advances with (z_k, u_k). The observer restarts at z_k (zero estimate, flagged
-``observer_reset``) on the first step, after ``reset()`` and after any step that did
-not see a valid sample (status NOT_RUN), because then the observer's last (z, u) no
-longer describes the transition into the next sample. After a solver fallback the
-observer advances with the fallback command, which is what the vehicle received.
+advances with (z_k, u_k). Restarts and fallbacks: ``controller.observed_mpc`` (shared with
+the LMPC-ESO ablation).
 """
 from __future__ import annotations
 
@@ -18,18 +15,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from controller.base import Command, SolverStatus, StepDebug, VehicleSample
+from controller.base import Command, VehicleSample
 from controller.lifted_mpc import LiftedMpc, PredictionMaps, decayed_sums
-from controller.mpc_base import Plan
+from controller.observed_mpc import ObservedMpc
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
-from models.eso import EsoParams, ExtendedStateObserver, design_gains, innovated_disturbance
+from models.eso import EsoParams, ExtendedStateObserver, design_gains
 from models.eso_dk import observer_params
 
 if TYPE_CHECKING:
     from models.koopman import KoopmanModel
 
 
-class EsoDkmpc(LiftedMpc):
+class EsoDkmpc(ObservedMpc, LiftedMpc):
     """Koopman MPC + extended state observer in the lifted space."""
 
     name = "eso-dkmpc"
@@ -49,7 +46,6 @@ class EsoDkmpc(LiftedMpc):
         super().__init__(model, tuning, longitudinal)
         params, _ = self._observer_for(self.prediction_maps(model.speed_knots[0] if self._scheduled else 0.0))
         self.observer = ExtendedStateObserver(params)
-        self._observer_running = False
 
     def _observer_for(self, maps: PredictionMaps) -> tuple[EsoParams, np.ndarray]:
         """(ESO parameters, disturbance map) of the linear model behind ``maps``, cached.
@@ -69,20 +65,6 @@ class EsoDkmpc(LiftedMpc):
             cached = self._observer_cache[id(local)] = (local, params, local.C_P @ decayed)
         return cached[1], cached[2]
 
-    def reset(self) -> None:
-        """Forget plans, progress and the observer state."""
-        self._observer_running = False
-        super().reset()
-
-    def disturbance(self, lifted_state: np.ndarray) -> np.ndarray:
-        """w_hat (n_z,) including the measurement z_k; restarts the observer when needed."""
-        if not self._observer_running:
-            self.observer.reset(lifted_state)
-            self._observer_running = True
-            self._observer_reset = True
-            return self.observer.disturbance_estimate
-        return innovated_disturbance(self.observer.state, lifted_state, self.observer.params)
-
     def disturbance_response(self, lifted_state: np.ndarray, maps: PredictionMaps) -> np.ndarray:
         """States' share (Np + 1, 3) of w_hat, shaped over the horizon by the decay; the
         observer runs on the model of this step's speed (scheduled form)."""
@@ -91,12 +73,4 @@ class EsoDkmpc(LiftedMpc):
         return free_from_disturbance @ self.disturbance(lifted_state)
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
-        accepted = self.observer.update(self.lifted_state, np.array([command.drive_torque, command.steer_angle]))
-        if not accepted:
-            self._observer_running = False
-
-    def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
-                  sample: VehicleSample | None = None) -> tuple[Command, StepDebug]:
-        if sample is None:  # no valid measurement this step: restart on the next good one
-            self._observer_running = False
-        return super()._fallback(status, torque, plan, sample)
+        self.observe(self.lifted_state, np.array([command.drive_torque, command.steer_angle]))

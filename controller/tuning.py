@@ -1,7 +1,8 @@
 """Controller tuning: frozen dataclasses loaded from ``controller/tuning.toml`` and validated.
 
-One TOML table per controller (``[eso-dkmpc]``, ``[dkmpc]``, ``[lmpc]``, ``[nmpc]``) plus
-``[longitudinal]`` for the P speed controller all four share. Every error names the table,
+One TOML table per controller (``[eso-dkmpc]``, ``[dkmpc]``, ``[lmpc]``, ``[nmpc]`` and the
+ablations ``[lmpc-eso]``, ``[dmdc-eso]``) plus ``[longitudinal]`` for the P speed controller
+they all share. Every error names the table,
 the field and the offending value (``TuningError``). Loading happens at build time only.
 """
 from __future__ import annotations
@@ -92,6 +93,11 @@ class EsoDkmpcTuning(QpMpcTuning):
     disturbance_decay: float
 
 
+#: The same fields for every QP MPC with the eq. 13 observer: ESO-DKMPC and the ablations
+#: ``lmpc-eso`` (the observer on LMPC's bicycle) and ``dmdc-eso`` (on a DMDc model).
+EsoQpMpcTuning = EsoDkmpcTuning
+
+
 @dataclass(frozen=True)
 class NmpcTuning(MpcTuning):
     """NMPC solved to convergence by IPOPT."""
@@ -109,11 +115,13 @@ class ControllerTuning:
     dkmpc: QpMpcTuning
     lmpc: QpMpcTuning
     nmpc: NmpcTuning
+    lmpc_eso: EsoQpMpcTuning
+    dmdc_eso: EsoQpMpcTuning
 
     def for_controller(self, name: str) -> MpcTuning:
         """The table of registry name ``name`` (e.g. ``"eso-dkmpc"``)."""
         table = {"eso-dkmpc": self.eso_dkmpc, "dkmpc": self.dkmpc, "lmpc": self.lmpc,
-                 "nmpc": self.nmpc}
+                 "nmpc": self.nmpc, "lmpc-eso": self.lmpc_eso, "dmdc-eso": self.dmdc_eso}
         if name not in table:
             raise TuningError(f"no tuning table for controller {name!r}")
         return table[name]
@@ -186,7 +194,7 @@ def _build(cls: type, table_name: str, table: Any) -> Any:
 
 def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
     """Validate a parsed TOML document (dict) into ``ControllerTuning``."""
-    expected = {"longitudinal", "eso-dkmpc", "dkmpc", "lmpc", "nmpc"}
+    expected = {"longitudinal", "eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso"}
     unknown = sorted(set(document) - expected)
     if unknown:
         raise TuningError(f"unknown table(s) {unknown}; expected {sorted(expected)}")
@@ -199,6 +207,8 @@ def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
         dkmpc=_build(QpMpcTuning, "dkmpc", document["dkmpc"]),
         lmpc=_build(QpMpcTuning, "lmpc", document["lmpc"]),
         nmpc=_build(NmpcTuning, "nmpc", document["nmpc"]),
+        lmpc_eso=_build(EsoQpMpcTuning, "lmpc-eso", document["lmpc-eso"]),
+        dmdc_eso=_build(EsoQpMpcTuning, "dmdc-eso", document["dmdc-eso"]),
     )
 
 

@@ -25,9 +25,10 @@ import can
 
 from firmware_sim.errors import BusOpenError, EcuError, PathArgumentError
 
-#: The registry's names, repeated here so that ``--help`` needs no controller import; a
-#: test checks they equal ``controller.registry.CONTROLLER_NAMES``.
-CONTROLLER_CHOICES = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
+#: The registry's names (the paper's four, then the ablations), repeated here so that
+#: ``--help`` needs no controller import; a test checks they equal
+#: ``controller.registry.ALL_CONTROLLER_NAMES``.
+CONTROLLER_CHOICES = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 EXIT_OK = 0

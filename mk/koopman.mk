@@ -1,5 +1,5 @@
 # Deep Koopman model (issue 4): training of the default artefact and Table I.
-.PHONY: train table1 test-koopman model-fidelity
+.PHONY: train table1 test-koopman model-fidelity dmdc
 
 KOOPMAN_DATA ?= data/nominal
 # The default artefact's data: the wide profile (3-35 m/s, mu 0.3-1.0, into saturation).
@@ -41,3 +41,12 @@ model-fidelity: setup
 	$(PY) -m studies.model_fidelity --data $(TRAIN_DATA) --out results
 	$(PROVENANCE_STAMP) results/model_fidelity.md results/model_fidelity.json --command "make model-fidelity" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.model_fidelity
+
+# The DMDc model of the dmdc-eso ablation (ESO-DKMPC with no lift): least squares on the
+# training runs of the default artefact's data and split (its JSON's data_dir and split),
+# committed as models/artifacts/dmdc.{npz,json} so the ECU needs no data. A few seconds
+# once the data set exists. See docs/controllers.md, "Ablations".
+## fit the dmdc-eso ablation's DMDc model on dk_d5's training runs -> models/artifacts/dmdc.{npz,json}
+dmdc: setup
+	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
+	$(PY) -m models.dmdc_artifact --data $(TRAIN_DATA)

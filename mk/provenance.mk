@@ -13,6 +13,8 @@ provenance_command = $(strip make $(1) $(foreach v,$(2),$(if $(strip $($(v))),$(
 PROVENANCE_VEHICLE := models/vehicle.toml
 PROVENANCE_TUNING := controller/tuning.toml
 PROVENANCE_ARTEFACT := models/artifacts/dk_d5.npz models/artifacts/dk_d5.json models/artifacts/dk_paper_nominal.npz models/artifacts/dk_paper_nominal.json
+# The dmdc-eso ablation's model (make dmdc), an input of the study with the ablations.
+PROVENANCE_DMDC := models/artifacts/dmdc.npz models/artifacts/dmdc.json
 PROVENANCE_SCENARIOS := $(sort $(wildcard hil/scenarios/*.toml))
 PROVENANCE_PATHS := $(sort $(wildcard hil/paths/*.csv))
 PROVENANCE_DBC := can_defs/vehicle.dbc

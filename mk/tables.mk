@@ -7,7 +7,7 @@ tables: setup
 	$(PY) -m studies.paper_tables --out results
 	$(PROVENANCE_STAMP) $(addprefix results/,table2_high_mu.md table3_low_mu.md fig8_high_mu.png fig9_low_mu.png \
 		study_checks.md study_metrics.json) --command "make tables" \
-		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.paper_tables
+		--inputs $(PROVENANCE_CLOSED_LOOP) $(PROVENANCE_DMDC) --modules studies.paper_tables
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # Regenerates hil/paths/dlc.csv from the architecture's double-lane-change formula.

@@ -10,7 +10,8 @@ Writes to ``--out`` (default ``results/``):
 - ``study_metrics.json``: every number above plus the acceptance checks;
 - ``traces/<scenario>__<controller>.npz``: the full time series of every run.
 
-Usage: ``python -m studies.paper_tables [--scenarios ...] [--controllers ...] [--out DIR] [--strict]``.
+Usage: ``python -m studies.paper_tables [--scenarios ...] [--controllers ...] [--no-ablations]
+[--out DIR] [--strict]``; by default the paper's four controllers and the two ablations.
 Exit status: 0 when every run could be built and run (whatever the checks say; ``--strict``
 also requires the checks), 1 otherwise, 2 for bad arguments.
 """
@@ -35,6 +36,10 @@ from studies.report import display_name, plot_scenario, tracking_table
 from hil.scenario import Scenario, load_scenario
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
+#: Ablations (issue 14 item 6), run by default as extra rows after the four: the observer
+#: on LMPC's bicycle (LMPC-ESO) and ESO-DKMPC on a DMDc model with no lift (DMDc-ESO); see
+#: docs/controllers.md, "Ablations". ``--no-ablations`` runs the four only.
+ABLATIONS = ("lmpc-eso", "dmdc-eso")
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 #: Acceptance bound on |e_Y| over every run (m).
 MAX_LATERAL_ERROR_M = 2.0
@@ -243,8 +248,11 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS),
                         help="scenario names or TOML files (default: %(default)s)")
-    parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS),
-                        choices=CONTROLLERS, help="controllers (default: all four)")
+    parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS + ABLATIONS),
+                        choices=CONTROLLERS + ABLATIONS,
+                        help="controllers (default: the paper's four and the ablations %(default)s)")
+    parser.add_argument("--no-ablations", action="store_true",
+                        help=f"leave out the ablations ({', '.join(ABLATIONS)})")
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder")
     parser.add_argument("--strict", action="store_true",
                         help="exit 1 when an acceptance check fails")
@@ -253,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         scenarios = [load_scenario(name) for name in args.scenarios]
-        document = run_study(scenarios, args.controllers, args.out,
+        controllers = [c for c in args.controllers if not (args.no_ablations and c in ABLATIONS)]
+        document = run_study(scenarios, controllers, args.out,
                              show_progress=not args.no_progress, debug=args.debug)
     except (HilError, OSError) as e:
         if args.debug:

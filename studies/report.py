@@ -37,8 +37,15 @@ PAPER_TRACKING: dict[str, dict[str, tuple[tuple[float, float, float], tuple[floa
 }
 
 #: Display names and colours, fixed per controller so every figure reads alike.
-DISPLAY_NAME = {"eso-dkmpc": "ESO-DKMPC", "dkmpc": "DKMPC", "lmpc": "LMPC", "nmpc": "NMPC"}
-COLOUR = {"eso-dkmpc": "tab:red", "dkmpc": "tab:blue", "lmpc": "tab:green", "nmpc": "tab:orange"}
+DISPLAY_NAME = {"eso-dkmpc": "ESO-DKMPC", "dkmpc": "DKMPC", "lmpc": "LMPC", "nmpc": "NMPC",
+                "lmpc-eso": "LMPC-ESO", "dmdc-eso": "DMDc-ESO"}
+COLOUR = {"eso-dkmpc": "tab:red", "dkmpc": "tab:blue", "lmpc": "tab:green", "nmpc": "tab:orange",
+          "lmpc-eso": "tab:olive", "dmdc-eso": "tab:purple"}
+#: The ablations (issue 14 item 6): dashed in figures, explained under the tables.
+ABLATION_NOTES = {
+    "lmpc-eso": "LMPC-ESO = LMPC + ESO-DKMPC's observer on the bicycle's [vy, yaw rate] (no lift)",
+    "dmdc-eso": "DMDc-ESO = ESO-DKMPC on a least-squares linear model z = x (no lift)",
+}
 
 
 def display_name(controller: str) -> str:
@@ -86,6 +93,10 @@ def tracking_table(title: str, runs: Sequence[Mapping[str, Any]], scenario: str)
         "Columns 'paper' are the paper's CarSim/Simulink figures, for reference only "
         "(different plant and tuning).",
     ]
+    ablations = [ABLATION_NOTES[n] for n in dict.fromkeys(r["controller"] for r in runs) if n in ABLATION_NOTES]
+    if ablations:
+        lines += ["", f"Ablations (docs/controllers.md): {'; '.join(ablations)}. Their tuning: "
+                      "the tables of the same names in controller/tuning.toml."]
     not_run = [r for r in runs if r.get("error")]
     for run in not_run:
         lines.append(f"\n{display_name(run['controller'])} could not be built: {run['error']}")
@@ -109,7 +120,8 @@ def plot_scenario(traces: Mapping[str, ClosedLoopTrace], path_xy: np.ndarray, ti
         ax_speed.plot(first.time_s, first.target_speed * 3.6, "k--", lw=1.2, label="target")
     x_lo, x_hi = np.inf, -np.inf
     for name, trace in traces.items():
-        style = {"color": COLOUR.get(name), "lw": 1.3, "label": display_name(name)}
+        style = {"color": COLOUR.get(name), "lw": 1.3, "label": display_name(name),
+                 "ls": "--" if name in ABLATION_NOTES else "-"}
         ax_speed.plot(trace.time_s, trace.vx * 3.6, **style)
         ax_steer.plot(trace.time_s, trace.steer_angle, **style)
         ax_path.plot(trace.x, trace.y, **style)

@@ -9,7 +9,7 @@ import pytest
 from controller.base import Controller, SolverStatus, VehicleSample
 from controller.errors import TuningError, UnknownControllerError
 from controller.reference import ReferencePath
-from controller.registry import CONTROLLER_NAMES, CONTROLLERS, create_controller
+from controller.registry import ABLATION_NAMES, ALL_CONTROLLER_NAMES, CONTROLLER_NAMES, CONTROLLERS, create_controller
 
 
 def koopman_artefact_missing() -> bool:
@@ -20,7 +20,9 @@ def koopman_artefact_missing() -> bool:
 
 def test_names_match_the_interface() -> None:
     assert CONTROLLER_NAMES == ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
-    assert set(CONTROLLERS) == set(CONTROLLER_NAMES)
+    assert ABLATION_NAMES == ("lmpc-eso", "dmdc-eso")
+    assert ALL_CONTROLLER_NAMES == CONTROLLER_NAMES + ABLATION_NAMES
+    assert set(CONTROLLERS) == set(ALL_CONTROLLER_NAMES)
 
 
 def test_unknown_name_is_a_clear_error() -> None:
@@ -42,7 +44,7 @@ def test_registry_is_lazy() -> None:
     assert loaded.strip() == "[]"
 
 
-@pytest.mark.parametrize("name", CONTROLLER_NAMES)
+@pytest.mark.parametrize("name", ALL_CONTROLLER_NAMES)
 def test_each_controller_builds_and_steps(name: str) -> None:
     if name in ("eso-dkmpc", "dkmpc") and koopman_artefact_missing():
         pytest.skip("models/artifacts/dk_d5.npz not trained yet (make train)")

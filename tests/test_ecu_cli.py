@@ -74,8 +74,8 @@ def test_bus_that_cannot_be_opened_exits_1_with_error(capsys, path_csv):
 
 
 def test_controller_choices_are_the_registrys():
-    from controller.registry import CONTROLLER_NAMES
-    assert cli.CONTROLLER_CHOICES == CONTROLLER_NAMES
+    from controller.registry import ALL_CONTROLLER_NAMES
+    assert cli.CONTROLLER_CHOICES == ALL_CONTROLLER_NAMES
 
 
 def test_importing_the_ecu_never_imports_torch():

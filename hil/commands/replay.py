@@ -23,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
                         ".trc; optionally .gz)")
     parser.add_argument("--controller", default=None,
-                        help="controller of the ECU (eso-dkmpc, dkmpc, lmpc, nmpc); default: "
+                        help="controller of the ECU (eso-dkmpc, dkmpc, lmpc, nmpc, or an ablation: "
+                        "lmpc-eso, dmdc-eso); default: "
                         "the one in the log's sidecar <log>.json")
     parser.add_argument("--path", action="append", default=[], metavar="ID=FILE",
                         help="reference path of a PATH_ID (repeatable); default: the sidecar's, "
@@ -76,7 +77,7 @@ def controller_from_file_name(log: Path, names: tuple[str, ...]) -> str | None:
 
 def main(args: argparse.Namespace) -> int:
     """Replay, print the report; see the module docstring for the exit status."""
-    from controller.registry import CONTROLLER_NAMES
+    from controller.registry import ALL_CONTROLLER_NAMES
     from firmware_sim.cli import parse_paths
     from hil.logio import read_log, read_sidecar
     from hil.replay import (DEFAULT_ACK_TIMEOUT_S, ReplayError, default_paths_for,
@@ -91,15 +92,15 @@ def main(args: argparse.Namespace) -> int:
         controller, controller_source = args.controller, "--controller"
     elif metadata is not None:
         controller, controller_source = metadata.controller, "from the sidecar"
-    elif (named := controller_from_file_name(args.log, CONTROLLER_NAMES)) is not None:
+    elif (named := controller_from_file_name(args.log, ALL_CONTROLLER_NAMES)) is not None:
         controller, controller_source = named, "from the file name <scenario>__<controller>"
     else:
         raise ReplayError(
             f"{args.log}: the log does not say which controller ran (no sidecar "
-            f"{args.log.name}.json); pass --controller NAME ({', '.join(CONTROLLER_NAMES)})")
-    if controller not in CONTROLLER_NAMES:
+            f"{args.log.name}.json); pass --controller NAME ({', '.join(ALL_CONTROLLER_NAMES)})")
+    if controller not in ALL_CONTROLLER_NAMES:
         raise ReplayError(f"unknown controller {controller!r} ({controller_source}); choose one "
-                          f"of {', '.join(CONTROLLER_NAMES)}")
+                          f"of {', '.join(ALL_CONTROLLER_NAMES)}")
     if args.path:
         paths, paths_source = parse_paths(args.path), "--path"
     elif metadata is not None and metadata.paths:

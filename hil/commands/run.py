@@ -20,7 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True,
                         help="scenario TOML file, or the name of a shipped one (dlc_high_mu)")
     parser.add_argument("--controller", required=True,
-                        help="controller of the ECU: eso-dkmpc, dkmpc, lmpc or nmpc")
+                        help="controller of the ECU: eso-dkmpc, dkmpc, lmpc or nmpc, or an ablation "
+                             "(lmpc-eso, dmdc-eso)")
     parser.add_argument("--interface", default=None,
                         help="python-can interface (default: $CAN_INTERFACE, else virtual)")
     parser.add_argument("--channel", default=None,

@@ -1,0 +1,60 @@
+"""The life cycle of the extended state observer (eq. 13) inside a steering MPC.
+
+Shared by every MPC that adds the observer's disturbance estimate to its prediction:
+ESO-DKMPC (observer on the lifted Koopman state) and the ablation LMPC-ESO (observer on
+LMPC's bicycle state [vy, yaw_rate]). The estimate used when planning step k is
+w_hat[k+1] = w_hat[k] - beta2 (x_k - x_hat_k), which already contains the measurement x_k
+(``models.eso.innovated_disturbance``); after the command u_k is known the observer
+advances with (x_k, u_k). The observer restarts at x_k (zero estimate, flagged
+``observer_reset``) on the first step, after ``reset()``, after a measurement or input it
+refused, and after any step that did not see a valid sample (status NOT_RUN): then its last
+(x, u) no longer describes the transition into the next sample. After a solver fallback
+it advances with the fallback command, which is what the vehicle received.
+
+"x" here is the observer's state, whatever the subclass's model calls its state.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from controller.base import Command, SolverStatus, StepDebug, VehicleSample
+from controller.mpc_base import Plan, SteeringMpc
+from models.eso import ExtendedStateObserver, innovated_disturbance
+
+
+class ObservedMpc(SteeringMpc):
+    """Mixin base (put it first among the bases) holding the observer's restarts.
+
+    A subclass sets ``self.observer`` (an ``ExtendedStateObserver``) in its constructor,
+    points ``self.observer.params`` at the model of the step's speed before calling
+    ``disturbance``, and calls ``observe`` from ``_after_command``.
+    """
+
+    observer: ExtendedStateObserver
+
+    def reset(self) -> None:
+        """Forget plans, progress and the observer state."""
+        self._observer_running = False
+        super().reset()
+
+    def disturbance(self, observed_state: np.ndarray) -> np.ndarray:
+        """w_hat (n,) including the measurement ``observed_state`` (n,); restarts the
+        observer when needed (the estimate is then zero)."""
+        if not self._observer_running:
+            self.observer.reset(observed_state)
+            self._observer_running = True
+            self._observer_reset = True
+            return self.observer.disturbance_estimate
+        return innovated_disturbance(self.observer.state, observed_state, self.observer.params)
+
+    def observe(self, observed_state: np.ndarray, model_input: np.ndarray) -> None:
+        """Advance the observer with the step's state (n,) and the input applied (n_u,); a
+        non-finite value makes it restart on the next step instead."""
+        if not self.observer.update(observed_state, model_input):
+            self._observer_running = False
+
+    def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
+                  sample: VehicleSample | None = None) -> tuple[Command, StepDebug]:
+        if sample is None:  # no valid measurement this step: restart on the next good one
+            self._observer_running = False
+        return super()._fallback(status, torque, plan, sample)
