@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from controller.base import Command, VehicleSample
-from controller.lifted_mpc import LiftedMpc, PredictionMaps, decayed_sums
+from controller.lifted_mpc import VEHICLE_STATES, LiftedMpc, PredictionMaps, decayed_sums
 from controller.observed_mpc import ObservedMpc
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains
@@ -62,7 +62,7 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
             decayed = decayed_sums(local.A, tuning.prediction_horizon, tuning.disturbance_decay)
             if len(self._observer_cache) > 2048:
                 self._observer_cache.clear()
-            cached = self._observer_cache[id(local)] = (local, params, local.C_P @ decayed)
+            cached = self._observer_cache[id(local)] = (local, params, local.C_P[:len(VEHICLE_STATES)] @ decayed)
         return cached[1], cached[2]
 
     def disturbance_response(self, lifted_state: np.ndarray, maps: PredictionMaps) -> np.ndarray:

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from controller.base import VehicleSample
+from controller.errors import ControllerError
 from controller.qp_mpc import QpSteeringMpc
 from controller.tuning import LongitudinalTuning, QpMpcTuning
 
@@ -27,6 +28,12 @@ if TYPE_CHECKING:
     from models.koopman import KoopmanModel
 
 TORQUE, STEER = 0, 1  # input order [torque, steer]
+#: The vehicle states the MPC predicts and constrains, first in every model's state.
+VEHICLE_STATES = ("vx", "vy", "yaw_rate")
+#: Model states the ECU measures, by the model's state name -> the sample's field. A
+#: model may add the measured front wheel angle (the steering actuator's state, so that
+#: the lift sees the tyres' slip and the actuator lag) after the vehicle states.
+MEASURED_STATES = {"vx": "vx", "vy": "vy", "yaw_rate": "yaw_rate", "steer_measured": "steer_angle"}
 
 
 def decayed_sums(A: np.ndarray, n_pred: int, decay: float) -> np.ndarray:
@@ -66,11 +73,12 @@ class PredictionMaps:
         powers[0] = np.eye(n_z)
         for i in range(n_pred):
             powers[i + 1] = model.A @ powers[i]
-        free_from_lifted = model.C_P @ powers
-        gain_basis = np.zeros((n_pred + 1, model.n_x, hold.shape[1], n_z))
+        vehicle = model.C_P[:len(VEHICLE_STATES)]  # the states the QP sees
+        free_from_lifted = vehicle @ powers
+        gain_basis = np.zeros((n_pred + 1, len(VEHICLE_STATES), hold.shape[1], n_z))
         for i in range(1, n_pred + 1):
             gain_basis[i] = np.einsum("jc,jxz->xcz", hold[:i], free_from_lifted[i - 1::-1])
-        return cls(model, free_from_lifted, model.C_P @ decayed_sums(model.A, n_pred, 1.0), gain_basis,
+        return cls(model, free_from_lifted, vehicle @ decayed_sums(model.A, n_pred, 1.0), gain_basis,
                    gain_basis @ model.B[:, STEER])
 
 
@@ -82,7 +90,12 @@ class LiftedMpc(QpSteeringMpc):
     """
 
     def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
+        names = tuple(model.state_names)
+        if names[:3] != VEHICLE_STATES or any(n not in MEASURED_STATES for n in names):
+            raise ControllerError(f"the Koopman model's states {names} must start with {VEHICLE_STATES} and "
+                                  f"be measured by the ECU (known: {', '.join(MEASURED_STATES)})")
         self.model = model
+        self._measured_fields = tuple(MEASURED_STATES[n] for n in names)
         super().__init__(tuning, longitudinal)
         self._scheduled = model.form == "scheduled"
         self._bilinear = model.form == "bilinear"
@@ -108,7 +121,7 @@ class LiftedMpc(QpSteeringMpc):
 
     def predict_states(self, sample: VehicleSample, drive_torque: float) -> tuple[np.ndarray, np.ndarray]:
         """States [vx, vy, yaw_rate] at steps 0..Np: free (Np + 1, 3), gain (Np + 1, 3, Nc)."""
-        lifted = self.model.lift(sample.state())
+        lifted = self.model.lift(np.array([getattr(sample, field) for field in self._measured_fields]))
         self.lifted_state = lifted
         maps = self.prediction_maps(sample.vx)
         input_matrix, gain = maps.model.B, maps.gain

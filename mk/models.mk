@@ -1,5 +1,5 @@
 # Vehicle plant, baseline models and data set (models/): make data, make handling.
-.PHONY: data handling
+.PHONY: data handling data-coverage
 
 DATA_DIR ?= data/nominal
 DATA_HOURS ?= 2
@@ -21,3 +21,13 @@ handling: setup
 	$(PROVENANCE_STAMP) results/handling.json results/handling_lateral_accel.png results/handling_yaw_gain.png \
 		results/vehicle_params.md --command "make handling" \
 		--inputs $(PROVENANCE_VEHICLE) --modules studies.handling
+
+# Histograms of speed, grip use, steering, torque and mu of the training data sets:
+# results/data_coverage.{png,md} (generates data/wide and data/nominal when missing).
+## training data coverage plot (wide and nominal data sets) -> results/data_coverage.*
+data-coverage: setup
+	@test -f data/wide/READY || $(PY) -m models.data generate --out data/wide --profile wide --hours 2 --seed 0
+	@test -f data/nominal/READY || $(PY) -m models.data generate --out data/nominal
+	$(PY) -m studies.data_coverage --data data/wide data/nominal --out results
+	$(PROVENANCE_STAMP) results/data_coverage.png results/data_coverage.md --command "make data-coverage" \
+		--inputs $(PROVENANCE_VEHICLE) --modules studies.data_coverage models.data

@@ -114,7 +114,7 @@ DICTIONARY_STATES = ("vx", "vy", "yaw_rate")
 
 
 def dictionary_features(names: Sequence[str], states: np.ndarray) -> np.ndarray:
-    """psi(x): states (..., 3) in the order of DICTIONARY_STATES -> (..., len(names))."""
+    """psi(x): states (..., n_x) starting with DICTIONARY_STATES -> (..., len(names))."""
     states = np.asarray(states, dtype=float)
     out = np.empty(states.shape[:-1] + (len(names),))
     for i, name in enumerate(names):
@@ -128,8 +128,8 @@ def check_dictionary(names: Sequence[str], state_names: Sequence[str]) -> tuple[
     unknown = [n for n in names if n not in DICTIONARY]
     if unknown:
         raise KoopmanError(f"unknown dictionary functions {unknown}; known: {sorted(DICTIONARY)}")
-    if names and tuple(state_names) != DICTIONARY_STATES:
-        raise KoopmanError(f"the dictionary needs the states {DICTIONARY_STATES}, got {tuple(state_names)}")
+    if names and tuple(state_names)[:3] != DICTIONARY_STATES:
+        raise KoopmanError(f"the dictionary needs the states {DICTIONARY_STATES} first, got {tuple(state_names)}")
     return names
 
 

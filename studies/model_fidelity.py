@@ -77,7 +77,8 @@ class SingleTrackPredictor:
 
 
 def plant_step_steer(speed: float) -> tuple[np.ndarray, np.ndarray]:
-    """The plant's step: states (n + 1, 3) and commands (n, 2) from the step onset on."""
+    """The plant's step: states (n + 1, 4) = [vx, vy, r, measured wheel angle] and commands
+    (n, 2) from the step onset on."""
     vehicle = FourWheelVehicle()
     vehicle.reset(vx=speed)
     p = vehicle.params
@@ -90,10 +91,10 @@ def plant_step_steer(speed: float) -> tuple[np.ndarray, np.ndarray]:
         torque = p.radius * (p.mass * 0.8 * (speed - out.vx) + resistance)  # hold the speed
         steer = STEP_STEER if k >= lead else 0.0
         if k >= lead:
-            states.append([out.vx, out.vy, out.yaw_rate])
+            states.append([out.vx, out.vy, out.yaw_rate, out.steer_angle])
             commands.append([torque, steer])
         out = vehicle.step(VehicleCommand(drive_torque=torque, steer_angle=steer), TS)
-    states.append([out.vx, out.vy, out.yaw_rate])
+    states.append([out.vx, out.vy, out.yaw_rate, out.steer_angle])
     return np.array(states), np.array(commands)
 
 
@@ -105,15 +106,20 @@ def step_steer_table(models: dict[str, object]) -> list[dict]:
         plant_r, plant_vy = states[-1, 2], states[-1, 1]
         rows.append({"speed": speed, "model": "plant", "yaw_rate": plant_r, "vy": plant_vy, "yaw_error_pct": 0.0})
         for name, model in models.items():
-            final = model.predict(states[:1], commands[None])[0, -1]
+            final = model.predict(states[:1, :_n_states(model)], commands[None])[0, -1]
             rows.append({"speed": speed, "model": name, "yaw_rate": float(final[2]), "vy": float(final[1]),
                          "yaw_error_pct": float(100.0 * (final[2] / plant_r - 1.0))})
     return rows
 
 
+def _n_states(model: object) -> int:
+    """How many leading states of [vx, vy, r, wheel angle] a model takes (3 for the physics models)."""
+    return getattr(model, "n_x", 3)
+
+
 def prediction_table(models: dict[str, object], data_dir: Path, test_runs: Sequence[str]) -> list[dict]:
     """Rows {model, horizon, rmse {state: value}} on the named test runs."""
-    runs = {r.name: r for r in load_trajectories(data_dir)}
+    runs = {r.name: r for r in load_trajectories(data_dir, states=("vx", "vy", "yaw_rate", "steer_measured"))}
     missing = [n for n in test_runs if n not in runs]
     if missing:
         raise SystemExit(f"error: {data_dir} lacks the artefact's test runs {missing[:3]}...: "
@@ -123,7 +129,8 @@ def prediction_table(models: dict[str, object], data_dir: Path, test_runs: Seque
     for label, steps in HORIZONS.items():
         x0, inputs, truth = open_loop_windows(test, steps, 5)
         for name, model in models.items():
-            error = model.predict(x0, inputs) - truth
+            n = _n_states(model)
+            error = model.predict(x0[:, :n], inputs)[..., :3] - truth[..., :3]
             rmse = np.sqrt(np.mean(error ** 2, axis=(0, 1)))
             rows.append({"model": name, "horizon": label,
                          "rmse": dict(zip(("vx", "vy", "yaw_rate"), map(float, rmse)))})

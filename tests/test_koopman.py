@@ -171,9 +171,9 @@ def test_default_artifact_loads_and_is_stable() -> None:
     radius = model.spectral_radius()
     print(f"{DEFAULT_ARTIFACT.name}: d={meta['d']}, n_z={model.n_z}, spectral radius {radius:.4f}, "
           f"test errors {json.dumps(meta['test_errors'])}")
-    assert (model.n_x, model.n_u) == (3, 2)
-    assert model.n_z == 3 + len(model.dictionary) + meta["d"]
-    assert model.state_names == ("vx", "vy", "yaw_rate") and model.input_names == ("torque", "steer")
+    assert model.n_u == 2 and model.n_z == model.n_x + len(model.dictionary) + meta["d"]
+    # The vehicle states first; the default adds the measured wheel angle (the actuator's state).
+    assert model.state_names == ("vx", "vy", "yaw_rate", "steer_measured") and model.input_names == ("torque", "steer")
     assert model.ts == 0.025
     # The largest radius over the scheduled form's knots; the end knots (3 and 35 m/s) see
     # the least data. A bound, not a tuned figure: 1.03^30 keeps a horizon's growth < 2.5.
@@ -193,7 +193,7 @@ def test_runtime_imports_never_pull_in_torch() -> None:
 def test_lift_time_of_one_state() -> None:
     """Benchmark: the controller lifts one state every 25 ms. Figure printed; generous bound."""
     model = KoopmanModel.load()
-    x = np.array([12.0, 0.1, 0.05])
+    x = np.array([12.0, 0.1, 0.05, 0.01])[: model.n_x]
     for _ in range(200):
         model.lift(x)
     samples = []
