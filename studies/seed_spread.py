@@ -1,0 +1,109 @@
+"""Tables II / III over the seeds of the learned model: ``make seed-spread``.
+
+The Koopman controllers (ESO-DKMPC, DKMPC) depend on a trained model, and training depends
+on its seed (weights and split). This study runs them on the two evaluation lane changes
+(``dlc_high_mu``, ``dlc_low_mu``) once per seed of the default model form (the committed
+artefact is seed 0; seeds 1-4 are Table I's models of the default row, ``make table1``),
+with the shipped tuning, and the physics-model controllers (LMPC, NMPC) once (they have no
+seed). It writes ``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
+
+No tuning happens here: the settings are those of ``controller/tuning.toml``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from controller.registry import create_controller
+from controller.tuning import load_tuning
+from hil.scenario import load_scenario
+from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
+from studies.closed_loop import run_closed_loop
+from studies.table1 import ROWS, _slug
+
+SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
+LEARNED = ("eso-dkmpc", "dkmpc")
+PHYSICS = ("lmpc", "nmpc")
+
+
+def seed_artifacts(models_dir: Path, seeds: Sequence[int]) -> dict[int, Path]:
+    """Seed -> artefact of the default row (seed 0: the committed default artefact)."""
+    paths = {}
+    for seed in seeds:
+        path = DEFAULT_ARTIFACT if seed == 0 else models_dir / f"{_slug(ROWS[0].label)}_s{seed}.npz"
+        if not path.is_file():
+            raise SystemExit(f"error: {path} missing: run `make table1` (it trains the default row's seeds)")
+        paths[seed] = path
+    return paths
+
+
+def learned_controller(name: str, model: KoopmanModel):
+    """ESO-DKMPC or DKMPC on ``model`` with the shipped tuning."""
+    from controller.dkmpc import Dkmpc
+    from controller.eso_dkmpc import EsoDkmpc
+
+    tuning = load_tuning()
+    cls = EsoDkmpc if name == "eso-dkmpc" else Dkmpc
+    return cls(model, tuning.for_controller(name), tuning.longitudinal)
+
+
+def run_one(scenario_name: str, controller) -> dict:
+    """e_Y RMSE / max and completion of one run."""
+    result = run_closed_loop(load_scenario(scenario_name), controller)
+    lateral = result.tracking.lateral
+    return {"completed": bool(result.completed), "e_y_rmse": float(lateral.rmse), "e_y_max": float(lateral.max_abs)}
+
+
+def markdown(doc: dict) -> str:
+    """The per-seed table and the mean ± sd line per controller and scenario."""
+    lines = ["# Tables II / III over the seeds of the learned model", "",
+             "Written by `make seed-spread` (studies/seed_spread.py). e_Y RMSE (m) on the closed loop "
+             "without CAN (as `make tables`); the learned controllers once per seed of the default model "
+             "(seed 0 = the committed artefact), the physics-model ones once. `*`: did not complete.", "",
+             "| controller | scenario | " + " | ".join(f"seed {s}" for s in doc["seeds"]) + " | mean ± sd |",
+             "|---|---|" + "---|" * (len(doc["seeds"]) + 1)]
+    for name in (*LEARNED, *PHYSICS):
+        for scenario in SCENARIOS:
+            runs = doc["runs"][name][scenario]
+            cells = [f"{r['e_y_rmse']:.3f}{'' if r['completed'] else '*'}" for r in runs]
+            values = np.array([r["e_y_rmse"] for r in runs])
+            spread = f"{values.mean():.3f} ± {values.std(ddof=1):.3f}" if values.size > 1 else f"{values[0]:.3f}"
+            if len(cells) == 1:
+                cells = cells * len(doc["seeds"])
+            lines.append(f"| {name} | {scenario} | " + " | ".join(cells) + f" | {spread} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.seed_spread", description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=lambda t: tuple(int(v) for v in t.split(",")), default=(0, 1, 2, 3, 4))
+    parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
+    parser.add_argument("--out", type=Path, default=Path("results"))
+    args = parser.parse_args(argv)
+    artifacts = seed_artifacts(args.models_dir, args.seeds)
+    runs: dict[str, dict[str, list[dict]]] = {}
+    for name in LEARNED:
+        runs[name] = {s: [] for s in SCENARIOS}
+        for seed, path in artifacts.items():
+            model = KoopmanModel.load(path)
+            for scenario in SCENARIOS:
+                runs[name][scenario].append(run_one(scenario, learned_controller(name, model)))
+                print(f"{name} seed {seed} {scenario}: e_Y RMSE {runs[name][scenario][-1]['e_y_rmse']:.3f} m",
+                      flush=True)
+    for name in PHYSICS:
+        runs[name] = {s: [run_one(s, create_controller(name))] for s in SCENARIOS}
+    doc = {"seeds": list(args.seeds), "artifacts": {str(k): str(v) for k, v in artifacts.items()}, "runs": runs}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "seed_spread.md").write_text(markdown(doc))
+    (args.out / "seed_spread.json").write_text(json.dumps(doc, indent=1) + "\n")
+    print(f"wrote {args.out / 'seed_spread.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,25 @@
+"""The seed-spread study's table and its refusal to run without the seeds' models."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from studies import seed_spread
+
+
+def test_table_has_a_row_per_controller_and_scenario_with_mean_and_spread() -> None:
+    run = {"completed": True, "e_y_rmse": 0.1, "e_y_max": 0.2}
+    runs = {name: {s: [dict(run, e_y_rmse=0.1 + 0.1 * i) for i in range(3)] for s in seed_spread.SCENARIOS}
+            for name in seed_spread.LEARNED}
+    runs.update({name: {s: [dict(run, completed=False)] for s in seed_spread.SCENARIOS} for name in seed_spread.PHYSICS})
+    text = seed_spread.markdown({"seeds": [0, 1, 2], "runs": runs})
+    rows = [line for line in text.splitlines() if line.startswith("| eso-dkmpc") or line.startswith("| lmpc")]
+    assert len(rows) == 4
+    assert "0.200 ± 0.100" in text  # mean and sample sd of 0.1, 0.2, 0.3
+    assert "0.100*" in text  # a run that did not complete is marked
+
+
+def test_missing_seed_models_name_the_command(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="make table1"):
+        seed_spread.seed_artifacts(tmp_path, (0, 1))
