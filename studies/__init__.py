@@ -10,7 +10,8 @@ the run-time packages: it imports ``can_defs``, ``models``, ``controller``,
   tables and plots.
 - `paper_tables`: ``make tables`` (paper Tables II / III, Figs 8 / 9).
 - `run_all`: ``make run`` (the two double lane changes with the four controllers over CAN).
-- `eso_sweep`: ``make eso-sweep``; `fault_campaign`: ``make faults``.
+- `tuning_set`: the tuning set (``make tuning-set``); `tuning_sweep`: ``make tune``.
+- `fault_campaign`: ``make faults``.
 - `fig7`: ``make fig7``; `table1`: ``make table1``; `handling`: ``make handling``.
 - `bench`: ``make bench``, the one compute-time benchmark (every controller's step on the
   same recorded samples, the ECU's overhead); `machine`: the machine in results headers.

@@ -1,9 +1,8 @@
-"""ESO-DKMPC's observer settings: the disturbance over the horizon, the sweep, and the
-issue's closed-loop condition (ESO-DKMPC's e_Y RMSE below DKMPC's on both lane changes)."""
+"""ESO-DKMPC's observer: the disturbance over the horizon, and closed-loop stability on both
+lane changes with the shipped tuning (the tuning itself: tests/test_tuning_sweep.py)."""
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -51,49 +50,6 @@ def test_prediction_adds_the_disturbance_as_a_rollout_does(decay: float) -> None
     print(f"decay {decay}: disturbance share at the horizon end {free_eso[-1] - free_dk[-1]}")
     assert np.array_equal(gain_eso, gain_dk)
     assert np.allclose(free_eso - free_dk, expected, atol=1e-12)
-
-
-def _fake_result(rmse: float, max_abs: float, completed: bool = True) -> SimpleNamespace:
-    lateral = SimpleNamespace(rmse=rmse, max_abs=max_abs)
-    heading = SimpleNamespace(rmse=rmse / 2)
-    return SimpleNamespace(completed=completed, tracking=SimpleNamespace(lateral=lateral, heading=heading))
-
-
-def test_sweep_table_marks_the_shipped_setting_and_who_beats_dkmpc() -> None:
-    """The sweep's bookkeeping on a fake runner: DKMPC first, the shipped setting marked
-    once, 'beats DKMPC' only when every scenario's RMSE is lower and the run completed."""
-    from studies.eso_sweep import ObserverSetting, run_sweep, sweep_table
-
-    scenarios = [SimpleNamespace(name="road_a"), SimpleNamespace(name="road_b")]
-    better, worse = ObserverSetting(0.5, 0.5, 0.85), ObserverSetting(0.9, 0.9, 1.0)
-
-    def runner(scenario, controller):
-        if isinstance(controller, Dkmpc) and not isinstance(controller, EsoDkmpc):
-            return _fake_result(0.03, 0.08)
-        table = controller.tuning
-        key = (table.eso_pole, table.eso_second_pole, table.disturbance_decay)
-        if key == dataclasses.astuple(better):
-            return _fake_result(0.02, 0.06)
-        if key == dataclasses.astuple(worse) and scenario.name == "road_b":
-            return _fake_result(0.5, 1.5, completed=False)
-        return _fake_result(0.025, 0.07)
-
-    rows = run_sweep(scenarios, [better, worse], runner=runner, show_progress=False)
-    assert [r.setting for r in rows][0] is None and sum(r.shipped for r in rows) == 1
-    table = sweep_table(rows, ["road_a", "road_b"])
-    print(table)
-    lines = {line.split("|")[2].strip(): line for line in table.splitlines()[2:] if line.startswith("| ESO")}
-    assert lines["0.5 / 0.5"].rstrip(" |").endswith("yes") and "0.67" in lines["0.5 / 0.5"]
-    assert lines["0.9 / 0.9"].rstrip(" |").endswith("no") and "(stopped)" in lines["0.9 / 0.9"]
-    assert "**(shipped)**" in table
-
-
-def test_sweep_cli_names_a_bad_scenario(tmp_path, capsys) -> None:
-    from studies.eso_sweep import main
-
-    assert main(["--out", str(tmp_path), "--scenarios", "no_such_road", "--no-progress"]) == 1
-    assert "no_such_road" in capsys.readouterr().err
-    assert not list(tmp_path.iterdir())
 
 
 def test_koopman_mpcs_complete_both_lane_changes_with_the_trained_artefact() -> None:

@@ -1,0 +1,717 @@
+"""One tuning procedure for every controller, on the tuning set only (``make tune``).
+
+The evaluation (Tables II / III: the double lane changes ``dlc_high_mu``, ``dlc_low_mu``)
+never enters: every run here is one of the tuning set's scenarios (``studies.tuning_set``,
+``hil/scenarios/tuning/``), in closed loop with the four-wheel plant and no CAN
+(``studies.closed_loop``).
+
+The procedure, identical for every controller of ``controller.registry.CONTROLLERS`` (the
+paper's four and the ablations):
+
+1. Stage ``weights``: every setting of ``WEIGHT_GRID`` (the MPC weights; absolute values,
+   the same for every controller). A controller with an observer holds its observer
+   fields at ``OBSERVER_START`` meanwhile.
+2. Stage ``observer``, only for a controller whose tuning table has observer fields
+   (``OBSERVER_FIELDS``): every setting of ``OBSERVER_GRID`` at the best weights of stage 1.
+3. The chosen setting is the one with the smallest objective over both stages (ties: the
+   first evaluated).
+
+Objective of a setting: the mean over the tuning scenarios of the closed-loop e_Y RMSE (m);
+a run that does not complete (the vehicle leaves the path by more than
+``studies.closed_loop.ABORT_LATERAL_ERROR_M``, the plant diverges, the controller raises or
+cannot be built) counts ``FAILURE_PENALTY_M`` for its scenario.
+
+Controllers are built with their class's ``from_tuning(ControllerTuning)`` from the tuning
+file's tables with only the swept fields replaced (``dataclasses.replace``): horizons,
+soft-constraint and solver settings stay the file's. Observer gains are computed from the
+model at build time, as always.
+
+Writes to ``--out`` (default ``results/``): ``tuning_sweep.md`` (per controller the grid,
+the chosen setting and its objective, the top 5), ``tuning_sweep.json`` (every evaluation)
+and ``tuning_sweep.png``; and, unless ``--no-write``, the chosen values into
+``controller/tuning.toml`` (targeted edits of the swept fields of each controller's table,
+re-read right before writing; every other line is kept).
+
+Usage: ``python -m studies.tuning_sweep [--controllers ...] [--scenarios ...] [--workers N]
+[--out DIR] [--no-write] [--no-progress]``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import importlib
+import itertools
+import json
+import multiprocessing
+import os
+import re
+import sys
+import time
+import tomllib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from hil.errors import HilError, StudyError
+from hil.scenario import Scenario
+from studies.closed_loop import ABORT_LATERAL_ERROR_M, ClosedLoopResult, run_closed_loop
+from studies.tuning_set import TUNING_SET, tuning_scenarios
+
+#: One setting of the swept fields: ``((field, value), ...)`` in grid order (hashable).
+Setting = tuple[tuple[str, float], ...]
+
+#: The MPC weights of eq. 15 every controller has.
+WEIGHT_FIELDS = ("q_position", "q_yaw", "r_steer", "p_steer_rate")
+#: The observer fields (ESO error poles of eq. 24, horizon decay of w_hat), where present.
+OBSERVER_FIELDS = ("eso_pole", "eso_second_pole", "disturbance_decay")
+#: e_Y RMSE (m) a scenario counts when its run does not complete.
+FAILURE_PENALTY_M = ABORT_LATERAL_ERROR_M
+#: How many of the best settings the report lists per controller.
+TOP_N = 5
+#: The comment the written tuning tables carry.
+TUNING_COMMENT = "chosen by make tune on the tuning set, results/tuning_sweep.md"
+
+
+@dataclass(frozen=True)
+class SweepGrid:
+    """Levels of each swept field; the settings are their Cartesian product, in order.
+
+    ``levels``: ``((field, (value, ...)), ...)``; every field once, every value list
+    non-empty and without repeats.
+    """
+
+    levels: tuple[tuple[str, tuple[float, ...]], ...]
+
+    def __post_init__(self) -> None:
+        names = [name for name, _ in self.levels]
+        if len(set(names)) != len(names):
+            raise StudyError(f"grid names a field twice: {names}")
+        for name, values in self.levels:
+            if not values or len(set(values)) != len(values):
+                raise StudyError(f"grid levels of {name} must be non-empty and distinct, got {values}")
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.levels)
+
+    def restricted(self, fields: Sequence[str]) -> "SweepGrid":
+        """The grid over the fields of ``fields`` only (in this grid's order)."""
+        return SweepGrid(tuple((name, values) for name, values in self.levels if name in fields))
+
+    def settings(self) -> list[Setting]:
+        """Every setting, the last field varying fastest; none for a grid of no fields."""
+        if not self.levels:
+            return []
+        names = self.fields
+        return [tuple(zip(names, (float(v) for v in combo)))
+                for combo in itertools.product(*(values for _, values in self.levels))]
+
+    def __len__(self) -> int:
+        return int(np.prod([len(values) for _, values in self.levels], dtype=int)) if self.levels else 0
+
+    def as_dict(self) -> dict[str, list[float]]:
+        return {name: [float(v) for v in values] for name, values in self.levels}
+
+
+#: The MPC-weight grid, the same absolute values for every controller: 6 x 2 x 2 = 24
+#: settings (sized so that NMPC, about ten times slower per run than the QP MPCs, gets as
+#: many evaluations as the others within the sweep's half hour). The MPC's minimiser
+#: depends only on the ratios of the weights (up to the soft-constraint slacks, rarely
+#: active), so p_steer_rate stays 300 as the normalisation and the three other weights span
+#: the ratios. q_position / p_steer_rate matters most on the tuning set (a first look with
+#: LMPC and DKMPC: the objective moves by tens of percent per x3 step of it and by a few
+#: percent across the yaw and steer weights), hence its six levels, x2 apart.
+WEIGHT_GRID = SweepGrid((
+    ("q_position", (30.0, 60.0, 120.0, 250.0, 500.0, 1000.0)),
+    ("q_yaw", (5.0, 40.0)),
+    ("r_steer", (0.3, 3.0)),
+    ("p_steer_rate", (300.0,)),
+))
+#: The observer grid of stage 2: fast pole x slow pole x horizon decay of w_hat = 24.
+OBSERVER_GRID = SweepGrid((
+    ("eso_pole", (0.0, 0.3, 0.6)),
+    ("eso_second_pole", (0.95, 0.97, 0.99, 0.995)),
+    ("disturbance_decay", (0.8, 1.0)),
+))
+#: The observer values of stage 1 (a point of OBSERVER_GRID).
+OBSERVER_START: Setting = (("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0))
+
+
+# ---------------------------------------------------------------------------- building
+
+def tuning_table_attribute(tuning: Any, name: str) -> str:
+    """The attribute of ``ControllerTuning`` ``tuning`` that holds controller ``name``'s
+    table (the one ``tuning.for_controller(name)`` returns), e.g. ``"eso_dkmpc"``."""
+    table = tuning.for_controller(name)
+    for field in dataclasses.fields(tuning):
+        if getattr(tuning, field.name) is table:
+            return field.name
+    raise StudyError(f"controller {name!r}: its tuning table is not a field of {type(tuning).__name__}")
+
+
+def swept_fields(table: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(weight fields, observer fields) of a controller's tuning table (a dataclass).
+
+    Raises StudyError when the table lacks one of the MPC weights."""
+    names = {field.name for field in dataclasses.fields(table)}
+    missing = [name for name in WEIGHT_FIELDS if name not in names]
+    if missing:
+        raise StudyError(f"tuning table {type(table).__name__} has no {missing}: cannot sweep its weights")
+    return WEIGHT_FIELDS, tuple(name for name in OBSERVER_FIELDS if name in names)
+
+
+def with_setting(tuning: Any, name: str, setting: Setting) -> Any:
+    """``tuning`` (a ``ControllerTuning``) with controller ``name``'s table's fields of
+    ``setting`` replaced; every other value unchanged."""
+    attribute = tuning_table_attribute(tuning, name)
+    table = getattr(tuning, attribute)
+    return dataclasses.replace(tuning, **{attribute: dataclasses.replace(table, **dict(setting))})
+
+
+def build_controller(name: str, tuning: Any) -> Any:
+    """Controller ``name`` of the registry built by its class's ``from_tuning(tuning)``."""
+    from controller.registry import CONTROLLERS
+
+    if name not in CONTROLLERS:
+        raise StudyError(f"unknown controller {name!r}; registered: {', '.join(CONTROLLERS)}")
+    module_name, class_name = CONTROLLERS[name]
+    return getattr(importlib.import_module(module_name), class_name).from_tuning(tuning)
+
+
+# ---------------------------------------------------------------------------- the plan
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One setting of one controller on the whole tuning set.
+
+    ``rmse_m`` / ``max_abs_m`` / ``completed`` / ``failure``: per scenario name; ``objective_m``
+    the mean over scenarios of the e_Y RMSE, ``FAILURE_PENALTY_M`` for a run that did not
+    complete; ``seconds`` the wall-clock time of its runs (build included).
+    """
+
+    controller: str
+    stage: str
+    setting: Setting
+    rmse_m: dict[str, float]
+    max_abs_m: dict[str, float]
+    completed: dict[str, bool]
+    failure: dict[str, str | None]
+    objective_m: float
+    seconds: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"controller": self.controller, "stage": self.stage, "setting": dict(self.setting),
+                "objective_m": self.objective_m, "rmse_m": self.rmse_m, "max_abs_m": self.max_abs_m,
+                "completed": self.completed, "failure": self.failure, "seconds": self.seconds}
+
+
+def objective(rmse_m: Mapping[str, float], completed: Mapping[str, bool]) -> float:
+    """Mean e_Y RMSE (m) over the scenarios, ``FAILURE_PENALTY_M`` for an incomplete run."""
+    if not rmse_m:
+        raise StudyError("objective of no runs")
+    values = [rmse_m[name] if completed[name] and np.isfinite(rmse_m[name]) else FAILURE_PENALTY_M
+              for name in rmse_m]
+    return float(np.mean(values))
+
+
+def stage_one_settings(observer_fields: Sequence[str], weight_grid: SweepGrid = WEIGHT_GRID,
+                       observer_start: Setting = OBSERVER_START) -> list[Setting]:
+    """Stage 1 of a controller with these observer fields: the weight grid, observer fields
+    (if any) at ``observer_start``."""
+    start = tuple((name, value) for name, value in observer_start if name in observer_fields)
+    return [weights + start for weights in weight_grid.settings()]
+
+
+def stage_two_settings(best_weights: Setting, observer_fields: Sequence[str],
+                       observer_grid: SweepGrid = OBSERVER_GRID) -> list[Setting]:
+    """Stage 2: the observer grid (over the controller's observer fields) at the weights of
+    ``best_weights`` (its other fields are dropped); empty without observer fields."""
+    if not observer_fields:
+        return []
+    weights = tuple((name, value) for name, value in best_weights if name in WEIGHT_FIELDS)
+    return [weights + observer for observer in observer_grid.restricted(observer_fields).settings()]
+
+
+def best(evaluations: Sequence[Evaluation]) -> Evaluation:
+    """The evaluation with the smallest objective; the first such one on ties."""
+    if not evaluations:
+        raise StudyError("no evaluations to choose from")
+    return min(enumerate(evaluations), key=lambda pair: (pair[1].objective_m, pair[0]))[1]
+
+
+# ---------------------------------------------------------------------------- running
+
+#: Runs one controller through one scenario (``studies.closed_loop.run_closed_loop``).
+Runner = Callable[[Scenario, Any], ClosedLoopResult]
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """One closed-loop run of the sweep (a controller setting on one scenario)."""
+
+    rmse_m: float
+    max_abs_m: float
+    completed: bool
+    failure: str | None
+    seconds: float
+
+
+def run_one(name: str, setting: Setting, scenario: Scenario, tuning: Any,
+            runner: Runner = run_closed_loop) -> RunOutcome:
+    """Build controller ``name`` with ``setting`` applied to ``tuning`` and run it through
+    ``scenario``. A controller that cannot be built or a runner that raises gives an
+    incomplete outcome with the reason (never raised: one bad setting does not stop a sweep)."""
+    started = time.perf_counter()
+    try:
+        controller = build_controller(name, with_setting(tuning, name, setting))
+        result = runner(scenario, controller)
+    except Exception as e:  # noqa: BLE001 - recorded as this setting's failure
+        return RunOutcome(float("nan"), float("nan"), False, f"{type(e).__name__}: {e}",
+                          time.perf_counter() - started)
+    lateral = result.tracking.lateral
+    return RunOutcome(float(lateral.rmse), float(lateral.max_abs), bool(result.completed),
+                      result.failure, time.perf_counter() - started)
+
+
+# Worker state (set once per worker process by _init_worker; a forked worker inherits it).
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(scenarios: Sequence[Scenario], tuning: Any, runner: Runner) -> None:
+    _WORKER.update(scenarios=list(scenarios), tuning=tuning, runner=runner)
+
+
+def _run_task(task: tuple[int, str, Setting, int]) -> tuple[int, int, RunOutcome]:
+    index, name, setting, scenario_index = task
+    outcome = run_one(name, setting, _WORKER["scenarios"][scenario_index], _WORKER["tuning"],
+                      _WORKER["runner"])
+    return index, scenario_index, outcome
+
+
+class _Executor:
+    """Runs (controller, setting) x scenario tasks in-process or on a forked pool."""
+
+    def __init__(self, scenarios: Sequence[Scenario], tuning: Any, runner: Runner, workers: int,
+                 progress: tqdm) -> None:
+        self.scenarios = list(scenarios)
+        self.progress = progress
+        _init_worker(self.scenarios, tuning, runner)
+        self.pool = None
+        if workers > 1:
+            # fork: the workers inherit the scenarios and the runner (no pickling of them).
+            context = multiprocessing.get_context("fork")
+            self.pool = context.Pool(workers, initializer=_init_worker,
+                                     initargs=(self.scenarios, tuning, runner))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.close()
+            self.pool.join()
+
+    def evaluate(self, jobs: Sequence[tuple[str, str, Setting]]) -> list[Evaluation]:
+        """Evaluate (controller, stage, setting) jobs on every scenario, in job order."""
+        tasks = [(i, name, setting, k) for i, (name, _, setting) in enumerate(jobs)
+                 for k in range(len(self.scenarios))]
+        outcomes: dict[int, dict[int, RunOutcome]] = {i: {} for i in range(len(jobs))}
+        results = (map(_run_task, tasks) if self.pool is None
+                   else self.pool.imap_unordered(_run_task, tasks, chunksize=1))
+        for index, scenario_index, outcome in results:
+            outcomes[index][scenario_index] = outcome
+            self.progress.set_postfix_str(jobs[index][0], refresh=False)
+            self.progress.update(1)
+        evaluations = []
+        for i, (name, stage, setting) in enumerate(jobs):
+            runs = {self.scenarios[k].name: outcomes[i][k] for k in range(len(self.scenarios))}
+            rmse = {s: r.rmse_m for s, r in runs.items()}
+            completed = {s: r.completed for s, r in runs.items()}
+            evaluations.append(Evaluation(
+                controller=name, stage=stage, setting=setting, rmse_m=rmse,
+                max_abs_m={s: r.max_abs_m for s, r in runs.items()}, completed=completed,
+                failure={s: r.failure for s, r in runs.items()},
+                objective_m=objective(rmse, completed), seconds=sum(r.seconds for r in runs.values())))
+        return evaluations
+
+
+@dataclass(frozen=True)
+class ControllerSweep:
+    """The sweep of one controller: what was swept, every candidate evaluation (stage 1,
+    then stage 2), the choice among them, and the tuning file's setting before the sweep
+    (``before``: evaluated for reference, never a candidate; None when not asked for)."""
+
+    controller: str
+    weight_fields: tuple[str, ...]
+    observer_fields: tuple[str, ...]
+    evaluations: tuple[Evaluation, ...]
+    chosen: Evaluation
+    before: Evaluation | None = None
+
+    def top(self, n: int = TOP_N) -> list[Evaluation]:
+        """The ``n`` best evaluations, best first (ties in evaluation order)."""
+        order = sorted(range(len(self.evaluations)),
+                       key=lambda i: (self.evaluations[i].objective_m, i))
+        return [self.evaluations[i] for i in order[:n]]
+
+
+def current_setting(tuning: Any, name: str) -> Setting:
+    """Controller ``name``'s swept fields as ``tuning`` (a ``ControllerTuning``) has them."""
+    table = tuning.for_controller(name)
+    weight_fields, observer_fields = swept_fields(table)
+    return tuple((field, float(getattr(table, field))) for field in weight_fields + observer_fields)
+
+
+def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *,
+              weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
+              observer_start: Setting = OBSERVER_START, workers: int = 1,
+              runner: Runner = run_closed_loop, show_progress: bool = True,
+              evaluate_before: bool = False) -> list[ControllerSweep]:
+    """The procedure of the module docstring for every controller of ``controllers``.
+
+    Args:
+        controllers: registry names.
+        scenarios: the tuning scenarios (never the evaluation ones: ``main`` loads the
+            tuning set).
+        tuning: the ``ControllerTuning`` whose non-swept fields every build keeps.
+        weight_grid, observer_grid, observer_start: the procedure's grids (tests shrink them).
+        workers: processes (1: in this process).
+        runner: the closed-loop runner (tests pass a stand-in).
+        evaluate_before: also evaluate each controller's setting in ``tuning`` (for the
+            report; not a candidate, so values chosen elsewhere cannot be re-chosen here).
+
+    Returns:
+        One :class:`ControllerSweep` per controller, in ``controllers`` order.
+    """
+    if not controllers or not scenarios:
+        raise StudyError("the sweep needs at least one controller and one scenario")
+    if workers < 1:
+        raise StudyError(f"workers must be >= 1, got {workers}")
+    plans = {}
+    for name in controllers:
+        weight_fields, observer_fields = swept_fields(tuning.for_controller(name))
+        plans[name] = (weight_fields, observer_fields)
+    stage_one = {name: stage_one_settings(plans[name][1], weight_grid, observer_start) for name in controllers}
+    stage_two_size = {name: len(observer_grid.restricted(plans[name][1])) if plans[name][1] else 0
+                      for name in controllers}
+    before_settings = ({name: current_setting(tuning, name) for name in controllers}
+                       if evaluate_before else {})
+    total = (sum(len(stage_one[n]) + stage_two_size[n] for n in controllers)
+             + len(before_settings)) * len(scenarios)
+    evaluations: dict[str, list[Evaluation]] = {name: [] for name in controllers}
+    before: dict[str, Evaluation] = {}
+    with tqdm(total=total, desc="make tune", unit="run", disable=not show_progress,
+              dynamic_ncols=True) as progress:
+        executor = _Executor(scenarios, tuning, runner, workers, progress)
+        try:
+            # Round robin over the controllers: the slow ones' runs spread over the queue, so
+            # no worker is left alone with a slow controller's runs at the end.
+            rounds = itertools.zip_longest(*(stage_one[name] for name in controllers))
+            jobs = [(name, "weights", setting) for settings in rounds
+                    for name, setting in zip(controllers, settings) if setting is not None]
+            jobs += [(name, "before", setting) for name, setting in before_settings.items()]
+            for evaluation in executor.evaluate(jobs):
+                if evaluation.stage == "before":
+                    before[evaluation.controller] = evaluation
+                else:
+                    evaluations[evaluation.controller].append(evaluation)
+            jobs = []
+            for name in controllers:
+                seen = {e.setting for e in evaluations[name]}
+                best_weights = best(evaluations[name]).setting
+                for setting in stage_two_settings(best_weights, plans[name][1], observer_grid):
+                    if setting in seen:
+                        progress.update(len(scenarios))  # already evaluated in stage 1
+                    else:
+                        jobs.append((name, "observer", setting))
+            for evaluation in executor.evaluate(jobs):
+                evaluations[evaluation.controller].append(evaluation)
+        finally:
+            executor.close()
+    return [ControllerSweep(name, plans[name][0], plans[name][1], tuple(evaluations[name]),
+                            best(evaluations[name]), before.get(name)) for name in controllers]
+
+
+# ---------------------------------------------------------------------------- tuning file
+
+_SECTION = re.compile(r"^\s*\[([^\]]+)\]\s*(#.*)?$")
+_ASSIGNMENT = re.compile(r"^(?P<key>\s*(?P<name>[A-Za-z0-9_-]+)\s*=\s*)(?P<value>[^#\n]*?)(?P<rest>\s*(#.*)?)$")
+
+
+def format_value(value: float) -> str:
+    """A TOML float literal for ``value`` (``10.0``, ``0.97``, ``1e-3`` as Python writes it)."""
+    text = repr(float(value))
+    return text if any(c in text for c in ".en") else text + ".0"
+
+
+def update_tuning_text(text: str, chosen: Mapping[str, Setting], comment: str = TUNING_COMMENT) -> str:
+    """The tuning file ``text`` with, in each table ``[name]`` of ``chosen``, the values of
+    that setting's fields replaced in place (spacing and trailing comments kept) and one
+    comment line ``# <fields>: <comment>`` right under the table header (replacing an
+    earlier one that ends with ``comment``). Every other line is unchanged.
+
+    Raises:
+        StudyError: a table or field of ``chosen`` is not in ``text``, or the result does
+            not parse back to the chosen values.
+    """
+    lines = text.splitlines(keepends=True)
+    sections: dict[str, tuple[int, int]] = {}
+    current, start = None, 0
+    for i, line in enumerate(lines):
+        match = _SECTION.match(line)
+        if match:
+            if current is not None:
+                sections[current] = (start, i)
+            current, start = match.group(1).strip().strip('"'), i
+    if current is not None:
+        sections[current] = (start, len(lines))
+    insertions: list[tuple[int, str, int | None]] = []
+    for table, setting in chosen.items():
+        if table not in sections:
+            raise StudyError(f"tuning file has no table [{table}]")
+        first, end = sections[table]
+        remaining = dict(setting)
+        existing_comment = None
+        for i in range(first + 1, end):
+            line = lines[i]
+            if line.lstrip().startswith("#") and line.rstrip().endswith(comment):
+                existing_comment = i
+                continue
+            match = _ASSIGNMENT.match(line.rstrip("\n"))
+            if match and match.group("name") in remaining:
+                newline = "\n" if line.endswith("\n") else ""
+                value_text = format_value(remaining.pop(match.group("name")))
+                rest = match.group("rest")
+                comment_text = rest.lstrip()
+                if comment_text:
+                    # Keep the trailing comment's column (at least one space before it).
+                    column = len(match.group("key")) + len(match.group("value")) + len(rest) - len(comment_text)
+                    gap = max(1, column - len(match.group("key")) - len(value_text))
+                    rest = " " * gap + comment_text
+                lines[i] = match.group("key") + value_text + rest + newline
+        if remaining:
+            raise StudyError(f"tuning file table [{table}] has no field(s) {sorted(remaining)}")
+        note = f"# {', '.join(name for name, _ in setting)}: {comment}\n"
+        insertions.append((first + 1, note, existing_comment))
+    for position, note, existing in sorted(insertions, key=lambda item: item[0], reverse=True):
+        if existing is not None:
+            lines[existing] = note
+        else:
+            lines.insert(position, note)
+    result = "".join(lines)
+    try:
+        document = tomllib.loads(result)
+    except tomllib.TOMLDecodeError as e:
+        raise StudyError(f"edited tuning file is not valid TOML: {e}") from e
+    for table, setting in chosen.items():
+        for name, value in setting:
+            if document[table][name] != value:
+                raise StudyError(f"[{table}] {name}: wrote {value!r}, reads back {document[table][name]!r}")
+    return result
+
+
+def write_tuning_file(path: Path, chosen: Mapping[str, Setting]) -> None:
+    """Re-read ``path`` now and write it back with :func:`update_tuning_text`'s edits
+    (others may have changed other tables since the sweep started)."""
+    text = path.read_text(encoding="utf-8")
+    updated = update_tuning_text(text, chosen)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(updated, encoding="utf-8")
+    os.replace(temporary, path)
+
+
+# ---------------------------------------------------------------------------- reports
+
+def _setting_text(setting: Setting) -> str:
+    return ", ".join(f"{name} {value:g}" for name, value in setting)
+
+
+def _grid_text(grid: SweepGrid) -> str:
+    return "; ".join(f"{name} {{{', '.join(f'{v:g}' for v in values)}}}" for name, values in grid.levels)
+
+
+def sweep_markdown(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenario],
+                   context: Mapping[str, str],
+                   weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
+                   observer_start: Setting = OBSERVER_START) -> str:
+    """The report: the procedure, then per controller its grid, choice and top settings."""
+    names = [s.name for s in scenarios]
+    out = ["### Tuning sweep on the tuning set (`make tune`)", "",
+           f"Every controller tuned by the same procedure (`studies/tuning_sweep.py`) on the "
+           f"{len(names)} tuning scenarios of `hil/scenarios/tuning/` ({', '.join(names)}); "
+           "the double lane changes of Tables II / III are not among them. Objective: the mean "
+           f"e_Y RMSE over the tuning scenarios, {FAILURE_PENALTY_M:g} m for a run that does not complete.",
+           "",
+           f"- Stage 1, MPC weights (every controller, {len(weight_grid)} settings): {_grid_text(weight_grid)}.",
+           f"- Stage 2, observer (controllers with observer fields, {len(observer_grid)} settings at "
+           f"the best weights): {_grid_text(observer_grid)}; during stage 1 the observer is at "
+           f"{_setting_text(observer_start)}.",
+           ]
+    out += [f"- {key}: {value}" for key, value in context.items()]
+    out += ["", "| controller | swept fields | evaluations | chosen setting | tuning-set e_Y RMSE (m) "
+            "| before: setting, e_Y RMSE (m) | runs incomplete | s / evaluation |",
+            "|---|---|---|---|---|---|---|---|"]
+    for sweep in sweeps:
+        chosen = sweep.chosen
+        before = sweep.before
+        before_text = ("not evaluated" if before is None
+                       else f"{_setting_text(before.setting)}: {before.objective_m:.4f}")
+        incomplete = sum(not done for e in sweep.evaluations for done in e.completed.values())
+        seconds = float(np.mean([e.seconds for e in sweep.evaluations]))
+        out.append(f"| {sweep.controller} | {', '.join(sweep.weight_fields + sweep.observer_fields)} | "
+                   f"{len(sweep.evaluations)} | {_setting_text(chosen.setting)} | {chosen.objective_m:.4f} | "
+                   f"{before_text} | {incomplete} of {len(sweep.evaluations) * len(names)} | {seconds:.1f} |")
+    for sweep in sweeps:
+        out += ["", f"#### {sweep.controller}", "",
+                f"Stage 1: {_grid_text(weight_grid)}"
+                + (f"; stage 2: {_grid_text(observer_grid.restricted(sweep.observer_fields))}."
+                   if sweep.observer_fields else "; no observer fields (no stage 2)."),
+                "", f"Top {TOP_N} (chosen first):", "",
+                "| rank | stage | setting | mean e_Y RMSE (m) | worst scenario e_Y RMSE (m) | incomplete runs |",
+                "|---|---|---|---|---|---|"]
+        for rank, evaluation in enumerate(sweep.top(), start=1):
+            worst_name = max(evaluation.rmse_m, key=lambda n: (not evaluation.completed[n],
+                                                              np.nan_to_num(evaluation.rmse_m[n], nan=np.inf)))
+            incomplete = [n for n, done in evaluation.completed.items() if not done]
+            out.append(f"| {rank} | {evaluation.stage} | {_setting_text(evaluation.setting)} | "
+                       f"{evaluation.objective_m:.4f} | {worst_name}: {evaluation.rmse_m[worst_name]:.4f} | "
+                       f"{', '.join(incomplete) or '-'} |")
+        chosen = sweep.chosen
+        grid_levels = dict(weight_grid.levels) | dict(observer_grid.levels)
+        edges = [name for name, value in chosen.setting
+                 if len(grid_levels.get(name, ())) > 1 and value in (min(grid_levels[name]), max(grid_levels[name]))]
+        if edges:
+            out += ["", f"The chosen {', '.join(edges)} {'is' if len(edges) == 1 else 'are'} at the "
+                    "edge of the grid: a wider grid might find a better value."]
+        out += ["", "Chosen setting per tuning scenario: "
+                + "; ".join(f"{n} {chosen.rmse_m[n]:.4f} m" + ("" if chosen.completed[n] else " (incomplete)")
+                            for n in names) + "."]
+    out += ["", "The figures are tuning-set figures, for choosing settings: they rank settings of one "
+            "controller and say nothing about how controllers compare on the evaluation "
+            "(results/table2_high_mu.md, results/table3_low_mu.md)."]
+    return "\n".join(out) + "\n"
+
+
+def plot_sweep(sweeps: Sequence[ControllerSweep], path: Path) -> None:
+    """Each controller's objectives sorted (log axis), the chosen setting marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.0, 4.5))
+    for sweep in sweeps:
+        values = np.sort([min(e.objective_m, FAILURE_PENALTY_M) for e in sweep.evaluations])
+        line, = ax.plot(np.arange(1, values.size + 1), values, marker=".", label=sweep.controller)
+        ax.plot([1], [sweep.chosen.objective_m], marker="o", color=line.get_color(), markersize=8)
+    ax.set_yscale("log")
+    ax.set_xlabel("settings of the controller, best first")
+    ax.set_ylabel("mean e_Y RMSE on the tuning set (m, log)")
+    ax.set_title("make tune: every setting's objective on the tuning set (circle: chosen)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def sweep_document(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenario],
+                   context: Mapping[str, str],
+                   weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
+                   observer_start: Setting = OBSERVER_START) -> dict[str, Any]:
+    """The JSON document: procedure, context, and every evaluation per controller."""
+    return {
+        "generated_by": "make tune (python -m studies.tuning_sweep)",
+        "scenarios": [s.name for s in scenarios],
+        "objective": f"mean e_Y RMSE over the scenarios (m); {FAILURE_PENALTY_M:g} m for an incomplete run",
+        "weight_grid": weight_grid.as_dict(), "observer_grid": observer_grid.as_dict(),
+        "observer_start": dict(observer_start), "context": dict(context),
+        "controllers": {
+            sweep.controller: {
+                "swept_fields": list(sweep.weight_fields + sweep.observer_fields),
+                "before": None if sweep.before is None else sweep.before.as_dict(),
+                "chosen": sweep.chosen.as_dict(),
+                "evaluations": [e.as_dict() for e in sweep.evaluations],
+            } for sweep in sweeps},
+    }
+
+
+def artefact_description(path: Path) -> str:
+    """``<file> sha256 <first 12 hex>`` of the default Koopman artefact (which the sweep used)."""
+    if not path.is_file():
+        return f"{path.name} missing"
+    return f"{path.name} sha256 {hashlib.sha256(path.read_bytes()).hexdigest()[:12]}"
+
+
+# ---------------------------------------------------------------------------- CLI
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI: the sweep, its reports and (unless ``--no-write``) the tuning file's values."""
+    from controller.errors import ControllerError
+    from controller.registry import CONTROLLERS
+    from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
+    from models.errors import ModelError
+    from models.koopman import DEFAULT_ARTIFACT
+
+    parser = argparse.ArgumentParser(prog="python -m studies.tuning_sweep",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--controllers", nargs="+", default=None,
+                        help="registry names (default: every controller the registry builds)")
+    parser.add_argument("--scenarios", nargs="+", default=None,
+                        help=f"tuning scenario names (default: all {len(TUNING_SET)})")
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                        help="worker processes (default: 2, or 1 on a one-core machine)")
+    parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
+    parser.add_argument("--tuning", type=Path, default=DEFAULT_TUNING_PATH,
+                        help="tuning file read and (unless --no-write) updated")
+    parser.add_argument("--no-write", action="store_true", help="do not write the tuning file")
+    parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    args = parser.parse_args(argv)
+    controllers = list(args.controllers or CONTROLLERS)
+    artefact = Path(DEFAULT_ARTIFACT)
+    artefact_before = artefact_description(artefact)
+    started = time.perf_counter()
+    try:
+        scenarios = tuning_scenarios(args.scenarios)
+        tuning = load_tuning(args.tuning)
+        sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers,
+                           show_progress=not args.no_progress, evaluate_before=True)
+    except (HilError, ControllerError, ModelError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    elapsed = time.perf_counter() - started
+    if artefact_description(artefact) != artefact_before:
+        # Runs built before and after the change used different models: not one sweep.
+        print(f"error: {artefact} changed during the sweep ({artefact_before} -> "
+              f"{artefact_description(artefact)}); run make tune again", file=sys.stderr)
+        return 1
+    runs = sum(len(s.evaluations) + (s.before is not None) for s in sweeps) * len(scenarios)
+    context = {
+        "Koopman artefact used": artefact_before,
+        "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {runs} closed-loop runs",
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "tuning_sweep.md").write_text(sweep_markdown(sweeps, scenarios, context))
+    (args.out / "tuning_sweep.json").write_text(
+        json.dumps(sweep_document(sweeps, scenarios, context), indent=1) + "\n")
+    plot_sweep(sweeps, args.out / "tuning_sweep.png")
+    for sweep in sweeps:
+        print(f"{sweep.controller}: {_setting_text(sweep.chosen.setting)} -> "
+              f"{sweep.chosen.objective_m:.4f} m")
+    print(f"wrote {args.out}/tuning_sweep.md, .json, .png in {elapsed / 60:.1f} min")
+    if not args.no_write:
+        chosen = {sweep.controller: sweep.chosen.setting for sweep in sweeps}
+        try:
+            write_tuning_file(args.tuning, chosen)
+            load_tuning(args.tuning)
+        except (StudyError, ControllerError, OSError) as e:
+            print(f"error: writing {args.tuning}: {e}", file=sys.stderr)
+            return 1
+        print(f"wrote the chosen values into {args.tuning}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

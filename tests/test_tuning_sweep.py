@@ -1,0 +1,276 @@
+"""The tuning set and the tuning sweep (``make tune``): properties only.
+
+The tuning scenarios share nothing with the evaluation (names, path files, paths); the
+sweep is one procedure for every registered controller; it picks the setting with the
+lowest objective, counts incomplete runs as the penalty, is deterministic, and edits only
+the swept values of the tuning file. No test here compares controllers with each other.
+"""
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from controller.registry import CONTROLLERS
+from controller.tuning import DEFAULT_TUNING_PATH, load_tuning, parse_tuning
+from hil.errors import ScenarioError, StudyError
+from hil.scenario import Scenario, list_scenarios, load_scenario
+from studies import tuning_sweep
+from studies.tuning_set import (POINT_SPACING_M, TUNING_SET, path_points, scenario_text,
+                                tuning_scenarios)
+from studies.tuning_sweep import (FAILURE_PENALTY_M, OBSERVER_FIELDS, OBSERVER_GRID,
+                                  OBSERVER_START, WEIGHT_FIELDS, WEIGHT_GRID, SweepGrid,
+                                  run_sweep, stage_one_settings, stage_two_settings,
+                                  swept_fields, update_tuning_text)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _evaluation_scenarios() -> list[Scenario]:
+    """Every scenario an evaluation study runs: Tables II / III over CAN and without, and
+    every shipped scenario of hil/scenarios/*.toml."""
+    from studies import paper_tables, run_all
+
+    names = set(paper_tables.SCENARIOS) | set(run_all.SCENARIOS) | set(list_scenarios())
+    return [load_scenario(name) for name in sorted(names)]
+
+
+# ---------------------------------------------------------------------------- tuning set
+
+def test_tuning_set_is_disjoint_from_the_evaluation() -> None:
+    tuning = tuning_scenarios()
+    evaluation = _evaluation_scenarios()
+    assert {"dlc_high_mu", "dlc_low_mu"} <= {s.name for s in evaluation}
+    assert not {s.name for s in tuning} & {s.name for s in evaluation}
+    assert not {s.path_file.resolve() for s in tuning} & {s.path_file.resolve() for s in evaluation}
+    assert not {s.source for s in tuning} & {s.source for s in evaluation}
+    assert not {s.name for s in tuning} & set(list_scenarios())  # not listed as shipped ones
+    evaluation_paths = [s.path_points() for s in evaluation]
+    for scenario in tuning:  # not a copy of an evaluation path under another name
+        points = scenario.path_points()
+        assert all(points.shape != other.shape or not np.allclose(points, other)
+                   for other in evaluation_paths), scenario.name
+
+
+def test_committed_tuning_set_equals_the_regenerated_one() -> None:
+    """Regenerate with: python -m studies.tuning_set (make tuning-set)."""
+    for manoeuvre in TUNING_SET:
+        committed = Scenario.load(manoeuvre.scenario_file)
+        assert manoeuvre.scenario_file.read_text() == scenario_text(manoeuvre)
+        stored = committed.path_points()
+        fresh = path_points(manoeuvre)
+        difference = float(np.max(np.abs(stored - fresh)))
+        print(f"{manoeuvre.name}: max |committed - regenerated| = {difference:.2e}")
+        assert stored.shape == fresh.shape and difference < 2e-6
+
+
+def test_tuning_scenarios_start_on_a_smooth_path_at_speed() -> None:
+    for manoeuvre, scenario in zip(TUNING_SET, tuning_scenarios()):
+        points = scenario.path_points()
+        at_start = np.flatnonzero(np.hypot(points[:, 0], points[:, 1]) < 1e-9)
+        assert at_start.size == 1 and points[at_start[0], 2] == pytest.approx(0.0, abs=1e-9)
+        assert scenario.start.speed_mps == pytest.approx(manoeuvre.speeds_kmh[0] / 3.6)
+        assert 10.0 <= scenario.duration_s <= 15.0 and scenario.mu == manoeuvre.mu
+        heading_change = np.abs(np.diff(np.unwrap(points[:, 2])))
+        assert np.max(heading_change) / POINT_SPACING_M < 0.05  # curvature below 1/20 m
+        driven = manoeuvre.max_speed_mps * scenario.duration_s
+        ahead = points[at_start[0]:]
+        assert np.sum(np.hypot(np.diff(ahead[:, 0]), np.diff(ahead[:, 1]))) > driven + 30.0
+
+
+def test_unknown_tuning_scenario_is_refused() -> None:
+    with pytest.raises(ScenarioError, match="dlc_high_mu"):
+        tuning_scenarios(["dlc_high_mu"])
+
+
+# ---------------------------------------------------------------------------- procedure
+
+def test_the_procedure_is_the_same_for_every_registered_controller() -> None:
+    tuning = load_tuning()
+
+    def part(setting, fields):
+        return tuple((name, value) for name, value in setting if name in fields)
+
+    stage_one = {}
+    for name in CONTROLLERS:
+        weight_fields, observer_fields = swept_fields(tuning.for_controller(name))
+        assert weight_fields == WEIGHT_FIELDS
+        assert observer_fields in ((), OBSERVER_FIELDS), name
+        settings = stage_one_settings(observer_fields)
+        assert len(settings) == len(WEIGHT_GRID)
+        assert all(part(s, OBSERVER_FIELDS) == part(OBSERVER_START, observer_fields) for s in settings)
+        stage_one[name] = [part(s, WEIGHT_FIELDS) for s in settings]
+        second = stage_two_settings(settings[-1], observer_fields)
+        assert len(second) == (len(OBSERVER_GRID) if observer_fields else 0)
+        assert all(part(s, WEIGHT_FIELDS) == stage_one[name][-1] for s in second)
+        assert [part(s, OBSERVER_FIELDS) for s in second] == OBSERVER_GRID.restricted(observer_fields).settings()
+    first = next(iter(stage_one.values()))
+    assert all(weights == first for weights in stage_one.values())  # the same grid, same order
+
+
+def test_every_grid_setting_is_a_valid_tuning_file() -> None:
+    """Written into the real tuning file and validated by controller.tuning's own rules."""
+    text = DEFAULT_TUNING_PATH.read_text()
+    observed = [name for name in CONTROLLERS if swept_fields(load_tuning().for_controller(name))[1]]
+    for weights in WEIGHT_GRID.settings():
+        chosen = {name: weights for name in CONTROLLERS}
+        parse_tuning(tomllib.loads(update_tuning_text(text, chosen)))
+    for observer in OBSERVER_GRID.settings():
+        chosen = {name: observer for name in observed}
+        parse_tuning(tomllib.loads(update_tuning_text(text, chosen)))
+
+
+def test_grid_refuses_repeated_levels() -> None:
+    with pytest.raises(StudyError, match="distinct"):
+        SweepGrid((("q_yaw", (1.0, 1.0)),))
+    assert len(SweepGrid((("a", (1.0, 2.0)), ("b", (3.0,))))) == 2
+
+
+# ---------------------------------------------------------------------------- tuning file
+
+def test_tuning_file_edit_changes_only_the_swept_values() -> None:
+    text = DEFAULT_TUNING_PATH.read_text()
+    chosen = {"lmpc": (("q_position", 300.0), ("q_yaw", 5.0), ("r_steer", 0.3), ("p_steer_rate", 300.0))}
+    edited = update_tuning_text(text, chosen)
+    before, after = text.splitlines(), edited.splitlines()
+    assert len(after) == len(before) + 1  # one comment line under [lmpc]
+    header = before.index("[lmpc]")
+    assert after[header + 1].startswith("# q_position, q_yaw, r_steer, p_steer_rate: ")
+    assert after[header + 1].endswith(tuning_sweep.TUNING_COMMENT)
+    changed = [(b, a) for b, a in zip(before, after[:header + 1] + after[header + 2:]) if b != a]
+    assert {a.split("=")[0].strip() for _, a in changed} <= {"q_position", "q_yaw", "r_steer"}
+    document, original = tomllib.loads(edited), tomllib.loads(text)
+    assert document["lmpc"]["q_position"] == 300.0 and document["lmpc"]["r_steer"] == 0.3
+    assert {k: v for k, v in document.items() if k != "lmpc"} == {k: v for k, v in original.items() if k != "lmpc"}
+    # A second sweep replaces its comment instead of adding another.
+    again = update_tuning_text(edited, {"lmpc": (("q_position", 30.0),)})
+    assert again.count(tuning_sweep.TUNING_COMMENT) == 1
+    assert tomllib.loads(again)["lmpc"]["q_position"] == 30.0
+
+
+def test_tuning_file_edit_keeps_trailing_comments() -> None:
+    text = "[a]  # table note\nx = 1.0     # the x\ny = 2.0\n\n[b]\nx = 5.0\n"
+    edited = update_tuning_text(text, {"a": (("x", 1000.0), ("y", 0.25))}, comment="note")
+    assert "x = 1000.0  # the x\n" in edited and "y = 0.25\n" in edited
+    assert edited.endswith("[b]\nx = 5.0\n") and edited.startswith("[a]  # table note\n# x, y: note\n")
+    with pytest.raises(StudyError, match=r"\[c\]"):
+        update_tuning_text(text, {"c": (("x", 1.0),)})
+    with pytest.raises(StudyError, match="z"):
+        update_tuning_text(text, {"b": (("z", 1.0),)})
+
+
+# ---------------------------------------------------------------------------- the sweep
+
+def _fake_result(rmse: float, completed: bool = True) -> SimpleNamespace:
+    lateral = SimpleNamespace(rmse=rmse, max_abs=2.0 * rmse)
+    return SimpleNamespace(completed=completed, failure=None if completed else "left the road",
+                           tracking=SimpleNamespace(lateral=lateral))
+
+
+def _scenario(name: str) -> SimpleNamespace:
+    return SimpleNamespace(name=name)
+
+
+def test_sweep_picks_the_lowest_objective_and_penalises_incomplete_runs() -> None:
+    """On a stand-in runner (no plant): the objective is q_position's distance from 100,
+    except that q_position 1000 leaves the road on one scenario, and the file's setting
+    (q_position 10, off the grid) is the best of all but is no candidate."""
+    tuning = load_tuning()
+    tuning = dataclasses.replace(tuning, lmpc=dataclasses.replace(tuning.lmpc, q_position=10.0))
+    weights = SweepGrid((("q_position", (30.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
+                         ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
+    observer = SweepGrid((("eso_pole", (0.0, 0.3)), ("eso_second_pole", (0.97,)),
+                          ("disturbance_decay", (1.0,))))
+
+    def runner(scenario, controller):
+        table = controller.tuning
+        if table.q_position == 10.0:
+            return _fake_result(1e-4)
+        base = abs(np.log10(table.q_position / 100.0)) + 0.01
+        if table.q_position == 1000.0 and scenario.name == "b":
+            return _fake_result(0.001, completed=False)
+        if hasattr(table, "eso_pole"):
+            base += 0.002 * (table.eso_pole == 0.3)
+        return _fake_result(base)
+
+    sweeps = run_sweep(["lmpc", "lmpc-eso"], [_scenario("a"), _scenario("b")], tuning,
+                       weight_grid=weights, observer_grid=observer,
+                       observer_start=(("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0)),
+                       runner=runner, show_progress=False, evaluate_before=True)
+    lmpc, lmpc_eso = sweeps
+    assert dict(lmpc.chosen.setting)["q_position"] == 100.0
+    assert lmpc.chosen.objective_m == pytest.approx(0.01)
+    failed = next(e for e in lmpc.evaluations if dict(e.setting)["q_position"] == 1000.0)
+    assert failed.objective_m == pytest.approx((1.01 + FAILURE_PENALTY_M) / 2)
+    assert [e.stage for e in lmpc.evaluations] == ["weights"] * 3  # no observer: no stage 2
+    assert lmpc.before is not None and dict(lmpc.before.setting)["q_position"] == 10.0
+    assert lmpc.before.objective_m < lmpc.chosen.objective_m  # reported, never chosen
+    assert {e.stage for e in lmpc_eso.evaluations} == {"weights", "observer"}
+    assert len(lmpc_eso.evaluations) == 3 + 1  # the stage-2 point at OBSERVER_START is not rerun
+    assert dict(lmpc_eso.chosen.setting) == {"q_position": 100.0, "q_yaw": 20.0, "r_steer": 1.0,
+                                              "p_steer_rate": 300.0, "eso_pole": 0.0,
+                                              "eso_second_pole": 0.97, "disturbance_decay": 1.0}
+    assert [e.objective_m for e in lmpc.top(2)] == sorted(e.objective_m for e in lmpc.evaluations)[:2]
+
+
+def test_sweep_records_a_controller_that_cannot_be_built() -> None:
+    tuning = load_tuning()
+    weights = SweepGrid((("q_position", (10.0,)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
+                         ("p_steer_rate", (300.0,))))
+
+    def runner(scenario, controller):
+        raise RuntimeError("solver exploded")
+
+    [sweep] = run_sweep(["lmpc"], [_scenario("a")], tuning, weight_grid=weights,
+                        runner=runner, show_progress=False)
+    assert sweep.chosen.objective_m == FAILURE_PENALTY_M
+    assert "solver exploded" in sweep.chosen.failure["a"]
+
+
+def _short_tuning_scenario(duration_s: float = 2.0) -> Scenario:
+    return dataclasses.replace(tuning_scenarios([TUNING_SET[3].name])[0], duration_s=duration_s)
+
+
+def test_tiny_real_sweep_returns_the_better_setting_and_repeats_exactly() -> None:
+    """LMPC on 2 s of one tuning scenario, two settings, in this process, twice."""
+    tuning = load_tuning()
+    weights = SweepGrid((("q_position", (30.0, 1000.0)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
+                         ("p_steer_rate", (300.0,))))
+    scenario = _short_tuning_scenario()
+    runs = [run_sweep(["lmpc"], [scenario], tuning, weight_grid=weights, show_progress=False)[0]
+            for _ in range(2)]
+    objectives = [[e.objective_m for e in sweep.evaluations] for sweep in runs]
+    print(f"objectives {objectives[0]}")
+    assert objectives[0] == objectives[1]  # bit for bit
+    assert all(np.isfinite(objectives[0])) and objectives[0][0] != objectives[0][1]
+    assert runs[0].chosen.objective_m == min(objectives[0])
+    assert runs[0].chosen.setting == runs[1].chosen.setting
+
+
+@pytest.mark.slow
+def test_two_workers_give_the_same_sweep_as_one() -> None:
+    tuning = load_tuning()
+    weights = SweepGrid((("q_position", (30.0, 300.0)), ("q_yaw", (5.0, 20.0)), ("r_steer", (1.0,)),
+                         ("p_steer_rate", (300.0,))))
+    scenario = _short_tuning_scenario(1.0)
+    serial, parallel = (run_sweep(["lmpc", "lmpc-eso"], [scenario], tuning, weight_grid=weights,
+                                  observer_grid=SweepGrid((("eso_pole", (0.0, 0.3)),)),
+                                  workers=workers, show_progress=False) for workers in (1, 2))
+    for one, two in zip(serial, parallel):
+        assert [(e.setting, e.objective_m) for e in one.evaluations] == \
+            [(e.setting, e.objective_m) for e in two.evaluations]
+        assert one.chosen.setting == two.chosen.setting
+
+
+def test_cli_names_a_bad_scenario_and_writes_nothing(tmp_path: Path, capsys) -> None:
+    tuning_copy = tmp_path / "tuning.toml"
+    tuning_copy.write_text(DEFAULT_TUNING_PATH.read_text())
+    out = tmp_path / "out"
+    status = tuning_sweep.main(["--scenarios", "no_such_road", "--out", str(out), "--tuning",
+                                str(tuning_copy), "--no-progress"])
+    assert status == 1 and "no_such_road" in capsys.readouterr().err
+    assert not out.exists() and tuning_copy.read_text() == DEFAULT_TUNING_PATH.read_text()
