@@ -12,6 +12,7 @@ import numbers
 import typing
 from dataclasses import dataclass
 from enum import IntEnum
+from pathlib import Path
 from typing import Any
 
 import cantools
@@ -193,29 +194,48 @@ _CODECS: dict[int, _FrameCodec] = {}
 _CODECS_BY_CLASS: dict[type, _FrameCodec] = {}
 
 
-def prepare() -> None:
+def prepare(dbc_path: str | Path | None = None) -> None:
     """Parse the DBC and build the frame codecs now rather than at the first `encode` /
-    `decode` (a node calls this at start-up to keep the ~0.1 s parse off its first cycle).
-    Raises `DbcLoadError` if the DBC and the frame classes disagree."""
-    _codecs()
+    `decode` (a node calls this at start-up, before it opens the bus, so that a DBC it
+    cannot use stops it there and the ~0.1 s parse stays off its first cycle).
+
+    ``dbc_path``: a DBC other than the contract's (``can_defs/vehicle.dbc``); the codecs
+    of this process are then built from it. Raises `DbcLoadError` if the DBC cannot be
+    read or parsed, or if it and the frame classes disagree (the codecs in use are kept).
+    """
+    if dbc_path is None:
+        _codecs()
+        return
+    built = _build_codecs(load_database(Path(dbc_path)))
+    _CODECS.clear()
+    _CODECS_BY_CLASS.clear()
+    _install(built)
+
+
+def _build_codecs(database: cantools.database.can.Database) -> dict[int, _FrameCodec]:
+    """One codec per contract frame of ``database``; raises `DbcLoadError` on a mismatch."""
+    built = {}
+    for frame_id, frame_class in FRAME_CLASSES.items():
+        try:
+            message = database.get_message_by_frame_id(int(frame_id))
+        except KeyError as error:
+            raise DbcLoadError(f"DBC has no frame {frame_id.name} (0x{frame_id:03X})") from error
+        if message.length != FRAME_LENGTH or message.name != frame_id.name:
+            raise DbcLoadError(f"DBC frame 0x{frame_id:03X} is {message.name} with "
+                               f"length {message.length}, expected {frame_id.name}, 8")
+        built[int(frame_id)] = _FrameCodec(frame_class, message)
+    return built
+
+
+def _install(built: dict[int, _FrameCodec]) -> None:
+    _CODECS_BY_CLASS.update({codec.frame_class: codec for codec in built.values()})
+    _CODECS.update(built)
 
 
 def _codecs() -> dict[int, _FrameCodec]:
     """Frame codecs by arbitration ID, built from the DBC on first use."""
     if not _CODECS:
-        database = load_database()
-        built = {}
-        for frame_id, frame_class in FRAME_CLASSES.items():
-            try:
-                message = database.get_message_by_frame_id(int(frame_id))
-            except KeyError as error:
-                raise DbcLoadError(f"DBC has no frame {frame_id.name} (0x{frame_id:03X})") from error
-            if message.length != FRAME_LENGTH or message.name != frame_id.name:
-                raise DbcLoadError(f"DBC frame 0x{frame_id:03X} is {message.name} with "
-                                   f"length {message.length}, expected {frame_id.name}, 8")
-            built[int(frame_id)] = _FrameCodec(frame_class, message)
-        _CODECS_BY_CLASS.update({codec.frame_class: codec for codec in built.values()})
-        _CODECS.update(built)
+        _install(_build_codecs(load_database()))
     return _CODECS
 
 

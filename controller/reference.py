@@ -9,6 +9,14 @@ The path CSV format (``read_path_csv``, ``format_path_csv``) and the double-lane
 formula (``double_lane_change_curve``) are implemented here only; ``hil.path_files`` and
 the studies use them. Files are read and validated only when loaded
 (``ReferencePath.from_csv``); nothing here raises at step time for finite inputs.
+
+A path *file* passes the contract's checks (revision 2, "Reference path"; `check_path_file`)
+before it is used: 2 to 100,000 points, finite values, inside the range of POS_X / POS_Y,
+consecutive points 0.01 to 0.5 m apart, every yaw within 0.5 rad (modulo 2 pi) of the
+direction to the next point, and no turn of more than 0.5 rad from one segment to the
+next. The file is read row by row and refused at its 100,001st point, so a huge file
+never fills the memory. Paths built in code (`ReferencePath.from_arrays`) get only the
+basic checks of `check_path_points`.
 """
 from __future__ import annotations
 
@@ -28,6 +36,14 @@ MAX_POINT_SPACING_M = 0.5
 MIN_POINT_SPACING_M = 1e-6
 #: Header line of a path CSV (``docs/can-contract.md``, "Reference path").
 CSV_HEADER = ("x", "y", "yaw")
+#: Path-file checks of the contract (revision 2, "Reference path").
+MAX_PATH_POINTS = 100_000
+MIN_FILE_POINT_SPACING_M = 0.01
+MAX_YAW_DEVIATION_RAD = 0.5
+MAX_SEGMENT_TURN_RAD = 0.5
+#: Range of POS_X / POS_Y (24 bit signed, 0.001 m): a point outside cannot be driven to.
+POSITION_MIN_M = -8388.608
+POSITION_MAX_M = 8388.607
 
 
 def double_lane_change_curve(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,49 +100,126 @@ def check_path_points(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, where: str)
     return spacing
 
 
-def _parse_path_csv(path: Path) -> np.ndarray:
-    """The numbers of a path CSV, shape (n, 3), header and cells checked (not the points)."""
+def _parse_path_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The numbers of a path CSV and their line numbers, shapes (n, 3) and (n,); header
+    and cells checked, not the points. Read row by row: more than `MAX_PATH_POINTS`
+    points is refused at the first one too many, before the rest is read."""
+    values: list[tuple[float, ...]] = []
+    lines: list[int] = []
+    header: tuple[str, ...] | None = None
     try:
         with path.open(newline="") as handle:
-            rows = list(csv.reader(handle))
+            reader = csv.reader(handle)
+            for row in reader:
+                line = reader.line_num
+                if not row or not any(cell.strip() for cell in row):
+                    continue
+                if header is None:
+                    header = tuple(cell.strip() for cell in row)
+                    if header != CSV_HEADER:
+                        raise PathError(f"{path}: line {line}: header must be 'x,y,yaw', "
+                                        f"got {','.join(header)!r}")
+                    continue
+                if len(values) == MAX_PATH_POINTS:
+                    raise PathError(f"{path}: line {line}: more than {MAX_PATH_POINTS:,} "
+                                    "points (the contract's limit)")
+                if len(row) != 3:
+                    raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
+                point = []
+                for j, cell in enumerate(row):
+                    try:
+                        point.append(float(cell))
+                    except ValueError as e:
+                        raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
+                                        f"not a number: {cell!r}") from e
+                values.append(tuple(point))
+                lines.append(line)
     except FileNotFoundError as e:
         raise PathError(f"{path}: path file not found") from e
-    except (OSError, UnicodeDecodeError) as e:
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise PathError(f"{path}: cannot read path file: {e}") from e
-    rows = [row for row in rows if row and any(cell.strip() for cell in row)]
-    if not rows:
+    if header is None:
         raise PathError(f"{path}: empty file (expected header 'x,y,yaw')")
-    header = tuple(cell.strip() for cell in rows[0])
-    if header != CSV_HEADER:
-        raise PathError(f"{path}: header must be 'x,y,yaw', got {','.join(header)!r}")
-    values = np.empty((len(rows) - 1, 3))
-    for i, row in enumerate(rows[1:]):
-        line = i + 2
-        if len(row) != 3:
-            raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
-        for j, cell in enumerate(row):
-            try:
-                values[i, j] = float(cell)
-            except ValueError as e:
-                raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
-                                f"not a number: {cell!r}") from e
-    return values
+    return np.array(values, dtype=float).reshape(-1, 3), np.array(lines, dtype=int)
+
+
+def _angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| modulo 2 pi, in [0, pi]."""
+    return np.abs(np.mod(np.asarray(a) - np.asarray(b) + math.pi, 2.0 * math.pi) - math.pi)
+
+
+def check_path_file(points: np.ndarray, lines: np.ndarray, where: str) -> np.ndarray:
+    """The contract's checks of a path file (revision 2, "Reference path").
+
+    Args:
+        points: ``[x, y, yaw]`` rows as read, shape (n, 3).
+        lines: the file line of each point, shape (n,) (for the message).
+        where: the file name.
+
+    Returns:
+        The points with yaw wrapped to [-pi, pi), shape (n, 3).
+
+    Raises:
+        PathError: naming the file, the line and the check that failed.
+    """
+    n = points.shape[0]
+    if n < 2:
+        raise PathError(f"{where}: needs at least 2 points, got {n}")
+    if n > MAX_PATH_POINTS:
+        raise PathError(f"{where}: line {lines[MAX_PATH_POINTS]}: more than "
+                        f"{MAX_PATH_POINTS:,} points (the contract's limit)")
+    bad = np.argwhere(~np.isfinite(points))
+    if bad.size:
+        i, j = bad[0]
+        raise PathError(f"{where}: line {lines[i]}: {CSV_HEADER[j]} = {points[i, j]} is not finite")
+    xy = points[:, :2]
+    outside = np.argwhere((xy < POSITION_MIN_M) | (xy > POSITION_MAX_M))
+    if outside.size:
+        i, j = outside[0]
+        raise PathError(f"{where}: line {lines[i]}: {CSV_HEADER[j]} = {xy[i, j]:g} m is outside "
+                        f"the range of POS_X / POS_Y [{POSITION_MIN_M}, {POSITION_MAX_M}] m")
+    step = np.diff(xy, axis=0)
+    spacing = np.hypot(step[:, 0], step[:, 1])
+    off = np.flatnonzero((spacing < MIN_FILE_POINT_SPACING_M) | (spacing > MAX_POINT_SPACING_M))
+    if off.size:
+        i = off[0]
+        raise PathError(f"{where}: line {lines[i + 1]}: {spacing[i]:.3f} m from the previous "
+                        f"point (must be {MIN_FILE_POINT_SPACING_M} to {MAX_POINT_SPACING_M} m)")
+    direction = np.arctan2(step[:, 1], step[:, 0])           # segment i: point i -> i + 1
+    yaw = points[:, 2]
+    point_direction = np.concatenate((direction, direction[-1:]))
+    deviation = _angle_difference(yaw, point_direction)
+    off = np.flatnonzero(deviation > MAX_YAW_DEVIATION_RAD)
+    if off.size:
+        i = off[0]
+        raise PathError(f"{where}: line {lines[i]}: yaw {yaw[i]:.4f} rad is {deviation[i]:.3f} "
+                        f"rad from the direction of the points ({point_direction[i]:.4f} rad; "
+                        f"at most {MAX_YAW_DEVIATION_RAD} rad)")
+    turn = _angle_difference(direction[1:], direction[:-1])
+    off = np.flatnonzero(turn > MAX_SEGMENT_TURN_RAD)
+    if off.size:
+        i = off[0]
+        raise PathError(f"{where}: line {lines[i + 1]}: the path turns by {turn[i]:.3f} rad at "
+                        f"this point (at most {MAX_SEGMENT_TURN_RAD} rad; no doubling back)")
+    checked = points.copy()
+    checked[:, 2] = wrap_angle(yaw)
+    return checked
 
 
 def read_path_csv(path: str | Path) -> np.ndarray:
     """Read and validate a path CSV (header ``x,y,yaw``; m, m, rad; one point per row).
 
     Returns:
-        Path points ``[x, y, yaw]`` as written (yaw not unwrapped), shape (n, 3).
+        Path points ``[x, y, yaw]``, yaw wrapped to [-pi, pi) (not unwrapped), shape (n, 3).
 
     Raises:
         PathError: missing or unreadable file, wrong header, a row that is not three
-            numbers, or points that fail `check_path_points`; the message names the file.
+            numbers, or points that fail `check_path_file`; the message names the file
+            and the line.
     """
     path = Path(path)
-    points = _parse_path_csv(path)
-    check_path_points(points[:, 0], points[:, 1], points[:, 2], str(path))
-    return points
+    points, lines = _parse_path_csv(path)
+    return check_path_file(points, lines, str(path))
 
 
 def format_path_csv(points: np.ndarray, yaw_decimals: int = 6) -> str:
@@ -173,8 +266,9 @@ class ReferencePath:
 
     @classmethod
     def from_csv(cls, path: str | Path) -> "ReferencePath":
-        """Load a CSV with header ``x,y,yaw`` (m, m, rad), one point per row."""
-        points = _parse_path_csv(Path(path))
+        """Load a CSV with header ``x,y,yaw`` (m, m, rad), one point per row, that passes
+        the contract's checks (`read_path_csv`)."""
+        points = read_path_csv(path)
         return cls.from_arrays(points[:, 0], points[:, 1], points[:, 2], name=str(path))
 
     @classmethod

@@ -5,15 +5,21 @@
 
 ``--interface`` / ``--channel`` default to python-can's configuration chain: the
 ``CAN_INTERFACE`` / ``CAN_CHANNEL`` environment variables, then the python-can config file.
-Bad input prints ``error: ...`` on stderr and exits non-zero (2 for arguments, 1 for a bus
-that cannot be opened); tracebacks only with ``--debug``. SIGINT / SIGTERM send one last
-STEER_TORQUE_CMD with CMD_VALID = 0, close the bus and exit 0.
+Bad input prints ``error: ...`` on stderr and exits non-zero (2 for arguments and for
+configuration the ECU cannot use at all: an unreadable path file, a DBC that does not
+load, a ``--timing-out`` file that cannot be written; 1 for a bus that cannot be opened);
+all of it is checked before the bus is opened, and tracebacks only with ``--debug``. The
+content of a path file is checked when it is loaded: a bad one latches FAULT (contract).
+SIGINT / SIGTERM / SIGHUP send one last STEER_TORQUE_CMD with CMD_VALID = 0, close the
+bus, write the timing record and exit 0.
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
+import stat
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -23,7 +29,7 @@ from typing import NoReturn
 
 import can
 
-from firmware_sim.errors import BusOpenError, EcuError, PathArgumentError
+from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumentError
 
 #: The registry's names (the paper's four, then the ablations), repeated here so that
 #: ``--help`` needs no controller import; a test checks they equal
@@ -38,6 +44,9 @@ EXIT_USAGE = 2
 
 def parse_path_argument(text: str) -> tuple[int, Path]:
     """``"ID=FILE.csv"`` -> (PATH_ID, file); the file must exist and be readable.
+
+    Nothing is read from the file here: a pipe (``--path 1=<(cat dlc.csv)``) can be read
+    only once, by the loader (issue 17, defect 1).
 
     Raises:
         PathArgumentError: no ``=``, an ID that is not an integer in 0..255, an empty file
@@ -54,12 +63,45 @@ def parse_path_argument(text: str) -> tuple[int, Path]:
         raise PathArgumentError(f"--path {text!r}: ID {path_id} outside 0..255 (PATH_ID is 8 bit)")
     file = Path(file_text)
     try:
-        with file.open("rb") as handle:
-            handle.read(1)
+        mode = file.stat().st_mode
     except OSError as error:
         raise PathArgumentError(f"--path {text!r}: cannot read {file}: "
                                 f"{error.strerror or error}") from error
+    if stat.S_ISDIR(mode):
+        raise PathArgumentError(f"--path {text!r}: cannot read {file}: it is a folder")
+    if not os.access(file, os.R_OK):
+        raise PathArgumentError(f"--path {text!r}: cannot read {file}: permission denied")
     return path_id, file
+
+
+def check_output_file(file: Path, option: str, replace: bool, inputs: Sequence[Path] = ()) -> None:
+    """Refuse an output file the ECU could not write at its end, before anything runs.
+
+    Raises:
+        ConfigError: ``file`` is one of ``inputs``, a folder, an existing file without
+            ``replace``, not writable, or its parent folder is missing or not writable.
+    """
+    resolved = file.resolve()
+    for source in inputs:
+        try:
+            same = source.resolve() == resolved or (source.exists() and file.exists()
+                                                    and os.path.samefile(source, file))
+        except OSError:
+            same = False
+        if same:
+            raise ConfigError(f"{option} {file}: is one of the inputs of this run ({source})")
+    parent = resolved.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{option} {file}: folder {file.parent} does not exist")
+    if file.is_dir():
+        raise ConfigError(f"{option} {file}: is a folder")
+    if file.exists():
+        if not replace:
+            raise ConfigError(f"{option} {file}: file exists (give --replace to overwrite it)")
+        if not os.access(file, os.W_OK):
+            raise ConfigError(f"{option} {file}: file is not writable")
+    elif not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {file}: folder {file.parent} is not writable")
 
 
 def parse_paths(items: Sequence[str]) -> dict[int, Path]:
@@ -126,7 +168,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--rt-priority", type=int, default=None, metavar="P",
                         help="run under SCHED_FIFO priority P (1..99) where permitted")
     parser.add_argument("--timing-out", type=Path, default=None, metavar="FILE.npz",
-                        help="write the per-cycle timing record here on exit")
+                        help="write the per-cycle timing record here on exit (its folder must "
+                             "exist; checked at start)")
+    parser.add_argument("--replace", action="store_true",
+                        help="overwrite an existing --timing-out file")
+    parser.add_argument("--dbc", type=Path, default=None, metavar="FILE.dbc",
+                        help="CAN matrix to use (default: the contract's can_defs/vehicle.dbc); "
+                             "one that does not load is an error before the bus is opened")
     return parser
 
 
@@ -149,6 +197,10 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     stop_event = stop_event or threading.Event()
     try:
         paths = parse_paths(args.path)
+        if args.timing_out is not None:
+            inputs = [*paths.values(), *([args.dbc] if args.dbc else [])]
+            check_output_file(args.timing_out, "--timing-out", args.replace, inputs)
+        prepare_codec(args.dbc)
         bus = open_bus(args.interface, args.channel, args.bitrate)
     except EcuError as error:
         if args.debug:
@@ -158,8 +210,8 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
 
     if threading.current_thread() is threading.main_thread():
         handler = make_stop_handler(stop_event)
-        signal.signal(signal.SIGINT, handler)
-        signal.signal(signal.SIGTERM, handler)
+        for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(signum, handler)
 
     if args.cpu is not None or args.rt_priority is not None:
         from firmware_sim.timing import apply_realtime_policy
@@ -176,7 +228,8 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     from firmware_sim.ecu import Ecu  # after argument checks: keeps --help and errors fast
     ecu = None
     try:
-        ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep)
+        ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep,
+                  reopen_bus=lambda: open_bus(args.interface, args.channel, args.bitrate))
         logging.getLogger("firmware_sim").info(
             "ready: controller %s, PATH_IDs %s, %s, mode %s", args.controller,
             sorted(paths), "lockstep" if args.lockstep else "real time", ecu.mode.name)
@@ -184,8 +237,29 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     finally:
         if ecu is not None:
             ecu.close()
-            if args.timing_out is not None:
-                ecu.timing.save(args.timing_out)
         else:
             bus.shutdown()
+    if ecu is not None and args.timing_out is not None:
+        try:
+            ecu.timing.save(args.timing_out)
+        except OSError as error:
+            if args.debug:
+                raise
+            print(f"error: --timing-out {args.timing_out}: cannot write the timing record: "
+                  f"{error.strerror or error}", file=sys.stderr)
+            return EXIT_BUS
     return EXIT_OK
+
+
+def prepare_codec(dbc: Path | None) -> None:
+    """Load the DBC and build the codecs before the bus is opened (issue 17, defect 2).
+
+    Raises:
+        ConfigError: the DBC cannot be read or parsed, or lacks a contract frame.
+    """
+    from can_defs.codec import prepare
+    from can_defs.errors import CanDefsError
+    try:
+        prepare(dbc)
+    except CanDefsError as error:
+        raise ConfigError(str(error)) from error

@@ -32,6 +32,7 @@ class TickKind(enum.Enum):
     REPEATED = "repeated"        # ACK again, run nothing
     NOT_SYNCHRONISED = "not synchronised"  # no handshake yet: ignored, no ACK
     BACKWARDS = "backwards"      # older than the last tick: discarded, no ACK
+    JUMP = "jump"                # > 100 ms ahead (rev. 2): adopted, skipped tasks not run
 
 
 @dataclass(frozen=True)
@@ -43,16 +44,30 @@ class TickAdvance:
     skipped: int = 0
 
 
+#: A TICK more than this ahead of the last one acknowledged is a jump of virtual time
+#: (contract, rev. 2); after the handshake the last acknowledged TICK counts as -5.
+JUMP_THRESHOLD_MS = 100
+#: What the last acknowledged TICK counts as right after the handshake (contract, rev. 2).
+BEFORE_TICK_0_MS = -5
+
+
 class LockstepClock:
     """Virtual time from HIL_SYNC: every task of period P due in (previous TICK, TICK].
 
     Before the handshake the clock is not synchronised; the handshake puts it "before
-    tick 0" so that the first TICK (normally 0) runs the task instants from 0 on.
+    tick 0" (the last TICK counts as -5) so that the first TICK (normally 0) runs the task
+    instants from 0 on. A TICK more than ``jump_ms`` ahead is a jump of virtual time
+    (contract, rev. 2): it is adopted as the clock, and only a task due at that TICK
+    itself is run, never the skipped ones in between.
     """
 
-    def __init__(self, task_period_ms: int, max_catch_up_tasks: int) -> None:
+    def __init__(self, task_period_ms: int, max_catch_up_tasks: int | None = None,
+                 jump_ms: int = JUMP_THRESHOLD_MS) -> None:
         self._period_ms = task_period_ms
-        self._max_catch_up = max_catch_up_tasks
+        self._jump_ms = jump_ms
+        # Bound on the tasks of one TICK; with jumps detected at most
+        # jump_ms / period + 1 remain, so the argument is kept only for old callers.
+        self._max_catch_up = max_catch_up_tasks or (jump_ms // task_period_ms + 1)
         self.synchronised = False
         self.last_tick_ms: int | None = None
 
@@ -65,8 +80,8 @@ class LockstepClock:
     def advance(self, tick_ms: int) -> TickAdvance:
         """Move virtual time to ``tick_ms`` and list the control task instants now due.
 
-        When more than ``max_catch_up_tasks`` instants fall in one step (the master skipped
-        ticks), only the newest ones are returned and the rest counted in ``skipped``.
+        A TICK more than ``jump_ms`` ahead of the last one (``JUMP``) lists only the task
+        due at that TICK (if any) and counts the instants in between in ``skipped``.
         """
         if tick_ms == HANDSHAKE_TICK:
             return self.handshake()
@@ -77,8 +92,13 @@ class LockstepClock:
             return TickAdvance(TickKind.REPEATED)
         if previous is not None and tick_ms < previous:
             return TickAdvance(TickKind.BACKWARDS)
-        after = -1 if previous is None else previous
+        after = BEFORE_TICK_0_MS if previous is None else previous
         first = (after // self._period_ms + 1) * self._period_ms
+        if tick_ms - after > self._jump_ms:
+            instants = (tick_ms - first) // self._period_ms + 1
+            due_now = (tick_ms,) if tick_ms % self._period_ms == 0 else ()
+            self.last_tick_ms = tick_ms
+            return TickAdvance(TickKind.JUMP, due_now, instants - len(due_now))
         count = 0 if first > tick_ms else (tick_ms - first) // self._period_ms + 1
         skipped = max(0, count - self._max_catch_up)
         first += skipped * self._period_ms

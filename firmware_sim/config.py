@@ -22,6 +22,34 @@ NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
+class Plausibility:
+    """Plausibility of a plant sample (*contract*, rev. 2, "Receiving rules"); SI units.
+
+    A sample passes when VX, |VY|, |YAW_RATE| and |YAW| are inside these bounds and its
+    position is continuous with the last good sample: distance <= (max over the two
+    samples of hypot(VX, VY) + ``speed_margin_mps``) * elapsed + ``position_slack_m``,
+    elapsed = ``sample_period_ms`` * counter difference (mod 16). The continuity check
+    applies only while the last good sample is at most ``continuity_window_ms`` old.
+    """
+
+    vx_min_mps: float = -5.0
+    vx_max_mps: float = 70.0
+    vy_max_mps: float = 10.0
+    yaw_rate_max_rad_s: float = 2.5
+    yaw_max_rad: float = math.pi + 0.0001  # one LSB: both ends of [-pi, pi) encode to +-3.1416
+    speed_margin_mps: float = 5.0
+    position_slack_m: float = 0.2
+    sample_period_ms: int = 10
+    continuity_window_ms: int = 100
+
+
+#: Lost bus (*contract*, rev. 2): receive errors that persist this long are a lost bus.
+BUS_LOST_AFTER_MS = 100
+#: Lost bus: wait between attempts to reopen it, s (*contract*: every second).
+BUS_REOPEN_INTERVAL_S = 1.0
+
+
+@dataclass(frozen=True)
 class EcuConfig:
     """Timing thresholds and actuator limits of the ECU (times in ms, SI otherwise).
 

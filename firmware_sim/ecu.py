@@ -13,11 +13,20 @@ Two time bases (``docs/can-contract.md``, "Timing semantics"):
 
 Nothing in `handle_message`, `poll` or `run` raises: faults become mode events and FAULTS
 bits, controller exceptions become a guarded fallback command.
+
+Revision 2 of the contract: only classic data frames with 11-bit IDs are contract frames
+(CAN FD, extended, remote and error frames are counted and ignored); a plant sample must be
+plausible (``rx.py``); a TICK more than 100 ms ahead is a jump of virtual time (adopted,
+STANDBY, controller and observer reset, FAULTS bits 1 and 3); a lost bus (end of the
+interface's stream, or receive errors for 100 ms) is logged at most once a second and
+reopened every second. Lines that could repeat every cycle go through `RateLimitedLog`.
 """
 from __future__ import annotations
 
 import logging
 import math
+import select
+import socket
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -31,10 +40,12 @@ from can_defs.frames import CtrlMode, QpStatus
 from controller.base import Command, Controller, StepDebug, VehicleSample
 from firmware_sim.clock import (HANDSHAKE_TICK, LockstepClock, MonotonicClock, RealtimeSchedule,
                                 TickKind, clock_ns)
-from firmware_sim.config import NS_PER_MS, NS_PER_S, EcuConfig
+from firmware_sim.config import (BUS_LOST_AFTER_MS, BUS_REOPEN_INTERVAL_S, NS_PER_MS, NS_PER_S,
+                                 EcuConfig)
 from firmware_sim.errors import ConfigError
 from firmware_sim.guard import GuardLimits, guard_command
 from firmware_sim.modes import VALID_COMMAND_MODES, ModeEvents, transition
+from firmware_sim.ratelimit import RateLimitedLog
 from firmware_sim.rx import RxKind, RxState
 from firmware_sim.safe_stop import safe_stop_command
 from firmware_sim.timing import TimingRecorder
@@ -44,9 +55,37 @@ _LOG = logging.getLogger(__name__)
 
 ControllerFactory = Callable[[str], Controller]
 PathLoader = Callable[[Path], Any]
+BusFactory = Callable[[], can.BusABC]
 
 #: Wait of one `bus.recv` in `run`, s: bounds the reaction to ``stop_event``.
 RECV_TIMEOUT_S = 0.05
+
+
+def is_contract_frame_kind(msg: can.Message) -> bool:
+    """A classic CAN data frame with an 11-bit ID (contract, rev. 2, "frame kinds")."""
+    return not (msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id
+                or getattr(msg, "is_fd", False))
+
+
+def stream_ended(bus: can.BusABC) -> bool:
+    """Whether a stream-based bus (socketcand over TCP) has reached the end of its stream.
+
+    python-can's socketcand bus returns "no frame" at once when its server has closed the
+    connection, so `recv` would spin; the end shows as a readable socket with nothing to
+    read. Buses without such a socket never report an end here (their errors do).
+    """
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    if not isinstance(sock, socket.socket):
+        return False
+    try:
+        if sock.fileno() < 0:
+            return True
+        readable, _, _ = select.select([sock], [], [], 0)
+        return bool(readable) and sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except (OSError, ValueError):
+        return True
 
 
 def _default_controller_factory(name: str) -> Controller:
@@ -88,6 +127,8 @@ class Ecu:
         config: thresholds and limits.
         controller_factory / path_loader: injected for tests; default the registry and
             ``ReferencePath.from_csv``.
+        reopen_bus: opens the bus again after it was lost (None: the ECU waits, logging
+            once a second, until it is stopped).
 
     A failure to create the controller (model load) or to load a path latches FAULT
     (CMD_VALID = 0) instead of raising, as the contract requires. The lockstep handshake is
@@ -101,15 +142,23 @@ class Ecu:
                  lockstep: bool = True, clock: MonotonicClock = time.monotonic, *,
                  config: EcuConfig | None = None,
                  controller_factory: ControllerFactory | None = None,
-                 path_loader: PathLoader | None = None) -> None:
+                 path_loader: PathLoader | None = None,
+                 reopen_bus: BusFactory | None = None) -> None:
         self._bus = bus
+        self._reopen_bus = reopen_bus
         self._config = config or EcuConfig()
+        self._log = RateLimitedLog(_LOG)
         self.lockstep = lockstep
         self._clock = clock
         self._limits = GuardLimits(self._config.steer_limit_rad, self._config.drive_torque_limit_nm)
         self._period_ns = self._config.control_period_ms * NS_PER_MS
-        self._tx = Transmitter(bus)
-        self._rx = RxState()
+        self._tx = Transmitter(bus, self._log)
+        self._rx = RxState(log=self._log)
+        #: Frames of other kinds than classic 11-bit data frames, ignored (rev. 2).
+        self.ignored_frames = 0
+        #: The bus is lost (end of stream or persistent receive errors) and not reopened yet.
+        self.bus_lost = False
+        self.bus_reopened = 0
         self._lockstep_clock = LockstepClock(self._config.control_period_ms,
                                              self._config.max_catch_up_tasks)
         self._schedule = RealtimeSchedule(self._period_ns)
@@ -149,6 +198,7 @@ class Ecu:
         self._active_path_id: int | None = None
         self._controller_failing = False
         self._guard_refusing = False
+        self._pending_model_reset = False
         self.overruns = 0
         self.cycles = 0
 
@@ -166,7 +216,14 @@ class Ecu:
     def handle_message(self, msg: can.Message) -> None:
         """Process one received frame; in lockstep a HIL_SYNC runs the due tasks. Never raises."""
         try:
-            if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            if not is_contract_frame_kind(msg):
+                # rev. 2: never taken for the contract frame of the same number, never FAULTS
+                self.ignored_frames += 1
+                self._log.log("frame-kind", logging.INFO,
+                              "non-contract frame ignored (ID 0x%X, fd=%s, extended=%s, "
+                              "remote=%s, error=%s)", msg.arbitration_id,
+                              getattr(msg, "is_fd", False), msg.is_extended_id,
+                              msg.is_remote_frame, msg.is_error_frame)
                 return
             arrival_ns = None if self.lockstep else clock_ns(self._clock)
             outcome = self._rx.receive(msg.arbitration_id, bytes(msg.data), arrival_ns)
@@ -191,21 +248,42 @@ class Ecu:
             return
         if advance.kind is TickKind.BACKWARDS:
             self._rx.e2e_error = True
-            _LOG.warning("HIL_SYNC TICK %d older than the last TICK %s: discarded", tick,
-                         self._lockstep_clock.last_tick_ms)
+            self._log.log("tick-backwards", logging.WARNING,
+                          "HIL_SYNC TICK %d older than the last TICK %s: discarded", tick,
+                          self._lockstep_clock.last_tick_ms)
             return
+        if advance.kind is TickKind.JUMP:
+            self._on_time_jump(tick, advance.skipped)
         now_ns = LockstepClock.to_ns(tick)
         self._rx.stamp_pending(now_ns)
         if advance.kind is TickKind.REPEATED:
             self._tx.send_ack(tick)
             return
-        if advance.skipped:
-            _LOG.warning("TICK %d: %d control instants skipped (master jumped)", tick, advance.skipped)
         for _ in advance.due_ms:
             self._control_task(now_ns, release_jitter_s=math.nan)
         self._tx.send_ack(tick)
         if time.perf_counter() - started > self._config.control_period_ms / 1000.0:
             self.overruns += 1
+
+    def _on_time_jump(self, tick: int, skipped: int) -> None:
+        """A jump of virtual time (contract, rev. 2): STANDBY (FAULT and INIT stay), the
+        controller's and observer's memory cleared, the last good sample dropped, FAULTS
+        bits 1 and 3 in the next CTRL_DIAG. The skipped task instants are not run."""
+        self._log.log("tick-jump", logging.WARNING,
+                      "HIL_SYNC TICK %d: virtual time jumped; adopted, %d control instants "
+                      "skipped, %s -> STANDBY with the controller reset", tick, skipped,
+                      self.mode.name)
+        if self.mode not in (CtrlMode.FAULT, CtrlMode.INIT):
+            self.mode = CtrlMode.STANDBY
+        self._rx.drop_sample()
+        self._rx.e2e_error = True
+        self._pending_model_reset = True
+        self._active_path_id = None  # re-engaging selects the path again (reset included)
+        if self._controller is not None:
+            try:
+                self._controller.reset()
+            except Exception as error:  # logged; ACTIVE again only through _select_path
+                _LOG.error("controller reset after a jump of virtual time failed: %s", error)
 
     # ---------------------------------------------------------------- real time
     def poll(self) -> None:
@@ -226,25 +304,83 @@ class Ecu:
         except Exception:
             _LOG.exception("unexpected error in the real-time schedule")
 
+    def _recv_timeout(self) -> float:
+        if self.lockstep:
+            return RECV_TIMEOUT_S
+        return min(RECV_TIMEOUT_S, self._schedule.seconds_until_next(clock_ns(self._clock)))
+
     def run(self, stop_event: threading.Event) -> None:
-        """Blocking loop: receive (short timeout), handle, run due tasks, until ``stop_event``."""
+        """Blocking loop: receive (short timeout), handle, run due tasks, until ``stop_event``.
+
+        A lost bus (the end of the interface's stream, or receive errors that persist for
+        100 ms) is neither a crash nor a busy loop: see `_while_bus_lost`.
+        """
+        failing_since: float | None = None
         while not stop_event.is_set() and not self._closed:
-            if self.lockstep:
-                timeout = RECV_TIMEOUT_S
-            else:
-                timeout = min(RECV_TIMEOUT_S,
-                              self._schedule.seconds_until_next(clock_ns(self._clock)))
+            if self.bus_lost:
+                self._while_bus_lost(stop_event)
+                failing_since = None
+                continue
             try:
-                msg = self._bus.recv(timeout)
+                msg = self._bus.recv(self._recv_timeout())
             except (can.CanError, OSError, ValueError) as error:
                 if self._closed or getattr(self._bus, "_is_shutdown", False):
                     break
-                self._warn_once("recv", "bus receive failed: %s", error)
-                time.sleep(RECV_TIMEOUT_S)
+                now = time.monotonic()
+                failing_since = now if failing_since is None else failing_since
+                self._log.log("recv", logging.WARNING, "bus receive failed: %s", error)
+                if now - failing_since >= BUS_LOST_AFTER_MS / 1000.0:
+                    self._lose_bus(f"receive errors for {BUS_LOST_AFTER_MS} ms: {error}")
+                else:
+                    stop_event.wait(0.01)
+                self.poll()
                 continue
+            failing_since = None
             if msg is not None:
                 self.handle_message(msg)
+            elif stream_ended(self._bus):
+                self._lose_bus("end of the interface's stream")
             self.poll()
+
+    def _lose_bus(self, why: str) -> None:
+        self.bus_lost = True
+        self._bus_lost_why = why
+        self._next_reopen_s = time.monotonic() + BUS_REOPEN_INTERVAL_S
+        self._log.log("bus-lost", logging.ERROR, "bus lost (%s); %s", why,
+                      "reopening it every second" if self._reopen_bus else "waiting")
+        try:
+            self._bus.shutdown()
+        except Exception as error:  # a dead bus may fail to shut down too
+            _LOG.debug("shutdown of the lost bus failed: %s", error)
+
+    def _while_bus_lost(self, stop_event: threading.Event) -> None:
+        """One wait of the lost-bus state: real-time tasks keep running on their timeouts
+        (inputs time out: DEGRADED, SAFE_STOP, STANDBY), the bus is reopened every second,
+        and the state is logged at most once a second. In lockstep nothing runs (no tick)."""
+        self.poll()
+        now = time.monotonic()
+        if now >= self._next_reopen_s:
+            self._next_reopen_s = now + BUS_REOPEN_INTERVAL_S
+            if self._reopen_bus is None:
+                self._log.log("bus-lost", logging.ERROR, "bus still lost (%s)", self._bus_lost_why)
+            else:
+                try:
+                    bus = self._reopen_bus()
+                except Exception as error:
+                    self._log.log("bus-lost", logging.ERROR,
+                                  "bus still lost (%s); reopening failed: %s",
+                                  self._bus_lost_why, error)
+                else:
+                    self._bus = bus
+                    self._tx.set_bus(bus)
+                    self.bus_lost = False
+                    self.bus_reopened += 1
+                    _LOG.warning("bus reopened after it was lost (%s)", self._bus_lost_why)
+                    return
+        wait = max(0.0, self._next_reopen_s - now)
+        if not self.lockstep:
+            wait = min(wait, self._schedule.seconds_until_next(clock_ns(self._clock)))
+        stop_event.wait(max(wait, 0.001))
 
     # ---------------------------------------------------------------- control task
     def _mode_events(self, now_ns: int) -> tuple[ModeEvents, int | None]:
@@ -254,7 +390,9 @@ class Ecu:
         sample_age = (None if rx.newest_sample_arrival_ns is None
                       else now_ns - rx.newest_sample_arrival_ns)
         fresh = sample_age is not None and sample_age <= cfg.sample_stale_ms * NS_PER_MS
-        lost = sample_age is None or sample_age > cfg.sample_lost_ms * NS_PER_MS
+        # a position reference restarted after a gap > 100 ms counts as lost (SAFE_STOP)
+        lost = (sample_age is None or sample_age > cfg.sample_lost_ms * NS_PER_MS
+                or rx.reference_restarted)
         planner = rx.newest_planner
         planner_ok = (planner is not None and rx.newest_planner_arrival_ns is not None
                       and now_ns - rx.newest_planner_arrival_ns <= cfg.planner_timeout_ms * NS_PER_MS)
@@ -303,6 +441,9 @@ class Ecu:
         events, sample_age = self._mode_events(now_ns)
         previous_mode = self._update_mode(events)
         faults = self._input_faults(events)
+        if self._pending_model_reset:  # a jump of virtual time cleared the memories
+            faults |= FaultBit.MODEL_RESET
+            self._pending_model_reset = False
         request = self._request(previous_mode, events, sample_age)
         faults |= request.faults
         guarded = guard_command(request.steer_angle, request.drive_torque, self._limits,
@@ -343,7 +484,8 @@ class Ecu:
         rx = self._rx
         faults = 0
         unknown_path = rx.newest_planner is not None and not events.path_known
-        if not events.sample_fresh or rx.torn or rx.stale or not events.planner_ok or unknown_path:
+        if (not events.sample_fresh or rx.torn or rx.stale or rx.implausible
+                or not events.planner_ok or unknown_path):
             faults |= FaultBit.INPUT_TIMEOUT
         if rx.e2e_error:
             faults |= FaultBit.E2E_ERROR
@@ -419,8 +561,12 @@ class Ecu:
             return
         self._closed = True
         mode = CtrlMode.FAULT if self.mode is CtrlMode.FAULT else CtrlMode.STANDBY
-        self._tx.send_command(mode, False, self._previous_valid_steer, 0.0)
+        if not self.bus_lost:
+            try:
+                self._tx.send_command(mode, False, self._previous_valid_steer, 0.0)
+            except Exception as error:  # the bus must still be shut down
+                _LOG.error("last STEER_TORQUE_CMD not sent: %s", error)
         try:
             self._bus.shutdown()
-        except (can.CanError, OSError) as error:
+        except Exception as error:
             _LOG.warning("bus shutdown failed: %s", error)

@@ -85,9 +85,9 @@ class TimingRecorder:
 
     def save(self, path: str | Path) -> Path:
         """Write the record to ``path`` (``.npz``: ``rows`` (n, 6), ``context`` (n, 2), the
-        field names and ``count``); returns the path. Off the control loop (allocates)."""
+        field names and ``count``); returns the path. Off the control loop (allocates).
+        The folder must exist (a missing one is an error, never created silently)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("wb") as handle:  # a file object: numpy adds no ".npz" suffix
             np.savez(handle, rows=self.rows(), context=self.context_rows(),
                      fields=np.array(TIMING_FIELDS), context_fields=np.array(CONTEXT_FIELDS),

@@ -15,6 +15,8 @@ from can_defs.codec import FrameSender, encode
 from can_defs.errors import CanDefsError
 from can_defs.frames import CtrlDiag, CtrlMode, HilSyncAck, QpStatus, SteerTorqueCmd
 
+from firmware_sim.ratelimit import RateLimitedLog
+
 _LOG = logging.getLogger(__name__)
 
 SOLVE_TIME_US_MAX = 0xFFFF
@@ -54,10 +56,15 @@ class DiagRecord:
 class Transmitter:
     """Encodes and sends the ECU's frames on one bus."""
 
-    def __init__(self, bus: can.BusABC) -> None:
+    def __init__(self, bus: can.BusABC, log: RateLimitedLog | None = None) -> None:
         self._bus = bus
         self._sender = FrameSender()
+        self._log = log or RateLimitedLog(_LOG)
         self.send_errors = 0
+
+    def set_bus(self, bus: can.BusABC) -> None:
+        """Send on ``bus`` from now on (a reopened bus after a lost one)."""
+        self._bus = bus
 
     def reset_counters(self) -> None:
         """Restart the alive counters (lockstep handshake)."""
@@ -69,7 +76,8 @@ class Transmitter:
             self._bus.send(message)
         except (can.CanError, OSError, ValueError) as error:
             self.send_errors += 1
-            _LOG.warning("send of 0x%03X failed: %s", arbitration_id, error)
+            self._log.log("send", logging.WARNING, "send of 0x%03X failed: %s",
+                          arbitration_id, error)
             return False
         return True
 
@@ -82,9 +90,14 @@ class Transmitter:
             data = self._sender.encode(frame)
         except CanDefsError as error:
             self.send_errors += 1
-            _LOG.error("STEER_TORQUE_CMD not encodable (%s); sending zero command", error)
-            data = self._sender.encode(SteerTorqueCmd(ctrl_mode=mode, cmd_valid=False,
-                                                      steer_angle_cmd=0.0, drive_torque_cmd=0.0))
+            self._log.log("encode-cmd", logging.ERROR,
+                          "STEER_TORQUE_CMD not encodable (%s); sending zero command", error)
+            try:
+                data = self._sender.encode(SteerTorqueCmd(ctrl_mode=mode, cmd_valid=False,
+                                                          steer_angle_cmd=0.0,
+                                                          drive_torque_cmd=0.0))
+            except CanDefsError:
+                return False  # no codec at all (an unusable DBC): nothing can be sent
         return self._send(int(SteerTorqueCmd.FRAME_ID), data)
 
     def send_diag(self, record: DiagRecord) -> bool:
@@ -100,7 +113,7 @@ class Transmitter:
             data = self._sender.encode(frame)
         except CanDefsError as error:
             self.send_errors += 1
-            _LOG.error("CTRL_DIAG not encodable: %s", error)
+            self._log.log("encode-diag", logging.ERROR, "CTRL_DIAG not encodable: %s", error)
             return False
         return self._send(int(CtrlDiag.FRAME_ID), data)
 
@@ -110,6 +123,6 @@ class Transmitter:
             data = encode(HilSyncAck(tick=tick))
         except CanDefsError as error:
             self.send_errors += 1
-            _LOG.error("HIL_SYNC_ACK not encodable: %s", error)
+            self._log.log("encode-ack", logging.ERROR, "HIL_SYNC_ACK not encodable: %s", error)
             return False
         return self._send(int(HilSyncAck.FRAME_ID), data)

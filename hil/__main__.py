@@ -6,7 +6,9 @@ keeps its module-level imports light (argparse only) and imports its machinery i
 line in the table.
 
 Errors of the project (``HilError`` and the other packages' bases) print ``error: ...``
-on stderr and exit 1; ``--debug`` shows the traceback instead.
+on stderr and exit 1; ``--debug`` shows the traceback instead. SIGINT, SIGTERM and SIGHUP
+all unwind the command the same way (ECU stopped, log flushed, sidecar written) and exit
+130, 143 and 129 (128 + the signal number).
 """
 from __future__ import annotations
 
@@ -18,7 +20,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
 import importlib  # noqa: E402
+import signal  # noqa: E402
 import sys  # noqa: E402
+import threading  # noqa: E402
 from types import ModuleType
 
 #: Subcommand name -> module implementing it (``HELP``, ``add_arguments``, ``main``).
@@ -59,10 +63,19 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
     return parser, modules
 
 
+def _raise_stop(signum: int, frame: object) -> None:
+    from hil.errors import StopSignal
+    raise StopSignal(signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse ``argv`` and run the chosen subcommand; returns the exit status."""
     parser, modules = build_parser()
     args = parser.parse_args(argv)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGTERM, signal.SIGHUP):
+            previous[signum] = signal.signal(signum, _raise_stop)
     try:
         return int(modules[args.subcommand].main(args))
     except _project_errors() as e:
@@ -70,9 +83,13 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"error: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        print(f"error: stopped by {signal.Signals(signum).name}", file=sys.stderr)
+        return 128 + int(signum)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 if __name__ == "__main__":

@@ -27,3 +27,17 @@ class MetricsError(HilError):
 
 class StudyError(HilError):
     """The closed-loop study could not run (unknown controller, missing plant, ...)."""
+
+
+class OutputPathError(HilError):
+    """An output file or folder cannot be used: it is one of the run's inputs, exists (without
+    the command's replace option), or its folder is missing or not writable."""
+
+
+class StopSignal(KeyboardInterrupt):
+    """SIGTERM or SIGHUP arrived: unwinds like Ctrl-C (SIGINT), so every ``finally`` stops
+    the ECU, flushes the log and writes the sidecar; the command exits 128 + ``signum``."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum

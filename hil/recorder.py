@@ -40,7 +40,7 @@ class BusRecorder:
 
     Args:
         bus: a bus object of its own (the recorder closes it on `stop`).
-        path: the log file; its folder is created.
+        path: the log file; its folder must exist (checked by the commands beforehand).
 
     Raises:
         RecorderError: unknown suffix or the file cannot be created.
@@ -51,7 +51,6 @@ class BusRecorder:
         self.bus = bus
         self.count = 0
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._writer = can.Logger(self.path)
         except (ValueError, OSError) as e:
             bus.shutdown()

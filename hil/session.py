@@ -78,6 +78,10 @@ class RunOptions:
     ecu_extra_args: tuple[str, ...] = ()
     #: Faults to inject (``hil.faults.FaultSpec``); None injects nothing.
     faults: Any = None
+    #: Builds the in-process ECU's controller from its name (``firmware_sim.ecu.Ecu``'s
+    #: ``controller_factory``; e.g. another model artefact); None: the registry. Only on
+    #: the virtual bus: a separate ECU process builds its own.
+    controller_factory: Callable[[str], Any] | None = None
 
 
 @dataclass
@@ -118,8 +122,9 @@ class HilRunResult:
         }
 
     def write(self, out_dir: Path) -> list[Path]:
-        """Write ``plant.csv``, ``ecu.csv`` and ``summary.json`` to ``out_dir``."""
-        out_dir.mkdir(parents=True, exist_ok=True)
+        """Write ``plant.csv``, ``ecu.csv`` and ``summary.json`` to ``out_dir`` (its parent
+        must exist: no folder tree is created silently)."""
+        out_dir.mkdir(exist_ok=True)
         written = [_write_csv(out_dir / "plant.csv", self.plant_trace),
                    _write_csv(out_dir / "ecu.csv", self.ecu_trace)]
         summary = out_dir / "summary.json"
@@ -160,7 +165,8 @@ class InProcessEcu(_EcuRunner):
         self._bus = open_bus(options.bus)
         try:
             self.ecu = Ecu(self._bus, options.controller, {scenario.path_id: scenario.path_file},
-                           lockstep=options.lockstep, clock=time.monotonic)
+                           lockstep=options.lockstep, clock=time.monotonic,
+                           controller_factory=options.controller_factory)
         except Exception as e:
             self._bus.shutdown()
             raise SessionError(f"cannot start the ECU with controller "
@@ -209,10 +215,12 @@ class EcuProcess(_EcuRunner):
     """The ECU as a separate process through its CLI; stopped with SIGTERM."""
 
     def __init__(self, scenario: Scenario, options: RunOptions) -> None:
+        if options.controller_factory is not None:
+            raise SessionError("a controller factory needs the ECU in-process (virtual bus); "
+                               f"the ECU process on {options.bus.describe()} builds its own")
         self.command = ecu_command(scenario, options)
         if options.ecu_output is not None:
             self.output_path = options.ecu_output
-            self.output_path.parent.mkdir(parents=True, exist_ok=True)
         else:
             handle, name = tempfile.mkstemp(prefix="ecu-", suffix=".txt")
             os.close(handle)
@@ -300,7 +308,9 @@ def run_hil(scenario: Scenario, options: RunOptions,
                 ecu.stop()
         finally:
             if recorder is not None:
-                recorder.stop()
+                # a separate ECU's last frame crosses another process (and a hub): wait
+                # for a longer quiet spell so the log keeps it
+                recorder.stop(settle_s=0.1 if options.bus.is_virtual else 0.3)
                 # Sidecar so `python -m hil replay LOG` needs no flags.
                 write_sidecar(options.log_path, LogMetadata(
                     controller=options.controller,

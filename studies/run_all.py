@@ -154,6 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logs = args.logs or args.out / "logs"
     args.out.mkdir(parents=True, exist_ok=True)
+    Path(logs).mkdir(parents=True, exist_ok=True)  # the recorder no longer creates folders
 
     runs: list[dict[str, Any]] = []
     traces: dict[str, dict[str, Any]] = {}

@@ -123,8 +123,18 @@ def test_lockstep_clock_due_instants():
     assert [d for d in due if d] == [(0,), (25,), (50,)]
     assert clock.advance(50).kind is TickKind.REPEATED
     assert clock.advance(45).kind is TickKind.BACKWARDS
+    near = clock.advance(150)  # 100 ms ahead: not a jump, every due instant runs
+    assert near.kind is TickKind.NEW and near.due_ms == (75, 100, 125, 150)
+    # issue 17 defect 9: a TICK far ahead ran 40 catch-up tasks on one sample. Rev. 2: a
+    # jump of virtual time is adopted, only the task due at the TICK itself runs.
     jump = clock.advance(2000)
-    assert jump.due_ms == tuple(range(1025, 2001, 25)) and jump.skipped == 38  # 78 instants in (50, 2000]
+    assert jump.kind is TickKind.JUMP
+    assert jump.due_ms == (2000,) and jump.skipped == 73  # 74 instants in (150, 2000]
+    assert clock.advance(2005).kind is TickKind.NEW  # and time goes on from there
+    clock.advance(HANDSHAKE_TICK)
+    assert clock.advance(95).kind is TickKind.NEW  # after the handshake the last TICK is -5
+    clock.advance(HANDSHAKE_TICK)
+    assert clock.advance(105).kind is TickKind.JUMP
 
 
 def test_realtime_schedule_keeps_absolute_deadlines_and_skips_missed_periods():

@@ -1,5 +1,6 @@
 """Fuzzing the ECU's receive path: arbitrary frames (any 11-bit ID, length 0-8, any bytes,
-extended / remote / error flags), well-formed plant and planner frames with extreme values
+CAN FD / extended / remote / error frames, also copies of good contract frames and the
+handshake in those kinds, which the contract's revision 2 says to ignore), well-formed plant and planner frames with extreme values
 and broken counters, single bit flips of good frames and HIL_SYNC at any TICK, in any
 order, straight into ``Ecu.handle_message`` (no threads, no bus: a list collects what the
 ECU sends).
@@ -95,7 +96,7 @@ MAX_EVENTS = 16
 _SCALES = (0.0, 0.01, 1.0, 100.0, 1e4, 1e6)          # physical = int8 * scale
 _COUNTER_STEPS = (1, 1, 1, 1, 0, 2, 3, 7)             # 0 repeats, 7 is a sequence error
 _SYNC_STEPS = (0, 5, 5, 5, 10, 25, 25, 50, 200, -5, 1)
-_FLAGS = ("data", "data", "data", "extended", "remote", "error")
+_FLAGS = ("data", "data", "data", "fd", "extended", "remote", "error", "fd")
 
 
 def _int8(byte: int) -> int:
@@ -109,8 +110,9 @@ def script_of(blob: bytes) -> list[tuple]:
       HIL_SYNC to the next multiple of 25) and ``quiet``: HIL_SYNC only, +25 / 50 / 125 ms.
       With them a random script gets to ACTIVE and out of it again (DEGRADED, SAFE_STOP,
       STANDBY) often enough to fuzz those modes;
-    - ``raw``: any 11-bit ID (half of them the ECU's), 0-8 bytes, data / extended /
-      remote / error frame;
+    - ``raw``: any 11-bit ID (half of them the ECU's), 0-8 bytes, data / CAN FD /
+      extended / remote / error frame (a quarter of the other kinds carry 8 bytes, on
+      HIL_SYNC the handshake value: none of them may be answered or reset the ECU);
     - ``plant`` / ``planner``: well-formed frames, values from 0 to +-1.3e8 (saturated by
       the encoder), counters that repeat or jump, a plant frame left out (torn set);
     - ``flip``: the last good frame of an ID with one bit flipped;
@@ -127,7 +129,14 @@ def script_of(blob: bytes) -> list[tuple]:
             events.append(("quiet", (25, 50, 125)[c[1] % 3]))
         elif kind in (3, 4):
             frame_id = RX_IDS[c[1] % 5] if c[2] < 128 else int.from_bytes(c[2:4], "little") & 0x7FF
-            events.append(("raw", frame_id, bytes(c[8:8 + c[4] % 9]), _FLAGS[c[5] % 6]))
+            flags = _FLAGS[c[5] % len(_FLAGS)]
+            if flags != "data" and c[6] % 4 == 0:
+                # a look-alike: a good contract frame (or the handshake) in another kind
+                payload = encode(HilSync(HANDSHAKE_TICK)) if frame_id == FrameId.HIL_SYNC \
+                    else bytes(c[8:16])
+                events.append(("raw", frame_id, payload, flags))
+            else:
+                events.append(("raw", frame_id, bytes(c[8:8 + c[4] % 9]), flags))
         elif kind == 5:
             scale = _SCALES[c[1] % len(_SCALES)]
             values = tuple(_int8(b) * scale for b in c[8:16])
@@ -197,7 +206,7 @@ class Driver:
     def send(self, frame_id: int, data: bytes, kind: str = "data") -> None:
         message = can.Message(arbitration_id=frame_id, data=data, dlc=len(data),
                               is_extended_id=kind == "extended", is_remote_frame=kind == "remote",
-                              is_error_frame=kind == "error")
+                              is_error_frame=kind == "error", is_fd=kind == "fd")
         if kind == "data" and frame_id == FrameId.HIL_SYNC:
             self.acks.sync(bytes(data))
         self.ecu.handle_message(message)

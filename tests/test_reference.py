@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from controller.errors import PathError
-from controller.reference import PathTracker, ReferencePath, lateral_error
+from controller.reference import PathTracker, ReferencePath, lateral_error, read_path_csv
 
 
 def hairpin(gap: float = 3.0, length: float = 30.0, spacing: float = 0.2) -> ReferencePath:
@@ -56,9 +56,15 @@ def test_csv_round_trip(tmp_path) -> None:
     ("x,y,yaw\n0,0,0\n", "at least 2 points"),
     ("x,y,yaw\n0,0,0\n0.1,0\n", "line 3 has 2 columns"),
     ("x,y,yaw\n0,0,0\n0.1,abc,0\n", "line 3 column y: not a number: 'abc'"),
-    ("x,y,yaw\n0,0,0\n0.1,nan,0\n", "point 1 has non-finite y"),
-    ("x,y,yaw\n0,0,0\n0.4,0,0\n1.0,0,0\n", "points 1 and 2 are 0.600 m apart"),
-    ("x,y,yaw\n0,0,0\n0,0,0\n", "points 0 and 1 coincide"),
+    ("x,y,yaw\n0,0,0\n0.1,nan,0\n", "line 3: y = nan is not finite"),
+    ("x,y,yaw\n0,0,0\n0.4,0,0\n1.0,0,0\n", "line 4: 0.600 m from the previous point"),
+    ("x,y,yaw\n0,0,0\n0,0,0\n", "line 3: 0.000 m from the previous point"),
+    ("x,y,yaw\n0,0,0\n0.005,0,0\n", "line 3: 0.005 m from the previous point"),
+    # issue 17, defect 4: files that parsed but made no sense were followed
+    ("x,y,yaw\n0,0,0\n0.25,0,1e300\n0.5,0,0\n", "line 3: yaw"),
+    ("x,y,yaw\n0,0,3.14159\n0.25,0,3.14159\n0.5,0,3.14159\n", "line 2: yaw 3.1416 rad is 3.142 rad"),
+    ("x,y,yaw\n1e7,0,0\n10000000.25,0,0\n", "line 2: x = 1e+07 m is outside the range of POS_X"),
+    ("x,y,yaw\n0,0,0\n0.25,0,0\n0.5,0,3.1\n0.25,0.01,3.1\n", "line 4: the path turns by 3.1"),
 ])
 def test_bad_csv_files_give_clear_errors(tmp_path, content: str, message: str) -> None:
     file = tmp_path / "bad.csv"
@@ -67,6 +73,32 @@ def test_bad_csv_files_give_clear_errors(tmp_path, content: str, message: str) -
         ReferencePath.from_csv(file)
     print(error.value)
     assert message in str(error.value) and "bad.csv" in str(error.value)
+
+
+def test_yaw_is_wrapped_on_load_never_rejected_for_its_range(tmp_path) -> None:
+    file = tmp_path / "wrapped.csv"
+    two_pi = 2 * np.pi
+    file.write_text(f"x,y,yaw\n0,0,{4 * two_pi}\n0.25,0,{-two_pi}\n0.5,0,0\n")
+    points = read_path_csv(file)
+    print("yaw as loaded:", points[:, 2])
+    assert np.allclose(points[:, 2], 0.0, atol=1e-9)
+
+
+def test_oversized_path_file_is_refused_while_reading(tmp_path) -> None:
+    """Issue 17, defect 12: a 3-million-point file loaded with 885 MB. Now the reader stops
+    at point 100,001 (the contract's limit), long before the file's end."""
+    import tracemalloc
+    file = tmp_path / "huge.csv"
+    rows = "".join(f"{0.25 * i:.2f},0,0\n" for i in range(300_000))
+    file.write_text("x,y,yaw\n" + rows)
+    tracemalloc.start()
+    with pytest.raises(PathError) as error:
+        ReferencePath.from_csv(file)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    print(error.value, f"peak {peak / 1e6:.1f} MB")
+    assert "line 100002: more than 100,000 points" in str(error.value)
+    assert peak < 60e6
 
 
 def test_missing_csv_file(tmp_path) -> None:

@@ -70,9 +70,9 @@ def test_shipped_path_is_the_controllers_double_lane_change() -> None:
         ("x,y\n0,0\n0.5,0\n", "header"),
         ("x,y,yaw\n0,0,0\n", "at least 2 points"),
         ("x,y,yaw\n0,0,0\n0.4,0,abc\n", "not a number"),
-        ("x,y,yaw\n0,0,0\n0.6,0,0\n", "0.600 m apart"),
-        ("x,y,yaw\n0,0,0\n0,0,0\n", "coincide"),
-        ("x,y,yaw\n0,0,0\n0.1,nan,0\n", "non-finite y"),
+        ("x,y,yaw\n0,0,0\n0.6,0,0\n", "0.600 m from the previous point"),
+        ("x,y,yaw\n0,0,0\n0,0,0\n", "0.000 m from the previous point"),
+        ("x,y,yaw\n0,0,0\n0.1,nan,0\n", "y = nan is not finite"),
         ("x,y,yaw\n0,0,0\n0.1,0\n", "line 3 has 2 columns"),
     ],
 )

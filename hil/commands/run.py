@@ -5,6 +5,13 @@ interface (``--interface socketcan --channel vcan0``) the ECU is a separate proc
 started through ``python -m firmware_sim``. Prints the tracking metrics; ``--out`` writes
 the time series (``plant.csv``, ``ecu.csv``) and ``summary.json``; ``--log`` records every
 frame (format by suffix: ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ...).
+
+Every input and output is checked before anything runs or is written: the scenario and
+its path file (the contract's path checks), the DBC, and the outputs: ``--log`` and
+``--out`` are never one of the run's inputs, their folders must exist, and an existing log
+or an ``--out`` folder holding another run's outputs is an error unless ``--replace`` is
+given. SIGTERM and SIGHUP end the run as SIGINT does (ECU stopped with its last
+CMD_VALID = 0 frame, log flushed, sidecar written; exit 143 / 129 / 130).
 """
 from __future__ import annotations
 
@@ -34,7 +41,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log", type=Path, default=None,
                         help="record every frame to this file (.log candump, .asc, .blf, ...)")
     parser.add_argument("--out", type=Path, default=None,
-                        help="folder for plant.csv, ecu.csv and summary.json")
+                        help="folder for plant.csv, ecu.csv and summary.json (its parent must "
+                             "exist)")
+    parser.add_argument("--replace", action="store_true",
+                        help="overwrite an existing --log file (and its sidecar) and the outputs "
+                             "of an earlier run in --out")
+    parser.add_argument("--faults", action="store_true",
+                        help="inject the scenario's [faults] table (bus, vehicle, sensor faults of "
+                             "hil/faults.py; without it only its mu_step acts)")
     parser.add_argument("--handshake-timeout", type=float, default=None, metavar="S",
                         help="seconds to wait for the ECU's lockstep handshake (default 60)")
     parser.add_argument("--ack-timeout", type=float, default=None, metavar="S",
@@ -45,6 +59,7 @@ def main(args: argparse.Namespace) -> int:
     """Run the scenario; print the summary; 0 on success."""
     from hil.bus import resolve_bus_config
     from hil.errors import HilError
+    from hil.faults import scenario_fault_spec
     from hil.scenario import load_scenario
     from hil.session import RunOptions, run_hil
     from hil.time_master import DEFAULT_ACK_TIMEOUT_S, DEFAULT_HANDSHAKE_TIMEOUT_S
@@ -54,6 +69,9 @@ def main(args: argparse.Namespace) -> int:
         if value is not None and not value > 0:
             raise HilError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
     scenario = load_scenario(args.scenario)
+    check_run_paths(scenario, args.log, args.out, args.replace)
+    if args.out is not None:
+        args.out.mkdir(exist_ok=True)
     options = RunOptions(
         controller=args.controller,
         bus=resolve_bus_config(args.interface, args.channel),
@@ -62,6 +80,7 @@ def main(args: argparse.Namespace) -> int:
         handshake_timeout_s=args.handshake_timeout or DEFAULT_HANDSHAKE_TIMEOUT_S,
         ack_timeout_s=args.ack_timeout or DEFAULT_ACK_TIMEOUT_S,
         ecu_output=args.out / "ecu_output.txt" if args.out is not None else None,
+        faults=scenario_fault_spec(scenario) if args.faults else None,
     )
     result = run_hil(scenario, options)
     summary = result.summary()
@@ -77,3 +96,34 @@ def main(args: argparse.Namespace) -> int:
         print(f"note: {summary['realtime_overruns']} of {summary['ticks']} plant ticks ended after "
               f"their deadline ({share:.0%}): the plant ran slower than real time here")
     return 0
+
+
+#: Files ``hil run --out`` writes into its folder.
+OUT_FILES = ("plant.csv", "ecu.csv", "summary.json", "ecu_output.txt")
+
+
+def check_run_paths(scenario: object, log: Path | None, out: Path | None, replace: bool) -> None:
+    """Refuse unusable outputs before the run (issue 17, defects 5 and 6).
+
+    Raises:
+        hil.errors.OutputPathError: ``--log`` or ``--out`` is one of the run's inputs (the
+            scenario, its path file, the DBC), exists without ``--replace``, is of the
+            wrong kind, or its folder is missing or not writable.
+        can_defs.errors.DbcLoadError: the DBC does not load.
+    """
+    from can_defs.codec import prepare
+    from can_defs.dbc import DBC_PATH
+    from hil.logio import sidecar_path
+    from hil.output_paths import check_output_file, check_output_folder
+
+    prepare()  # a DBC that does not load stops the run here, not in its first frame
+    inputs = [Path(scenario.source), Path(scenario.path_file), DBC_PATH]  # type: ignore[attr-defined]
+    if log is not None:
+        check_output_file(log, "--log", replace=replace, inputs=inputs)
+        check_output_file(sidecar_path(log), "--log (sidecar)", replace=replace, inputs=inputs)
+    if out is not None:
+        check_output_folder(out, "--out", OUT_FILES, replace=replace, inputs=inputs)
+        if log is not None and any(Path(log).resolve() == (out / name).resolve()
+                                   for name in OUT_FILES):
+            from hil.errors import OutputPathError
+            raise OutputPathError(f"--log {log}: is one of the files --out writes")
