@@ -42,14 +42,14 @@ help:
 	@echo "ESO-DKMPC ECU prototype: make TARGET [VAR=value ...]. Start with make test and make run."
 	@awk '$(HELP_AWK)' $(MAKEFILE_LIST)
 
-## create .venv and install the project with its test and training dependencies
+## create .venv and install the project with its test, training and campaign dependencies
 setup: $(STAMP) apt-deps
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "error: $(PYTHON) not found (Python 3.11 is required)"; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[training,test]'
+	$(PY) -m pip install --quiet -e '.[training,test,campaign]'
 	touch $(STAMP)
 
 # Installs the user-mode Linux / can-utils packages when running as root and they are

@@ -184,6 +184,19 @@ class FaultSpec:
         return cls(seed=seed, bus=bus, vehicle=vehicle, sensor=sensor)
 
 
+def scenario_fault_spec(scenario: Any) -> FaultSpec | None:
+    """The fault spec of a scenario's ``[faults]`` table, or None when it injects nothing
+    beyond the plant's own ``mu_step`` (``python -m hil run --faults``, campaign cells).
+
+    Raises:
+        FaultSpecError: an invalid table (names the scenario file).
+    """
+    table = dict(scenario.faults)
+    if not set(table) & {"bus", "vehicle", "sensor"}:
+        return None
+    return FaultSpec.from_mapping(table, scenario.source)
+
+
 def _fmt(key: str, value: Any) -> str:
     if key.endswith("babble_id") and isinstance(value, int):
         return f"0x{value:03X}"

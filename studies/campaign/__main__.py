@@ -1,0 +1,105 @@
+"""``python -m studies.campaign GRID.toml --out DIR [--address ADDR] [--workers N]
+[--serial] [--no-progress] [--debug]``: run a campaign grid (see docs/campaign.md).
+
+GRID is a file or the name of a shipped grid (``studies/campaign/grids/NAME.toml``). Exit
+status: 0 when the campaign ran (whatever each cell's outcome), 1 for bad input or when Ray
+cannot start, 2 for bad arguments, 130 when interrupted (finished cells are kept).
+"""
+from __future__ import annotations
+
+import os
+
+# Before numpy loads: the driver (and --serial cells) use one BLAS thread.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import shlex  # noqa: E402
+import sys  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m studies.campaign",
+                                     description="Run a campaign grid of HIL runs on Ray.")
+    parser.add_argument("grid", help="grid TOML file, or a shipped grid's name (smoke, robustness)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output folder: cells.csv, summary.md, heatmap_*.png, cache/")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster to use: auto, HOST:PORT or ray://HOST:PORT "
+                             "(default: start a local Ray on 127.0.0.1)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="local Ray: its workers (default: one per core); cluster: the most "
+                             "cells at once (default: its CPUs)")
+    parser.add_argument("--serial", action="store_true",
+                        help="no Ray: run the cells one by one in this process")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
+                        help="tqdm progress bar: cells done, failed, time left (default on)")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.workers is not None and args.workers < 1:
+        print(f"error: --workers must be >= 1, got {args.workers}", file=sys.stderr)
+        return 2
+    if args.serial and args.address:
+        print("error: --serial and --address exclude each other", file=sys.stderr)
+        return 2
+    from hil.errors import HilError
+
+    try:
+        return _run(args, argv)
+    except HilError as e:
+        if args.debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+
+
+def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
+    from studies.campaign.grid import load_grid
+    from studies.campaign.report import (CsvAppender, summary_markdown, write_cells_csv,
+                                         write_heatmaps)
+    from studies.campaign.runner import (CampaignError, Cache, RayExecutor, SerialExecutor,
+                                         cell_job, code_version, run_campaign)
+    from studies.machine import machine_description
+
+    grid = load_grid(args.grid)  # every error before any cell runs
+    out = args.out
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise CampaignError(f"cannot create {out}: {e.strerror}") from e
+    version = code_version()
+    cache = Cache(out)
+    already = [row for row in (cache.get(cell_job(grid, c, version).key) for c in grid.cells) if row]
+    appender = CsvAppender(out / "cells.csv", already)
+    executor = SerialExecutor() if args.serial else RayExecutor(args.address, args.workers)
+    try:
+        result = run_campaign(grid, out, executor, progress=args.progress, on_row=appender)
+    finally:
+        executor.close()
+    command = "python -m studies.campaign " + " ".join(
+        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    write_cells_csv(out / "cells.csv", result.rows)
+    (out / "summary.md").write_text(summary_markdown(
+        grid, result.rows, command=command, wall_s=result.wall_s, executor=result.executor,
+        computed=result.computed, cached=result.cached, machine=machine_description(),
+        interrupted=result.interrupted), encoding="utf-8")
+    written = [out / "cells.csv", out / "summary.md", *write_heatmaps(grid, result.rows, out)]
+    for path in written:
+        print(f"wrote {path}")
+    print(f"{len(result.rows)}/{result.total} cells finished ({result.computed} computed, "
+          f"{result.cached} cached), {result.failed} not completed, {result.wall_s:.0f} s")
+    if result.interrupted:
+        print("interrupted: the finished cells are kept; run the same command to resume",
+              file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

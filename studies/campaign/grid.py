@@ -1,0 +1,468 @@
+"""Campaign grid files: axes expanded as a product, minus exclusions, into cells.
+
+A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
+
+    name = "robustness"
+    description = "..."
+
+    [axes]                       # controller and scenario are required, the rest optional
+    controller = ["eso-dkmpc", "lmpc"]          # controller.registry names
+    scenario = ["dlc_high_mu", "my.toml"]       # shipped name, or a file (relative to this file)
+    mu = [0.5, 0.85]                            # road friction (replaces the scenario's)
+    speed = [30.0, "gentle"]                    # km/h constant (start and target), or the
+                                                # name of a [speed_profiles.NAME] table
+    mass_offset_kg = [0.0, 300.0]               # replaces the scenario's mass
+    lag_factor = [1.0, 3.0]                     # steering time constant x factor
+    fault = ["none", "drop 5 %", "my fault"]    # "none", a [faults.NAME] table of this file
+                                                # or a case of the fault catalogue (make faults)
+    model = ["default", "models/artifacts/dk_paper_nominal.npz"]   # Koopman artefact
+    seed = [0, 1]                               # seed of the random faults
+
+    [[exclude]]                  # a cell matching every key of one table is dropped
+    controller = "nmpc"
+    mu = [0.3, 0.5]              # a value or a list of values
+
+    [run]
+    distance_m = 110.0           # cells at a constant speed run this far (+ margin_s);
+    margin_s = 1.0               # without it a cell keeps its scenario's duration
+
+    [speed_profiles.gentle]      # as a scenario's [speed_profile]; starts at its first target
+    time_s = [0.0, 3.0]
+    target_speed_kmh = [40.0, 50.0]
+
+    [faults."my fault"]          # a [faults] table of hil/faults.py
+    vehicle = { steer_offset_rad = 0.02 }
+
+Each cell becomes one scenario TOML (:func:`scenario_document`): the base scenario's file
+with the cell's values written in, its ``[faults]`` table holding the fault, the lag and
+the seed. ``python -m hil run --scenario THAT.toml --controller NAME --faults`` is the
+same run as the cell's (tests/test_campaign.py checks it).
+
+Every error is raised before any cell runs and names the file and the key.
+"""
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from hil.errors import HilError
+
+ROOT = Path(__file__).resolve().parent.parent.parent
+GRID_DIR = Path(__file__).resolve().parent / "grids"
+#: Every axis, in the order of a cell's fields and of cells.csv.
+AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
+        "model", "seed")
+REQUIRED_AXES = ("controller", "scenario")
+#: Value of an axis the grid does not set: the scenario's own (mu, speed, mass), x1, none.
+SCENARIO_VALUE = "scenario"
+NO_FAULT = "none"
+DEFAULT_MODEL = "default"
+#: Controllers that run a Koopman artefact (the only ones the model axis changes).
+KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
+#: Path the MPC horizons need beyond a run's last position (m): 30 steps at 25 ms, 70 km/h.
+HORIZON_ROOM_M = 15.0
+CONTROL_PERIOD_S = 0.025
+_TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults"}
+_RUN_KEYS = {"distance_m", "margin_s"}
+_KMH = 1.0 / 3.6
+
+
+class GridError(HilError):
+    """A grid file is unreadable or names an unknown axis, value, controller or scenario."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One run of a campaign: a value on every axis (see the module docstring)."""
+
+    controller: str
+    scenario: str
+    mu: float | str = SCENARIO_VALUE
+    speed: float | str = SCENARIO_VALUE
+    mass_offset_kg: float | str = SCENARIO_VALUE
+    lag_factor: float = 1.0
+    fault: str = NO_FAULT
+    model: str = DEFAULT_MODEL
+    seed: int | str = SCENARIO_VALUE
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @property
+    def label(self) -> str:
+        """Short text for errors and logs."""
+        return ", ".join(f"{k}={v}" for k, v in self.as_dict().items()
+                         if v not in (SCENARIO_VALUE, NO_FAULT, DEFAULT_MODEL) and
+                         not (k == "lag_factor" and v == 1.0))
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A loaded grid: its cells in product order (exclusions applied) and what the cells
+    need to become scenarios."""
+
+    name: str
+    description: str
+    source: Path
+    cells: tuple[Cell, ...]
+    scenario_files: Mapping[str, Path]
+    speed_profiles: Mapping[str, tuple[tuple[float, ...], tuple[float, ...]]]
+    faults: Mapping[str, Mapping[str, Any]]
+    distance_m: float | None
+    margin_s: float
+    excluded: int
+    not_applicable: int
+
+    def scenario_document(self, cell: Cell) -> dict[str, Any]:
+        """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
+        return scenario_document(self, cell)
+
+
+# ---------------------------------------------------------------------------- loading
+
+def load_grid(file: str | Path) -> Grid:
+    """Read, validate and expand a grid file.
+
+    Raises:
+        GridError: unreadable file, unknown key, axis, value, controller, scenario, fault,
+            model artefact or speed profile, or a path too short for a cell.
+    """
+    file = Path(file)
+    if not file.is_file() and (GRID_DIR / f"{file}.toml").is_file():
+        file = GRID_DIR / f"{file}.toml"
+    try:
+        raw = tomllib.loads(file.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise GridError(f"{file}: cannot read grid: {e.strerror}") from e
+    except tomllib.TOMLDecodeError as e:
+        raise GridError(f"{file}: invalid TOML: {e}") from e
+    unknown = sorted(set(raw) - _TOP_KEYS)
+    if unknown:
+        raise GridError(f"{file}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_TOP_KEYS))}")
+    axes_raw = raw.get("axes")
+    if not isinstance(axes_raw, dict):
+        raise GridError(f"{file}: missing table [axes]")
+    unknown = sorted(set(axes_raw) - set(AXES))
+    if unknown:
+        raise GridError(f"{file}: unknown axis {', '.join(unknown)}; axes: {', '.join(AXES)}")
+    for name in REQUIRED_AXES:
+        if name not in axes_raw:
+            raise GridError(f"{file}: axes.{name} is required")
+    profiles = _speed_profiles(file, raw.get("speed_profiles", {}))
+    grid_faults = raw.get("faults", {})
+    if not isinstance(grid_faults, dict) or not all(isinstance(v, dict) for v in grid_faults.values()):
+        raise GridError(f"{file}: [faults.NAME] must be tables of hil/faults.py's [faults] schema")
+    axes = {name: _axis_values(file, name, axes_raw.get(name)) for name in AXES}
+    scenario_files = {name: _scenario_file(file, name) for name in axes["scenario"]}
+    faults = _faults(file, axes["fault"], grid_faults)
+    for name, value in (("speed", v) for v in axes["speed"]):
+        if isinstance(value, str) and value not in (SCENARIO_VALUE, *profiles):
+            raise GridError(f"{file}: axes.{name} = {value!r}: not a number (km/h) and not a "
+                            f"[speed_profiles.NAME] table ({', '.join(profiles) or 'none defined'})")
+    for model in axes["model"]:
+        if model != DEFAULT_MODEL:
+            _model_file(file, model)
+    run = raw.get("run", {})
+    if not isinstance(run, dict) or set(run) - _RUN_KEYS:
+        raise GridError(f"{file}: [run] takes only {', '.join(sorted(_RUN_KEYS))}")
+    distance = run.get("distance_m")
+    margin = run.get("margin_s", 1.0)
+    for key, value in (("distance_m", distance), ("margin_s", margin)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                  or not 0 <= value < 1e5):
+            raise GridError(f"{file}: run.{key} = {value!r}: must be a number >= 0")
+    excludes = _excludes(file, raw.get("exclude", []), axes)
+
+    cells, excluded, not_applicable = [], 0, 0
+    for values in itertools.product(*(axes[name] for name in AXES)):
+        cell = Cell(*values)
+        if any(_matches(cell, rule) for rule in excludes):
+            excluded += 1
+        elif cell.model != DEFAULT_MODEL and cell.controller not in KOOPMAN_CONTROLLERS:
+            not_applicable += 1  # the same run as the default model's
+        else:
+            cells.append(cell)
+    grid = Grid(name=str(raw.get("name", file.stem)), description=str(raw.get("description", "")),
+                source=file.resolve(), cells=tuple(cells), scenario_files=scenario_files,
+                speed_profiles=profiles, faults=faults,
+                distance_m=None if distance is None else float(distance), margin_s=float(margin),
+                excluded=excluded, not_applicable=not_applicable)
+    if not cells:
+        raise GridError(f"{file}: no cell left after the exclusions")
+    for cell in cells:  # every scenario builds, every path is long enough: before any run
+        scenario_document(grid, cell)
+    return grid
+
+
+def _axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
+    defaults = {"controller": None, "scenario": None, "mu": SCENARIO_VALUE, "speed": SCENARIO_VALUE,
+                "mass_offset_kg": SCENARIO_VALUE, "lag_factor": 1.0, "fault": NO_FAULT,
+                "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE}
+    if raw is None:
+        return (defaults[name],)
+    values = raw if isinstance(raw, list) else [raw]
+    if not values:
+        raise GridError(f"{file}: axes.{name} is empty")
+    checked = tuple(_axis_value(file, name, v) for v in values)
+    if len(set(checked)) != len(checked):
+        raise GridError(f"{file}: axes.{name} = {values!r}: repeated value")
+    return checked
+
+
+def _axis_value(file: Path, name: str, value: Any) -> Any:
+    def bad(why: str) -> GridError:
+        return GridError(f"{file}: axes.{name} value {value!r}: {why}")
+
+    number = not isinstance(value, bool) and isinstance(value, (int, float))
+    if name == "controller":
+        from controller.registry import ALL_CONTROLLER_NAMES
+
+        if value not in ALL_CONTROLLER_NAMES:
+            raise bad(f"unknown controller; choose from {', '.join(ALL_CONTROLLER_NAMES)}")
+        return value
+    if name in ("scenario", "fault", "model"):
+        if not isinstance(value, str) or not value:
+            raise bad("must be a non-empty string")
+        return value
+    if name == "speed" and isinstance(value, str):
+        return value
+    if name == "seed":
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise bad("must be an integer >= 0")
+        return value
+    ranges = {"mu": (0.05, 1.5), "speed": (1.0, 200.0), "mass_offset_kg": (-1000.0, 2000.0),
+              "lag_factor": (0.0, 100.0)}
+    low, high = ranges[name]
+    if not number or not math.isfinite(value) or not low <= value <= high:
+        raise bad(f"must be a number in [{low}, {high}]")
+    return float(value)
+
+
+def _scenario_file(file: Path, name: str) -> Path:
+    from hil.scenario import SCENARIO_DIR, list_scenarios
+
+    for candidate in ((file.parent / name), ROOT / name, SCENARIO_DIR / f"{name}.toml"):
+        if candidate.suffix == ".toml" and candidate.is_file():
+            return candidate.resolve()
+    raise GridError(f"{file}: axes.scenario value {name!r}: not a scenario file and not one of "
+                    f"{', '.join(list_scenarios())}")
+
+
+def _model_file(file: Path, model: str) -> Path:
+    for candidate in (file.parent / model, ROOT / model):
+        if candidate.suffix == ".npz" and candidate.is_file():
+            return candidate.resolve()
+    raise GridError(f"{file}: axes.model value {model!r}: not {DEFAULT_MODEL!r} and not a "
+                    "Koopman artefact (.npz with its .json)")
+
+
+def model_file(grid: Grid, model: str) -> Path | None:
+    """The artefact of a model axis value (None: the controllers' default)."""
+    return None if model == DEFAULT_MODEL else _model_file(grid.source, model)
+
+
+def _speed_profiles(file: Path, raw: Any) -> dict[str, tuple[tuple[float, ...], tuple[float, ...]]]:
+    if not isinstance(raw, dict):
+        raise GridError(f"{file}: speed_profiles must be tables [speed_profiles.NAME]")
+    out = {}
+    for name, table in raw.items():
+        where = f"{file}: speed_profiles.{name}"
+        if not isinstance(table, dict) or set(table) != {"time_s", "target_speed_kmh"}:
+            raise GridError(f"{where} must have exactly time_s and target_speed_kmh")
+        times, speeds = table["time_s"], table["target_speed_kmh"]
+        if (not isinstance(times, list) or not isinstance(speeds, list) or not times
+                or len(times) != len(speeds)
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in times + speeds)):
+            raise GridError(f"{where}: time_s and target_speed_kmh must be arrays of numbers of one length")
+        out[name] = (tuple(float(t) for t in times), tuple(float(v) for v in speeds))
+    return out
+
+
+@lru_cache(maxsize=1)
+def fault_catalogue() -> dict[str, dict[str, Any]]:
+    """The fault catalogue: name -> ``[faults]`` table of each case of ``make faults``
+    (``studies.fault_campaign.campaign_cases``)."""
+    from studies.fault_campaign import campaign_cases
+
+    return {case.name: case.table for case in campaign_cases()}
+
+
+def _faults(file: Path, names: Sequence[str], grid_faults: Mapping[str, Any]) -> dict[str, dict]:
+    from hil.faults import FaultSpec, FaultSpecError
+
+    out: dict[str, dict] = {}
+    for name in names:
+        if name == NO_FAULT:
+            out[name] = {}
+            continue
+        if name in grid_faults:
+            table = grid_faults[name]
+        elif name in fault_catalogue():
+            table = fault_catalogue()[name]
+        else:
+            raise GridError(f"{file}: axes.fault value {name!r}: not {NO_FAULT!r}, not a "
+                            f"[faults.NAME] table of the file and not in the fault catalogue "
+                            f"({', '.join(repr(n) for n in fault_catalogue())})")
+        try:
+            FaultSpec.from_mapping(table, f"{file}: faults {name!r}")
+        except FaultSpecError as e:
+            raise GridError(str(e)) from e
+        out[name] = copy.deepcopy(dict(table))
+    return out
+
+
+def _excludes(file: Path, raw: Any, axes: Mapping[str, tuple]) -> list[dict[str, tuple]]:
+    if not isinstance(raw, list) or not all(isinstance(r, dict) for r in raw):
+        raise GridError(f"{file}: exclude must be an array of tables ([[exclude]])")
+    rules = []
+    for i, rule in enumerate(raw):
+        unknown = sorted(set(rule) - set(AXES))
+        if unknown or not rule:
+            raise GridError(f"{file}: exclude[{i}]: unknown axis {', '.join(unknown) or '(empty rule)'}")
+        checked = {}
+        for name, value in rule.items():
+            values = value if isinstance(value, list) else [value]
+            checked[name] = tuple(_axis_value(file, name, v) for v in values)
+            missing = [v for v in checked[name] if v not in axes[name]]
+            if missing:
+                raise GridError(f"{file}: exclude[{i}].{name} = {missing[0]!r}: not a value of axes.{name}")
+        rules.append(checked)
+    return rules
+
+
+def _matches(cell: Cell, rule: Mapping[str, tuple]) -> bool:
+    return all(getattr(cell, name) in values for name, values in rule.items())
+
+
+# ---------------------------------------------------------------------------- cell -> scenario
+
+def scenario_document(grid: Grid, cell: Cell) -> dict[str, Any]:
+    """The cell's scenario TOML document: the base scenario with the cell's mu, speed, mass,
+    duration and a ``[faults]`` table (fault, lag, seed). ``path.file`` is absolute.
+
+    Raises:
+        GridError: the path ends before the run's last position plus the horizons.
+    """
+    from hil.scenario import Scenario
+
+    base_file = grid.scenario_files[cell.scenario]
+    document = tomllib.loads(base_file.read_text(encoding="utf-8"))
+    base = Scenario.load(base_file)
+    document["name"] = f"{base.name}-cell"
+    document["description"] = f"campaign {grid.name} cell of {base.name}: {cell.label}"
+    document["path"]["file"] = str(base.path_file)
+    if cell.mu != SCENARIO_VALUE:
+        document.setdefault("road", {})["mu"] = cell.mu
+    if cell.mass_offset_kg != SCENARIO_VALUE:
+        document["vehicle"] = {"mass_offset_kg": cell.mass_offset_kg}
+    start_speed_kmh = base.start.speed_mps * 3.6
+    if cell.speed != SCENARIO_VALUE:
+        if isinstance(cell.speed, str):
+            times, speeds = grid.speed_profiles[cell.speed]
+        else:
+            times, speeds = (0.0,), (cell.speed,)
+        document["speed_profile"] = {"time_s": list(times), "target_speed_kmh": list(speeds)}
+        document["start"]["speed_kmh"] = speeds[0]
+        start_speed_kmh = speeds[0]
+        if grid.distance_m is not None and len(speeds) == 1:
+            seconds = grid.distance_m / (speeds[0] * _KMH) + grid.margin_s
+            document["duration_s"] = round(math.ceil(seconds / CONTROL_PERIOD_S - 1e-9)
+                                           * CONTROL_PERIOD_S, 3)
+    faults = copy.deepcopy(dict(grid.faults[cell.fault]))
+    if cell.lag_factor != 1.0:
+        from models.vehicle_params import load_vehicle_params
+
+        extra = (cell.lag_factor - 1.0) * load_vehicle_params().steer_time_constant
+        vehicle = dict(faults.get("vehicle", {}))
+        vehicle["steer_extra_lag_s"] = vehicle.get("steer_extra_lag_s", 0.0) + extra
+        faults["vehicle"] = vehicle
+    if cell.seed != SCENARIO_VALUE:
+        faults["seed"] = cell.seed
+    if faults or "faults" in document:
+        document["faults"] = {**document.get("faults", {}), **faults}
+    _check_path_length(grid, cell, document, base, start_speed_kmh)
+    return document
+
+
+def effective_values(document: Mapping[str, Any], cell: Cell) -> dict[str, Any]:
+    """The cell's axis values with the scenario's own in place of ``"scenario"``: mu, the
+    constant speed (km/h; a profile keeps its name, the scenario's own is ``profile``), the
+    mass offset (kg) and the faults' seed."""
+    values = cell.as_dict()
+    if cell.mu == SCENARIO_VALUE:
+        values["mu"] = float(document["road"]["mu"])
+    if cell.speed == SCENARIO_VALUE:
+        speeds = document["speed_profile"]["target_speed_kmh"]
+        values["speed"] = float(speeds[0]) if len(speeds) == 1 else "profile"
+    if cell.mass_offset_kg == SCENARIO_VALUE:
+        values["mass_offset_kg"] = float(document.get("vehicle", {}).get("mass_offset_kg", 0.0))
+    if cell.seed == SCENARIO_VALUE:
+        values["seed"] = int(document.get("faults", {}).get("seed", 0))
+    return values
+
+
+def _check_path_length(grid: Grid, cell: Cell, document: Mapping[str, Any], base: Any,
+                       start_speed_kmh: float) -> None:
+    profile = document["speed_profile"]["target_speed_kmh"]
+    top_speed = max([start_speed_kmh, *profile]) * _KMH
+    reach = base.start.x_m + top_speed * float(document["duration_s"]) + HORIZON_ROOM_M
+    path_end = float(base.path_points()[-1, 0])
+    if reach > path_end + 1e-6 and cell.speed != SCENARIO_VALUE:
+        raise GridError(f"{grid.source}: cell {cell.label}: the run may reach X = {reach:.0f} m "
+                        f"with its horizon, the path ends at {path_end:.0f} m "
+                        "(set [run] distance_m or lower the speed)")
+
+
+def to_toml(document: Mapping[str, Any]) -> str:
+    """A TOML text of ``document`` (scalars, arrays of scalars, tables, arrays of tables);
+    floats written with ``repr`` so they read back bit for bit."""
+    lines: list[str] = []
+    _write_table(lines, document, ())
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _key(name: str) -> str:
+    return name if name.replace("_", "").replace("-", "").isalnum() else _scalar(name)
+
+
+def _scalar(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "inf" if value > 0 else "-inf" if value < 0 else "nan"
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_scalar(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{_key(k)} = {_scalar(v)}" for k, v in value.items()) + " }"
+    raise GridError(f"cannot write {value!r} as TOML")
+
+
+def _write_table(lines: list[str], table: Mapping[str, Any], prefix: tuple[str, ...]) -> None:
+    tables = {k: v for k, v in table.items() if isinstance(v, Mapping)}
+    arrays = {k: v for k, v in table.items()
+              if isinstance(v, list) and v and all(isinstance(i, Mapping) for i in v)}
+    for key, value in table.items():
+        if key not in tables and key not in arrays:
+            lines.append(f"{_key(key)} = {_scalar(value)}")
+    for key, value in tables.items():
+        lines.append("")
+        lines.append("[" + ".".join(_key(k) for k in (*prefix, key)) + "]")
+        _write_table(lines, value, (*prefix, key))
+    for key, items in arrays.items():
+        for item in items:
+            lines.append("")
+            lines.append("[[" + ".".join(_key(k) for k in (*prefix, key)) + "]]")
+            _write_table(lines, item, (*prefix, key))

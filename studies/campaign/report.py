@@ -1,0 +1,248 @@
+"""What a campaign writes: ``cells.csv`` (one row per cell), ``summary.md`` (pivot tables)
+and heat maps of e_Y RMSE (``heatmap_*.png``)."""
+from __future__ import annotations
+
+import csv
+import math
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from studies.campaign.grid import AXES, Grid
+
+#: Columns of cells.csv, in order (the axes as the issue names them, then the results).
+CSV_FIELDS = ("controller", "scenario", "mu", "speed", "mass", "lag", "fault", "model", "seed",
+              "e_y_rmse", "e_y_max", "heading_rmse", "completed", "end_reason",
+              "step_p50_us", "step_p99_us", "overruns", "wall_s", "error", "key")
+#: cells.csv column -> Cell field.
+_AXIS_COLUMN = {"mass": "mass_offset_kg", "lag": "lag_factor"}
+#: Axes the pivot tables and heat maps split by (controller is always the columns).
+PIVOT_AXES = ("scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault", "model", "seed")
+_TITLES = {"mass_offset_kg": "mass offset (kg)", "lag_factor": "steering lag (x time constant)",
+           "mu": "mu", "speed": "speed (km/h)", "scenario": "scenario", "fault": "fault",
+           "model": "model", "seed": "seed"}
+
+
+def _text(value: Any, digits: int = 6) -> str:
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return ""
+        return f"{value:.{digits}f}" if digits else f"{value:g}"
+    return "" if value is None else str(value)
+
+
+def csv_row(row: dict[str, Any]) -> dict[str, str]:
+    """A result row as the text of :data:`CSV_FIELDS`."""
+    out = {}
+    for name in CSV_FIELDS:
+        value = row.get(_AXIS_COLUMN.get(name, name), "")
+        if name in ("e_y_rmse", "e_y_max", "heading_rmse"):
+            out[name] = _text(_float(value))
+        elif name in ("step_p50_us", "step_p99_us", "wall_s"):
+            out[name] = _text(_float(value), 1 if name == "wall_s" else 0)
+        elif name in ("mu", "speed", "mass", "lag") and isinstance(value, float):
+            out[name] = f"{value:g}"
+        else:
+            out[name] = _text(value).replace("\n", " ")
+    return out
+
+
+def _float(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+class CsvAppender:
+    """``cells.csv`` written row by row as cells finish (rewritten in grid order at the end)."""
+
+    def __init__(self, path: Path, rows: Sequence[dict[str, Any]] = ()) -> None:
+        self.path = path
+        write_cells_csv(path, rows)
+
+    def __call__(self, row: dict[str, Any]) -> None:
+        with self.path.open("a", newline="", encoding="utf-8") as handle:
+            csv.DictWriter(handle, CSV_FIELDS).writerow(csv_row(row))
+
+
+def write_cells_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, CSV_FIELDS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow(csv_row(row))
+    return path
+
+
+def _sort_key(value: Any) -> tuple:
+    return (0, value, "") if isinstance(value, (int, float)) else (1, 0.0, str(value))
+
+
+def pivot(rows: Sequence[dict[str, Any]], axis: str, controllers: Sequence[str],
+          statistic: Callable[[list[dict[str, Any]]], str]) -> list[str]:
+    """A Markdown table: one row per value of ``axis``, one column per controller."""
+    groups: dict[tuple[Any, str], list[dict[str, Any]]] = defaultdict(list)
+    for row in rows:
+        groups[(row[axis], row["controller"])].append(row)
+    values = sorted({row[axis] for row in rows}, key=_sort_key)
+    lines = [f"| {_TITLES[axis]} | " + " | ".join(controllers) + " |",
+             "|---|" + "---|" * len(controllers)]
+    for value in values:
+        cells = [statistic(groups.get((value, c), [])) for c in controllers]
+        lines.append(f"| {_text(value, 0)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _mean_rmse(rows: list[dict[str, Any]]) -> str:
+    done = [_float(r.get("e_y_rmse")) for r in rows if r.get("completed")]
+    if not rows:
+        return "-"
+    mean = sum(done) / len(done) if done else math.nan
+    text = f"{mean * 100:.1f}" if done else "-"
+    return text if len(done) == len(rows) else f"{text} ({len(done)}/{len(rows)})"
+
+
+def _completed(rows: list[dict[str, Any]]) -> str:
+    return f"{sum(1 for r in rows if r.get('completed'))}/{len(rows)}" if rows else "-"
+
+
+def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str, wall_s: float,
+                     executor: str, computed: int, cached: int, machine: str,
+                     interrupted: bool = False) -> str:
+    """``summary.md``: the run's facts, per-controller totals and one pivot per axis."""
+    controllers = list(dict.fromkeys(c.controller for c in grid.cells))
+    lines = [f"# Campaign `{grid.name}`", "", f"`{command}`", ""]
+    if grid.description:
+        lines += [grid.description, ""]
+    lines += [
+        f"- Grid: `{_shown(grid.source)}`, "
+        f"{len(grid.cells)} cells ({grid.excluded} excluded, {grid.not_applicable} not applicable: "
+        "the model axis on a controller without a Koopman model).",
+        f"- This run: {computed} cells computed, {cached} from the cache, {len(rows)} of "
+        f"{len(grid.cells)} finished{' (interrupted)' if interrupted else ''}; wall time "
+        f"{wall_s:.0f} s on {executor}.",
+        f"- Machine: {machine}.",
+        "- Each cell: one lockstep run on the virtual bus with the ECU in-process "
+        "(`hil.session.run_hil`, as `python -m hil run --faults`). Completed: ran to the end with "
+        "the ECU ACTIVE and |e_Y| <= 2 m throughout.",
+        "",
+        "## Per controller", "",
+        "| controller | completed | e_Y RMSE mean (cm) | e_Y max worst (cm) | heading RMSE mean (mrad) "
+        "| step p50 / p99 median (ms) | errors |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for controller in controllers:
+        mine = [r for r in rows if r["controller"] == controller]
+        done = [r for r in mine if r.get("completed")]
+        e_y = [_float(r["e_y_rmse"]) for r in done]
+        e_max = [_float(r["e_y_max"]) for r in mine if math.isfinite(_float(r.get("e_y_max")))]
+        head = [_float(r["heading_rmse"]) for r in done]
+        p50 = sorted(_float(r.get("step_p50_us")) for r in mine if math.isfinite(_float(r.get("step_p50_us"))))
+        p99 = sorted(_float(r.get("step_p99_us")) for r in mine if math.isfinite(_float(r.get("step_p99_us"))))
+        columns = [controller, f"{len(done)}/{len(mine)}",
+                   f"{sum(e_y) / len(e_y) * 100:.1f}" if e_y else "-",
+                   f"{max(e_max) * 100:.1f}" if e_max else "-",
+                   f"{sum(head) / len(head) * 1000:.1f}" if head else "-",
+                   f"{p50[len(p50) // 2] / 1000:.2f} / {p99[len(p99) // 2] / 1000:.2f}" if p50 else "-",
+                   str(sum(1 for r in mine if r.get("error")))]
+        lines.append("| " + " | ".join(columns) + " |")
+    for axis in PIVOT_AXES:
+        if len({getattr(c, axis) for c in grid.cells}) < 2:
+            continue
+        lines += ["", f"## e_Y RMSE (cm) by {_TITLES[axis]}", "",
+                  "Mean over the other axes, completed cells only; (k/n) when only k of the n "
+                  "cells completed.", ""]
+        lines += pivot(rows, axis, controllers, _mean_rmse)
+        lines += ["", f"Completed cells by {_TITLES[axis]}:", ""]
+        lines += pivot(rows, axis, controllers, _completed)
+    failures = [r for r in rows if not r.get("completed")]
+    if failures:
+        lines += ["", "## Cells not completed", "", "| controller | cell | end | error |", "|---|---|---|---|"]
+        for r in failures[:60]:
+            cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r)
+            error = str(r.get("error", "")).replace("|", "/").replace("\n", " ")[:160]
+            lines.append(f"| {r['controller']} | {cell} | {r.get('end_reason', '')} | {error} |")
+        if len(failures) > 60:
+            lines.append(f"| ... | {len(failures) - 60} more in cells.csv | | |")
+    return "\n".join(lines) + "\n"
+
+
+def _shown(path: Path) -> str:
+    from studies.campaign.grid import ROOT
+
+    try:
+        return path.relative_to(ROOT).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def heatmap_axes(grid: Grid) -> tuple[str, str]:
+    """The two axes of the heat maps: the two with the most values (mu and speed first)."""
+    varying = [a for a in ("mu", "speed", "mass_offset_kg", "lag_factor", "scenario", "fault",
+                           "model", "seed")
+               if len({getattr(c, a) for c in grid.cells}) > 1]
+    if len(varying) >= 2:
+        ranked = sorted(varying, key=lambda a: -len({getattr(c, a) for c in grid.cells}))
+        first, second = sorted(ranked[:2], key=varying.index)
+        return first, second
+    if varying:
+        return varying[0], "controller"
+    return "scenario", "controller"
+
+
+def write_heatmaps(grid: Grid, rows: Sequence[dict[str, Any]], out_dir: Path) -> list[Path]:
+    """``heatmap_e_y_rmse.png``: mean e_Y RMSE (cm) over the two :func:`heatmap_axes`, one
+    panel per controller (or one panel with the controllers as an axis); cells that did not
+    complete are grey with a cross."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    row_axis, col_axis = heatmap_axes(grid)
+    controllers = list(dict.fromkeys(c.controller for c in grid.cells))
+    panels = [None] if col_axis == "controller" else controllers
+    row_values = sorted({r[row_axis] for r in rows}, key=_sort_key)
+    col_values = (controllers if col_axis == "controller"
+                  else sorted({r[col_axis] for r in rows}, key=_sort_key))
+    if not rows or not row_values or not col_values:
+        return []
+    grids = []
+    for panel in panels:
+        values = np.full((len(row_values), len(col_values)), np.nan)
+        for i, rv in enumerate(row_values):
+            for j, cv in enumerate(col_values):
+                group = [r for r in rows if r[row_axis] == rv and
+                         (r["controller"] == cv if col_axis == "controller" else r[col_axis] == cv)
+                         and (panel is None or r["controller"] == panel)]
+                done = [_float(r["e_y_rmse"]) * 100 for r in group if r.get("completed")]
+                if group and len(done) == len(group):
+                    values[i, j] = float(np.mean(done))
+        grids.append(values)
+    finite = [v for g in grids for v in g[np.isfinite(g)]]
+    vmax = max(finite) if finite else 1.0
+    fig, axes = plt.subplots(1, len(panels), figsize=(2.2 + 2.6 * len(panels), 3.4), squeeze=False)
+    for ax, panel, values in zip(axes[0], panels, grids):
+        image = ax.imshow(values, cmap="viridis", vmin=0.0, vmax=vmax, origin="lower", aspect="auto")
+        for i in range(len(row_values)):
+            for j in range(len(col_values)):
+                text = "x" if not np.isfinite(values[i, j]) else f"{values[i, j]:.1f}"
+                ax.text(j, i, text, ha="center", va="center", fontsize=7,
+                        color="white" if not np.isfinite(values[i, j]) or values[i, j] < vmax / 2 else "black")
+        ax.set_xticks(range(len(col_values)), [_text(v, 0) for v in col_values], fontsize=7,
+                      rotation=30 if col_axis in ("controller", "scenario", "fault") else 0)
+        ax.set_yticks(range(len(row_values)), [_text(v, 0) for v in row_values], fontsize=7)
+        ax.set_xlabel(_TITLES.get(col_axis, col_axis), fontsize=8)
+        ax.set_ylabel(_TITLES.get(row_axis, row_axis), fontsize=8)
+        ax.set_facecolor("0.85")
+        ax.set_title(panel or "all controllers", fontsize=9)
+    fig.colorbar(image, ax=axes[0].tolist(), label="e_Y RMSE (cm), mean over the other axes")
+    fig.suptitle(f"Campaign {grid.name}: e_Y RMSE (x: not every cell completed)", fontsize=9)
+    path = out_dir / "heatmap_e_y_rmse.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return [path]

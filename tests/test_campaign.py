@@ -1,0 +1,238 @@
+"""The campaign runner (studies/campaign): grid expansion and bad input, cache keys,
+resume, failing and interrupted cells, a cell against ``python -m hil run``, and (slow) a
+2-cell grid on a real Ray cluster started as separate processes on 127.0.0.1."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from studies.campaign.cell import CellJob, run_cell
+from studies.campaign.grid import GridError, load_grid, to_toml
+from studies.campaign.runner import SerialExecutor, cell_job, cell_key, run_campaign
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _grid(tmp_path: Path, text: str, name: str = "grid.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+GRID = """
+name = "t"
+[axes]
+controller = ["lmpc", "dkmpc"]
+scenario = ["dlc_smoke"]
+mu = [0.5, 0.85]
+lag_factor = [1.0, 3.0]
+[[exclude]]
+controller = "dkmpc"
+mu = 0.5
+[[exclude]]
+lag_factor = 3.0
+mu = [0.85]
+"""
+
+
+def test_grid_is_the_product_minus_the_exclusions(tmp_path):
+    grid = load_grid(_grid(tmp_path, GRID))
+    cells = {(c.controller, c.mu, c.lag_factor) for c in grid.cells}
+    # 2 x 2 x 2 = 8; dkmpc at mu 0.5 (2) and lag 3 at mu 0.85 (2, one of them already out)
+    assert cells == {("lmpc", 0.5, 1.0), ("lmpc", 0.5, 3.0), ("lmpc", 0.85, 1.0),
+                     ("dkmpc", 0.85, 1.0)}
+    assert grid.excluded == 4
+    assert [c.controller for c in grid.cells] == ["lmpc"] * 3 + ["dkmpc"]
+
+
+def test_model_axis_applies_to_the_koopman_controllers_only(tmp_path):
+    grid = load_grid(_grid(tmp_path, """
+[axes]
+controller = ["lmpc", "dkmpc"]
+scenario = ["dlc_smoke"]
+model = ["default", "models/artifacts/dk_paper_nominal.npz"]
+"""))
+    assert [(c.controller, c.model) for c in grid.cells] == [
+        ("lmpc", "default"), ("dkmpc", "default"), ("dkmpc", "models/artifacts/dk_paper_nominal.npz")]
+    assert grid.not_applicable == 1
+
+
+@pytest.mark.parametrize("body, words", [
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nfriction = [0.5]', ["friction", "unknown axis"]),
+    ('[axes]\ncontroller = ["pid"]\nscenario = ["dlc_smoke"]', ["axes.controller", "'pid'"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["nowhere"]', ["axes.scenario", "'nowhere'"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nmu = [85]', ["axes.mu", "85"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nfault = ["gremlins"]', ["axes.fault", "gremlins"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\n[[exclude]]\nmu = 0.3', ["exclude[0].mu"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_high_mu"]\nspeed = [120.0]', ["path ends"]),
+    ('[axes]\ncontroller = ["lmpc"]', ["axes.scenario is required"]),
+])
+def test_bad_input_is_an_error_naming_the_key_and_the_file(tmp_path, body, words):
+    file = _grid(tmp_path, body)
+    with pytest.raises(GridError) as info:
+        load_grid(file)
+    message = str(info.value)
+    print(message)
+    assert str(file) in message
+    for word in words:
+        assert word in message
+
+
+def test_cache_keys_are_stable_and_tell_cells_and_code_apart(tmp_path):
+    grid = load_grid(_grid(tmp_path, GRID))
+    keys = [cell_key(grid, c, "code-1") for c in grid.cells]
+    assert len(set(keys)) == len(keys)
+    assert keys == [cell_key(grid, c, "code-1") for c in load_grid(_grid(tmp_path, GRID, "b.toml")).cells]
+    assert cell_key(grid, grid.cells[0], "code-2") != keys[0]
+
+
+def _fake_row(job: CellJob) -> dict:
+    return {"key": job.key, "e_y_rmse": 0.01, "e_y_max": 0.02, "heading_rmse": 0.003,
+            "completed": 1, "end_reason": "duration", "error": ""}
+
+
+def test_a_rerun_resumes_and_computes_only_what_is_missing(tmp_path):
+    grid = load_grid(_grid(tmp_path, GRID))
+    calls: list[str] = []
+
+    def count(job):
+        calls.append(job.key)
+        return _fake_row(job)
+
+    first = run_campaign(grid, tmp_path / "out", SerialExecutor(count), progress=False)
+    assert (first.computed, first.cached, len(first.rows)) == (4, 0, 4)
+    (tmp_path / "out" / "cache" / f"{calls[1]}.json").unlink()  # one result lost
+    again = run_campaign(grid, tmp_path / "out", SerialExecutor(count), progress=False)
+    assert (again.computed, again.cached) == (1, 3)
+    assert calls[4] == calls[1]
+    assert [r["key"] for r in again.rows] == [r["key"] for r in first.rows]
+
+
+def test_a_failing_cell_is_recorded_and_the_campaign_goes_on(tmp_path):
+    broken = run_cell(CellJob(key="k", controller="lmpc", scenario_toml='name = "x"\n'))
+    assert broken["error"].startswith("ScenarioError") and broken["completed"] == 0
+    assert broken["end_reason"] == "error"
+    grid = load_grid(_grid(tmp_path, GRID))
+    bad_key = cell_key(grid, grid.cells[1])
+
+    def sometimes(job):
+        return {**broken, "key": job.key} if job.key == bad_key else _fake_row(job)
+
+    result = run_campaign(grid, tmp_path / "out", SerialExecutor(sometimes), progress=False)
+    assert len(result.rows) == 4 and result.failed == 1
+    assert result.rows[1]["error"].startswith("ScenarioError")
+
+
+def test_ctrl_c_keeps_what_finished(tmp_path):
+    grid = load_grid(_grid(tmp_path, GRID))
+    seen: list[str] = []
+
+    def interrupted_at_the_third(job):
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+        seen.append(job.key)
+        return _fake_row(job)
+
+    result = run_campaign(grid, tmp_path / "out", SerialExecutor(interrupted_at_the_third),
+                          progress=False)
+    assert result.interrupted and len(result.rows) == 2
+    resumed = run_campaign(grid, tmp_path / "out", SerialExecutor(_fake_row), progress=False)
+    assert (resumed.cached, resumed.computed) == (2, 2)
+
+
+def test_scenario_toml_round_trips(tmp_path):
+    grid = load_grid(_grid(tmp_path, """
+[axes]
+controller = ["lmpc"]
+scenario = ["dlc_smoke"]
+fault = ["drop 5 %"]
+lag_factor = [3.0]
+"""))
+    import tomllib
+
+    document = grid.scenario_document(grid.cells[0])
+    assert tomllib.loads(to_toml(document)) == document
+    assert document["faults"]["bus"][0]["kind"] == "drop"
+    assert document["faults"]["vehicle"]["steer_extra_lag_s"] == pytest.approx(0.06)
+
+
+def test_a_cell_is_the_run_hil_run_gives(tmp_path):
+    """One cell (mu, mass, speed and steering lag changed) against ``python -m hil run
+    --faults`` on the cell's scenario file: the same figures to the last bit."""
+    grid = load_grid(_grid(tmp_path, """
+[axes]
+controller = ["lmpc"]
+scenario = ["dlc_smoke"]
+mu = [0.7]
+speed = [40.0]
+mass_offset_kg = [150.0]
+lag_factor = [2.0]
+"""))
+    job = cell_job(grid, grid.cells[0], "test")
+    row = run_cell(job)
+    assert row["error"] == "" and row["completed"] == 1
+    scenario = tmp_path / "cell.toml"
+    scenario.write_text(job.scenario_toml.replace("{ROOT}", str(ROOT)), encoding="utf-8")
+    out = tmp_path / "run"
+    subprocess.run([sys.executable, "-m", "hil", "run", "--scenario", str(scenario),
+                    "--controller", "lmpc", "--faults", "--out", str(out)],
+                   cwd=ROOT, check=True, capture_output=True, timeout=300)
+    tracking = json.loads((out / "summary.json").read_text())["tracking"]
+    direct = (tracking["lateral_error_m"]["rmse"], tracking["lateral_error_m"]["max_abs"],
+              tracking["heading_error_rad"]["rmse"])
+    cell = (row["e_y_rmse"], row["e_y_max"], row["heading_rmse"])
+    print("cell", cell, "hil run", direct, "max abs difference",
+          max(abs(a - b) for a, b in zip(cell, direct)))
+    assert cell == direct
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_a_grid_on_a_ray_cluster_started_as_processes(tmp_path):
+    pytest.importorskip("ray", reason="Ray is not installed (make setup installs the campaign extra)")
+    ray_cli = Path(sys.executable).with_name("ray")
+    if not ray_cli.exists():
+        ray_cli = Path(shutil.which("ray") or "ray")
+    # Loopback only: the node registers as 127.0.0.1; token auth (Ray's default) on both sides.
+    env = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0",
+           "RAY_AUTH_MODE": "token"}
+    port = _free_port()
+    grid = _grid(tmp_path, """
+name = "cluster"
+[axes]
+controller = ["lmpc", "dkmpc"]
+scenario = ["dlc_smoke"]
+""")
+    try:
+        subprocess.run([str(ray_cli), "start", "--head", "--node-ip-address=127.0.0.1",
+                        f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+                        "--disable-usage-stats"], env=env, check=True, capture_output=True,
+                       timeout=180)
+        run = subprocess.run([sys.executable, "-m", "studies.campaign", str(grid), "--out",
+                              str(tmp_path / "out"), "--address", f"127.0.0.1:{port}",
+                              "--no-progress"], cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=600)
+        print(run.stdout, run.stderr[-3000:])
+        assert run.returncode == 0
+        assert f"Ray cluster at 127.0.0.1:{port}" in (tmp_path / "out" / "summary.md").read_text()
+        with (tmp_path / "out" / "cells.csv").open() as handle:
+            rows = list(csv.DictReader(handle))
+        assert [r["controller"] for r in rows] == ["lmpc", "dkmpc"]
+        for row in rows:
+            assert row["error"] == "" and row["completed"] == "1"
+            assert 0.0 < float(row["e_y_rmse"]) < 0.1
+    finally:
+        subprocess.run([str(ray_cli), "stop", "--force"], env=env, capture_output=True, timeout=120)
