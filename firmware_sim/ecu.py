@@ -551,6 +551,17 @@ class Ecu:
                            self.overruns, start_time=now_ns / NS_PER_S, mode=int(self.mode))
 
     # ---------------------------------------------------------------- shutdown
+    def _drain_input(self, budget_s: float = 0.2) -> None:
+        """Read what is still arriving before the bus is shut down: a TCP-based bus
+        (socketcand) closed with unread input is reset by the kernel, and the reset can
+        discard the last frame just sent."""
+        give_up = time.monotonic() + budget_s
+        try:
+            while time.monotonic() < give_up and self._bus.recv(0.01) is not None:
+                pass
+        except Exception:  # a dead bus has nothing to drain
+            pass
+
     def close(self) -> None:
         """Send one last STEER_TORQUE_CMD with CMD_VALID = 0, then shut the bus down.
 
@@ -566,6 +577,7 @@ class Ecu:
                 self._tx.send_command(mode, False, self._previous_valid_steer, 0.0)
             except Exception as error:  # the bus must still be shut down
                 _LOG.error("last STEER_TORQUE_CMD not sent: %s", error)
+            self._drain_input()
         try:
             self._bus.shutdown()
         except Exception as error:

@@ -310,7 +310,8 @@ def run_hil(scenario: Scenario, options: RunOptions,
             if recorder is not None:
                 # a separate ECU's last frame crosses another process (and a hub): wait
                 # for a longer quiet spell so the log keeps it
-                recorder.stop(settle_s=0.1 if options.bus.is_virtual else 0.3)
+                # (and on an interrupted run the recorder may still be catching up)
+                recorder.stop(settle_s=0.1 if options.bus.is_virtual else 0.3, max_wait_s=5.0)
                 # Sidecar so `python -m hil replay LOG` needs no flags.
                 write_sidecar(options.log_path, LogMetadata(
                     controller=options.controller,

@@ -122,7 +122,8 @@ def test_sigterm_and_sighup_end_a_run_with_a_separate_ecu_cleanly(tmp_path, sign
         log = tmp_path / "run.log"
         run = subprocess.Popen([sys.executable, "-m", "hil", "run", "--scenario", str(scenario),
                                 "--controller", "lmpc", "--interface", "socketcand",
-                                "--channel", channel, "--log", str(log)],
+                                "--channel", channel, "--log", str(log),
+                                "--out", str(tmp_path / "out")],
                                cwd=REPO, env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 90.0
@@ -142,6 +143,8 @@ def test_sigterm_and_sighup_end_a_run_with_a_separate_ecu_cleanly(tmp_path, sign
     frames = list(can.LogReader(log))
     last_command = [m for m in frames if m.arbitration_id == 0x200][-1]
     sidecar = json.loads(Path(str(log) + ".json").read_text())
+    print("last frames:", [(hex(m.arbitration_id), bytes(m.data).hex()) for m in frames[-4:]])
+    print("ECU output:", (tmp_path / "out" / "ecu_output.txt").read_text()[-600:])
     print(f"exit {status}, stderr {err!r}, {len(frames)} frames logged, last command "
           f"{bytes(last_command.data).hex()}, ECU processes left {left}")
     assert status == 128 + signum
