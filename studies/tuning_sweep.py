@@ -595,7 +595,8 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenar
 
 
 def plot_sweep(sweeps: Sequence[ControllerSweep], path: Path) -> None:
-    """Each controller's objectives sorted (log axis), the chosen setting marked."""
+    """Each controller's objectives sorted (log axis), the chosen setting (circle) and the
+    setting before the sweep (cross at 0) marked."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -606,8 +607,11 @@ def plot_sweep(sweeps: Sequence[ControllerSweep], path: Path) -> None:
         values = np.sort([min(e.objective_m, FAILURE_PENALTY_M) for e in sweep.evaluations])
         line, = ax.plot(np.arange(1, values.size + 1), values, marker=".", label=sweep.controller)
         ax.plot([1], [sweep.chosen.objective_m], marker="o", color=line.get_color(), markersize=8)
+        if sweep.before is not None:
+            ax.plot([0], [min(sweep.before.objective_m, FAILURE_PENALTY_M)], marker="x",
+                    color=line.get_color(), markersize=8)
     ax.set_yscale("log")
-    ax.set_xlabel("settings of the controller, best first")
+    ax.set_xlabel("settings of the controller, best first (x at 0: the setting before the sweep)")
     ax.set_ylabel("mean e_Y RMSE on the tuning set (m, log)")
     ax.set_title("make tune: every setting's objective on the tuning set (circle: chosen)")
     ax.grid(True, which="both", alpha=0.3)
