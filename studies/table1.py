@@ -196,6 +196,7 @@ def plot_figures(out_dir: Path, traces: dict[str, np.ndarray], horizons: dict[st
             steps = np.arange(1, curve.shape[0] + 1)
             ax.plot(steps, curve[:, j], lw=1.2, ls="-" if label.startswith("DK") else "--", label=label)
         ax.set_title(f"{name} RMSE ({STATE_LABELS[name][1]}), mean over seeds")
+        ax.set_yscale("log")  # a diverging baseline (EDMDc) would flatten the others on a linear axis
         ax.set_xlabel("prediction step (25 ms)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
