@@ -29,7 +29,10 @@ JSON in ``--cache`` (default ``build/robustness/``) under a hash of the cell, th
 controller, the run's settings, the plant's parameters and the digests of the tuning
 file, the model artefacts, the path files and the source of the controller and the runner
 (:func:`run_key`), so a re-run resumes where it stopped and recomputes exactly the runs
-whose inputs changed.
+whose inputs changed. The controllers are built from a copy of the tuning file taken when
+the grid starts (a tuning sweep may rewrite ``controller/tuning.toml`` meanwhile); if
+another input (an artefact, a path, a source file) changes while the grid runs, the runs
+of that call are dropped from the cache and the grid stops with an error.
 
 Writes to ``--out`` (default ``results/``):
 
@@ -298,6 +301,33 @@ def default_factory(name: str) -> Any:
     return create_controller(name)
 
 
+@dataclass(frozen=True)
+class SnapshotFactory:
+    """``create_controller(name, tuning_path)`` with a copy of the tuning file taken when
+    the grid started, so that a tuning sweep writing ``controller/tuning.toml`` meanwhile
+    cannot change the runs (their cache key names the copy's digest). Picklable."""
+
+    tuning_path: Path
+
+    def __call__(self, name: str) -> Any:
+        from controller.registry import create_controller
+
+        return create_controller(name, self.tuning_path)
+
+
+def tuning_snapshot(cache_dir: Path) -> Path:
+    """Copy ``controller/tuning.toml`` to ``cache_dir/tuning/<sha256[:16]>.toml`` (once per
+    content) and return the copy."""
+    data = (ROOT / "controller" / "tuning.toml").read_bytes()
+    copy = cache_dir / "tuning" / f"{hashlib.sha256(data).hexdigest()[:16]}.toml"
+    if not copy.is_file():
+        copy.parent.mkdir(parents=True, exist_ok=True)
+        partial = copy.with_suffix(f".{os.getpid()}.tmp")
+        partial.write_bytes(data)
+        os.replace(partial, copy)
+    return copy
+
+
 def run_one(cell: Cell, controller_name: str, factory: ControllerFactory | None = None,
             key: str = "") -> RunRecord:
     """Run one controller on one cell; never raises for a failure of the run itself.
@@ -431,11 +461,27 @@ def run_grid(cells: Sequence[Cell], controllers: Sequence[str], *, cache_dir: Pa
         workers: processes; 1 runs in this process.
         use_cache: False recomputes every run (and overwrites its cache entry).
         show_progress: a tqdm bar over the runs to compute (failed count, time left).
-        factory: builds the controllers (tests); default the registry.
+        factory: builds the controllers (tests); default the registry with a copy of the
+            tuning file taken now (:class:`SnapshotFactory`).
 
     Returns:
         One record per (cell, controller), cell-major in the order given.
+
+    Raises:
+        StudyError: the tuning file changed between the keys and its copy, or another
+            input changed while the runs ran (those runs are then dropped from the cache).
     """
+    # The inputs as they are now: the keys name them, the runs read them (the tuning from a
+    # copy taken here), and they are checked again at the end.
+    input_digests.cache_clear()
+    if factory is None:
+        snapshot = tuning_snapshot(cache_dir)
+        factory = SnapshotFactory(snapshot)
+        tuning_digest = hashlib.sha256(snapshot.read_bytes()).hexdigest()
+        for name in controllers:
+            if dict(input_digests(name))["controller/tuning.toml"] != tuning_digest:
+                raise StudyError("controller/tuning.toml changed while the grid started; run it again")
+    started_digests = {name: input_digests(name) for name in controllers}
     records: dict[tuple[Cell, str], RunRecord] = {}
     pending: list[RunTask] = []
     for cell in cells:
@@ -463,6 +509,16 @@ def run_grid(cells: Sequence[Cell], controllers: Sequence[str], *, cache_dir: Pa
             bar.set_postfix(failed=failed, last=f"{record.controller} {record.cell.name}",
                             refresh=False)
             bar.update(1)
+    input_digests.cache_clear()
+    changed = sorted({path for name in controllers
+                      for path, digest in set(input_digests(name)) ^ set(started_digests[name])
+                      if path != "controller/tuning.toml"})
+    if changed:
+        # Runs after the change read other inputs than their keys say: drop this call's runs.
+        for task in pending:
+            cache_file(cache_dir, task.key).unlink(missing_ok=True)
+        raise StudyError(f"inputs changed while the grid ran ({', '.join(changed)}); its "
+                         f"{len(pending)} new runs were dropped from the cache: run it again")
     return [records[(cell, name)] for cell in cells for name in controllers]
 
 

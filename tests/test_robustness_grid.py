@@ -172,6 +172,10 @@ def test_a_tiny_real_run_produces_rows(tmp_path: Path) -> None:
         if record.completed:
             assert record.e_y_max <= grid.LEAVE_ROAD_M
             assert record.steps == round(grid.run_duration_s(cells[0]) / 0.025)
+    # The controllers were built from a copy of the tuning file, named by its digest.
+    snapshots = list((tmp_path / "cache" / "tuning").glob("*.toml"))
+    assert len(snapshots) == 1
+    assert snapshots[0].read_bytes() == (grid.ROOT / "controller" / "tuning.toml").read_bytes()
     grid.write_outputs(records, ["lmpc", "dkmpc"], tmp_path / "out", command="test", workers=1)
     with (tmp_path / "out" / "robustness.csv").open() as handle:
         rows = list(csv.DictReader(handle))
@@ -227,6 +231,31 @@ def test_a_run_that_leaves_the_road_or_fails_is_recorded_and_the_grid_goes_on(tm
     with (tmp_path / "out" / "robustness.csv").open() as handle:
         rows = {row["controller"]: row for row in csv.DictReader(handle)}
     assert rows["unbuildable"]["e_y_rmse"] == "" and rows["unbuildable"]["completed"] == "0"
+
+
+def test_inputs_that_change_while_the_grid_runs_drop_its_runs(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    artefact = {"digest": "before"}
+
+    class Digests:
+        """Stands in for input_digests: an artefact whose digest the factory changes."""
+
+        def __call__(self, name: str) -> tuple[tuple[str, str], ...]:
+            return (("controller/tuning.toml", "t"), ("models/artifacts/x.npz", artefact["digest"]))
+
+        def cache_clear(self) -> None:
+            pass
+
+    def retraining_factory(name: str) -> ScriptedController:
+        artefact["digest"] = "after"
+        return double_factory("straight")
+
+    monkeypatch.setattr(grid, "input_digests", Digests())
+    cells = [Cell("dlc", 1.0, 70.0, 0.0, 1.0)]
+    with pytest.raises(grid.StudyError, match=r"inputs changed while the grid ran \(models/artifacts/x.npz\)"):
+        grid.run_grid(cells, ["straight"], cache_dir=tmp_path, workers=1, show_progress=False,
+                      factory=retraining_factory)
+    assert list((tmp_path / "runs").glob("*.json")) == []
 
 
 @pytest.mark.slow
