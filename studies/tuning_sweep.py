@@ -118,17 +118,18 @@ class SweepGrid:
         return {name: [float(v) for v in values] for name, values in self.levels}
 
 
-#: The MPC-weight grid, the same absolute values for every controller: 6 x 2 x 2 = 24
-#: settings (sized so that NMPC, about ten times slower per run than the QP MPCs, gets as
-#: many evaluations as the others within the sweep's half hour). The MPC's minimiser
-#: depends only on the ratios of the weights (up to the soft-constraint slacks, rarely
-#: active), so p_steer_rate stays 300 as the normalisation and the three other weights span
-#: the ratios. q_position / p_steer_rate matters most on the tuning set (a first look with
-#: LMPC and DKMPC: the objective moves by tens of percent per x3 step of it and by a few
-#: percent across the yaw and steer weights), hence its six levels, x2 apart.
+#: The MPC-weight grid, the same absolute values for every controller: 8 x 3 x 2 = 48
+#: settings (NMPC, about eight times slower per run than the QP MPCs, gets as many
+#: evaluations as the others within the sweep's half hour). The MPC's minimiser depends only
+#: on the ratios of the weights (up to the soft-constraint slacks, rarely active), so
+#: p_steer_rate stays 300 as the normalisation and the three other weights span the ratios.
+#: q_position / p_steer_rate matters most (by tens of percent per x2-x3 step of it, and by a
+#: few percent across the yaw and steer weights for the QP MPCs), and where its optimum lies
+#: differs between the controllers by more than a factor 30, hence its eight levels from
+#: 0.01 to 3.3 times p_steer_rate.
 WEIGHT_GRID = SweepGrid((
-    ("q_position", (30.0, 60.0, 120.0, 250.0, 500.0, 1000.0)),
-    ("q_yaw", (5.0, 40.0)),
+    ("q_position", (3.0, 10.0, 30.0, 60.0, 120.0, 250.0, 500.0, 1000.0)),
+    ("q_yaw", (5.0, 20.0, 80.0)),
     ("r_steer", (0.3, 3.0)),
     ("p_steer_rate", (300.0,)),
 ))
