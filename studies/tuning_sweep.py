@@ -33,7 +33,8 @@ and ``tuning_sweep.png``; and, unless ``--no-write``, the chosen values into
 re-read right before writing; every other line is kept).
 
 Usage: ``python -m studies.tuning_sweep [--controllers ...] [--scenarios ...] [--workers N]
-[--out DIR] [--no-write] [--no-progress]``.
+[--out DIR] [--tuning FILE] [--no-write] [--no-progress]``; ``--report-from JSON`` only
+rewrites the report and figure from a stored ``tuning_sweep.json``.
 """
 from __future__ import annotations
 
@@ -533,12 +534,12 @@ def _grid_text(grid: SweepGrid) -> str:
     return "; ".join(f"{name} {{{', '.join(f'{v:g}' for v in values)}}}" for name, values in grid.levels)
 
 
-def sweep_markdown(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenario],
+def sweep_markdown(sweeps: Sequence[ControllerSweep], names: Sequence[str],
                    context: Mapping[str, str],
                    weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
                    observer_start: Setting = OBSERVER_START) -> str:
-    """The report: the procedure, then per controller its grid, choice and top settings."""
-    names = [s.name for s in scenarios]
+    """The report: the procedure, then per controller its grid, choice and top settings
+    (``names``: the tuning scenarios' names)."""
     out = ["### Tuning sweep on the tuning set (`make tune`)", "",
            f"Every controller tuned by the same procedure (`studies/tuning_sweep.py`) on the "
            f"{len(names)} tuning scenarios of `hil/scenarios/tuning/` ({', '.join(names)}); "
@@ -581,8 +582,9 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenar
                        f"{', '.join(incomplete) or '-'} |")
         chosen = sweep.chosen
         grid_levels = dict(weight_grid.levels) | dict(observer_grid.levels)
+        # Only fields with an interior level: with two levels every choice is an "edge".
         edges = [name for name, value in chosen.setting
-                 if len(grid_levels.get(name, ())) > 1 and value in (min(grid_levels[name]), max(grid_levels[name]))]
+                 if len(grid_levels.get(name, ())) > 2 and value in (min(grid_levels[name]), max(grid_levels[name]))]
         if edges:
             out += ["", f"The chosen {', '.join(edges)} {'is' if len(edges) == 1 else 'are'} at the "
                     "edge of the grid: a wider grid might find a better value."]
@@ -622,14 +624,14 @@ def plot_sweep(sweeps: Sequence[ControllerSweep], path: Path) -> None:
     plt.close(fig)
 
 
-def sweep_document(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenario],
+def sweep_document(sweeps: Sequence[ControllerSweep], names: Sequence[str],
                    context: Mapping[str, str],
                    weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
                    observer_start: Setting = OBSERVER_START) -> dict[str, Any]:
     """The JSON document: procedure, context, and every evaluation per controller."""
     return {
         "generated_by": "make tune (python -m studies.tuning_sweep)",
-        "scenarios": [s.name for s in scenarios],
+        "scenarios": list(names),
         "objective": f"mean e_Y RMSE over the scenarios (m); {FAILURE_PENALTY_M:g} m for an incomplete run",
         "weight_grid": weight_grid.as_dict(), "observer_grid": observer_grid.as_dict(),
         "observer_start": dict(observer_start), "context": dict(context),
@@ -641,6 +643,63 @@ def sweep_document(sweeps: Sequence[ControllerSweep], scenarios: Sequence[Scenar
                 "evaluations": [e.as_dict() for e in sweep.evaluations],
             } for sweep in sweeps},
     }
+
+
+def _evaluation_from_dict(entry: Mapping[str, Any]) -> Evaluation:
+    return Evaluation(controller=entry["controller"], stage=entry["stage"],
+                      setting=tuple((name, float(value)) for name, value in entry["setting"].items()),
+                      rmse_m=dict(entry["rmse_m"]), max_abs_m=dict(entry["max_abs_m"]),
+                      completed=dict(entry["completed"]), failure=dict(entry["failure"]),
+                      objective_m=float(entry["objective_m"]), seconds=float(entry["seconds"]))
+
+
+def _grid_from_dict(levels: Mapping[str, Sequence[float]]) -> SweepGrid:
+    return SweepGrid(tuple((name, tuple(float(v) for v in values)) for name, values in levels.items()))
+
+
+@dataclass(frozen=True)
+class SweepRecord:
+    """A sweep as :func:`sweep_document` stored it (``--report-from``)."""
+
+    sweeps: list[ControllerSweep]
+    names: list[str]
+    context: dict[str, str]
+    weight_grid: SweepGrid
+    observer_grid: SweepGrid
+    observer_start: Setting
+
+
+def sweep_from_document(document: Mapping[str, Any]) -> SweepRecord:
+    """Rebuild the sweep from its JSON document (the inverse of :func:`sweep_document`).
+
+    Raises StudyError for a document that lacks a field."""
+    try:
+        sweeps = []
+        for name, entry in document["controllers"].items():
+            evaluations = tuple(_evaluation_from_dict(e) for e in entry["evaluations"])
+            fields = tuple(entry["swept_fields"])
+            sweeps.append(ControllerSweep(
+                controller=name,
+                weight_fields=tuple(f for f in fields if f in WEIGHT_FIELDS),
+                observer_fields=tuple(f for f in fields if f not in WEIGHT_FIELDS),
+                evaluations=evaluations, chosen=best(evaluations),
+                before=None if entry.get("before") is None else _evaluation_from_dict(entry["before"])))
+        return SweepRecord(sweeps, list(document["scenarios"]), dict(document["context"]),
+                           _grid_from_dict(document["weight_grid"]), _grid_from_dict(document["observer_grid"]),
+                           tuple((k, float(v)) for k, v in document["observer_start"].items()))
+    except (KeyError, TypeError, AttributeError) as e:
+        raise StudyError(f"not a tuning sweep document: {e!r}") from e
+
+
+def write_reports(record: SweepRecord, out: Path, *, document: bool = True) -> None:
+    """``tuning_sweep.md`` and ``.png`` (and, with ``document``, ``.json``) into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    grids = (record.weight_grid, record.observer_grid, record.observer_start)
+    (out / "tuning_sweep.md").write_text(sweep_markdown(record.sweeps, record.names, record.context, *grids))
+    if document:
+        (out / "tuning_sweep.json").write_text(
+            json.dumps(sweep_document(record.sweeps, record.names, record.context, *grids), indent=1) + "\n")
+    plot_sweep(record.sweeps, out / "tuning_sweep.png")
 
 
 def artefact_description(path: Path) -> str:
@@ -673,7 +732,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="tuning file read and (unless --no-write) updated")
     parser.add_argument("--no-write", action="store_true", help="do not write the tuning file")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    parser.add_argument("--report-from", type=Path, default=None, metavar="JSON",
+                        help="no sweep: rewrite the .md and .png in --out from a tuning_sweep.json "
+                             "(the tuning file is not touched)")
     args = parser.parse_args(argv)
+    if args.report_from is not None:
+        try:
+            record = sweep_from_document(json.loads(args.report_from.read_text()))
+            write_reports(record, args.out, document=False)
+        except (StudyError, OSError, json.JSONDecodeError) as e:
+            print(f"error: {args.report_from}: {e}", file=sys.stderr)
+            return 1
+        print(f"wrote {args.out}/tuning_sweep.md, .png from {args.report_from}")
+        return 0
     controllers = list(args.controllers or CONTROLLERS)
     artefact = Path(DEFAULT_ARTIFACT)
     artefact_before = artefact_description(artefact)
@@ -697,11 +768,8 @@ def main(argv: list[str] | None = None) -> int:
         "Koopman artefact used": artefact_before,
         "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {runs} closed-loop runs",
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "tuning_sweep.md").write_text(sweep_markdown(sweeps, scenarios, context))
-    (args.out / "tuning_sweep.json").write_text(
-        json.dumps(sweep_document(sweeps, scenarios, context), indent=1) + "\n")
-    plot_sweep(sweeps, args.out / "tuning_sweep.png")
+    write_reports(SweepRecord(sweeps, [s.name for s in scenarios], context, WEIGHT_GRID, OBSERVER_GRID,
+                              OBSERVER_START), args.out)
     for sweep in sweeps:
         print(f"{sweep.controller}: {_setting_text(sweep.chosen.setting)} -> "
               f"{sweep.chosen.objective_m:.4f} m")

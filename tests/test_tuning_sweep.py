@@ -217,6 +217,29 @@ def test_sweep_picks_the_lowest_objective_and_penalises_incomplete_runs() -> Non
     assert [e.objective_m for e in lmpc.top(2)] == sorted(e.objective_m for e in lmpc.evaluations)[:2]
 
 
+def test_report_rebuilds_from_the_stored_document(tmp_path: Path) -> None:
+    """--report-from: the JSON document holds everything the report and figure need."""
+    import json
+
+    tuning = load_tuning()
+    weights = SweepGrid((("q_position", (10.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
+                         ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
+
+    def runner(scenario, controller):
+        return _fake_result(0.01 * controller.tuning.q_position ** 0.5, completed=controller.tuning.q_position < 500)
+
+    sweeps = run_sweep(["lmpc"], [_scenario("a")], tuning, weight_grid=weights, runner=runner,
+                       show_progress=False, evaluate_before=True)
+    context = {"Koopman artefact used": "none"}
+    markdown = tuning_sweep.sweep_markdown(sweeps, ["a"], context, weights)
+    document = json.loads(json.dumps(tuning_sweep.sweep_document(sweeps, ["a"], context, weights)))
+    (tmp_path / "in.json").write_text(json.dumps(document))
+    assert tuning_sweep.main(["--report-from", str(tmp_path / "in.json"), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "tuning_sweep.md").read_text() == markdown
+    assert (tmp_path / "out" / "tuning_sweep.png").stat().st_size > 0
+    assert "q_position 10" in markdown.split("#### lmpc")[1].split("\n| 1 |")[1].splitlines()[0]
+
+
 def test_sweep_records_a_controller_that_cannot_be_built() -> None:
     tuning = load_tuning()
     weights = SweepGrid((("q_position", (10.0,)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
