@@ -673,20 +673,27 @@ def _number(value: float, decimals: int = 4) -> str:
 
 
 def inputs_note(root: Path = ROOT) -> str:
-    """Which commit the tuning file and the default model artefact come from
-    (``git log -1 -- models/artifacts/dk_d5.npz controller/tuning.toml``), and whether the
-    working tree changes them."""
-    files = ["models/artifacts/dk_d5.npz", "controller/tuning.toml"]
+    """Which commits the tuning file and the default model artefact come from (the last
+    commit that changed each, and ``git log -1 -- models/artifacts/dk_d5.npz
+    controller/tuning.toml`` for both), and whether the working tree changes them."""
+    files = {"controller/tuning.toml": "tuning", "models/artifacts/dk_d5.npz": "artefact"}
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=root, capture_output=True, text=True,
+                              check=True, timeout=30).stdout
+
     try:
-        commit = subprocess.run(["git", "log", "-1", "--format=%h %s", "--", *files], cwd=root,
-                                capture_output=True, text=True, check=True, timeout=30).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", *files], cwd=root,
-                               capture_output=True, text=True, check=True, timeout=30).stdout
+        last = {name: git("log", "-1", "--format=%h %s", "--", name).strip() for name in files}
+        both = git("log", "-1", "--format=%h", "--", *files).strip()
+        dirty = git("status", "--porcelain", "--", *files)
     except (OSError, subprocess.SubprocessError):
-        return "tuning and artefact commit: unknown (no git)"
-    sha, _, subject = commit.partition(" ")
-    subject = subject if len(subject) <= 80 else subject[:77] + "..."
-    note = f"`controller/tuning.toml` and `models/artifacts/dk_d5.npz` as of commit `{sha}` (\"{subject}\")"
+        return "tuning and artefact commits: unknown (no git)"
+    parts = []
+    for name, line in last.items():
+        sha, _, subject = line.partition(" ")
+        subject = subject if len(subject) <= 70 else subject[:67] + "..."
+        parts.append(f"`{name}` of commit `{sha or '?'}` (\"{subject}\")")
+    note = "; ".join(parts) + f" (last commit of either: `{both or '?'}`)"
     changed = [line[3:] for line in dirty.splitlines() if line.strip()]  # "XY path"
     if changed:
         note += ("; uncommitted changes to them in the working tree were used: "
