@@ -216,9 +216,15 @@ def test_no_path_is_not_run() -> None:
 def test_eso_removes_the_steady_error_of_an_unmodelled_disturbance() -> None:
     """A constant lateral push the model does not know: DKMPC keeps an offset, ESO-DKMPC
     estimates the push in the lifted space and removes it (paper Section II-B)."""
+    # The mechanism of eq. 15, not the tuned values: w_hat held over the horizon (a decaying
+    # one under-predicts a constant push by design) and fixed weights and poles.
+    weights = {"q_position": 10.0, "q_yaw": 20.0, "r_steer": 1.0, "p_steer_rate": 300.0}
+    observer = {"eso_pole": 0.3, "eso_second_pole": 0.97, "disturbance_decay": 1.0}
     results = {}
     for name in ("dkmpc", "eso-dkmpc"):
-        errors, _, debugs = run(build(name), straight(), LinearPlant((0.0, 0.0, 0.0), vy_disturbance=0.02), 400)
+        overrides = weights | (observer if name == "eso-dkmpc" else {})
+        errors, _, debugs = run(build(name, **overrides), straight(),
+                                LinearPlant((0.0, 0.0, 0.0), vy_disturbance=0.02), 400)
         results[name] = errors
         assert not any(d.fallback for d in debugs)
     steady = {name: float(np.mean(np.abs(e[-40:]))) for name, e in results.items()}
@@ -233,7 +239,10 @@ def test_heading_west_across_the_yaw_wrap(name: str) -> None:
     x = np.arange(0.0, -300.0, -0.25)
     west = ReferencePath.from_arrays(x, np.zeros_like(x), np.full_like(x, math.pi), "west")
     plant = LinearPlant((0.0, -0.5, math.pi - 0.05))
-    errors, commands, debugs = run(build(name), west, plant, 200)
+    # Weights fixed here (not the tuned ones of tuning.toml): with them the approach
+    # overshoots the path heading, so the measured yaw does cross the +-pi wrap.
+    weights = {"q_position": 10.0, "q_yaw": 20.0, "r_steer": 1.0, "p_steer_rate": 300.0}
+    errors, commands, debugs = run(build(name, **weights), west, plant, 200)
     wrapped_yaws = [d for d in debugs if d.predicted_pose.size and d.predicted_pose[0, 2] < 0]
     print(f"{name}: e_Y start {errors[0]:.3f} m, after 5 s {errors[-1]:.1e} m, steps seen with yaw < 0: "
           f"{len(wrapped_yaws)}, max |steer| {max(abs(c.steer_angle) for c in commands):.3f} rad")

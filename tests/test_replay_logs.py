@@ -59,7 +59,10 @@ def test_faulty_log_diverges_from_the_good_run_at_the_first_fault() -> None:
     first = report.comparison.first_divergence
     assert not report.match
     assert 0.50 <= first.time_s <= 0.55
-    assert first.frame == "STEER_TORQUE_CMD" and first.signal == "ctrl_mode"
+    # The step at 0.500 s already runs on an older sample (the dropped one): whether its steer
+    # differs by one LSB of the command depends on the controller's tuning; from 0.525 s the
+    # mode does (DEGRADED).
+    assert first.frame == "STEER_TORQUE_CMD" and first.signal in ("steer_angle_cmd", "ctrl_mode")
 
 
 def test_faulty_log_reference_shows_the_fault_reactions() -> None:

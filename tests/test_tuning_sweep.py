@@ -133,7 +133,9 @@ def test_grid_refuses_repeated_levels() -> None:
 # ---------------------------------------------------------------------------- tuning file
 
 def test_tuning_file_edit_changes_only_the_swept_values() -> None:
-    text = DEFAULT_TUNING_PATH.read_text()
+    # The shipped file without the comments of an earlier sweep.
+    text = "".join(line for line in DEFAULT_TUNING_PATH.read_text().splitlines(keepends=True)
+                   if not line.rstrip().endswith(tuning_sweep.TUNING_COMMENT))
     chosen = {"lmpc": (("q_position", 300.0), ("q_yaw", 5.0), ("r_steer", 0.3), ("p_steer_rate", 300.0))}
     edited = update_tuning_text(text, chosen)
     before, after = text.splitlines(), edited.splitlines()
