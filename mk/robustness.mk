@@ -8,7 +8,7 @@
 
 ROBUSTNESS_ARGS ?=
 
-# About 13 min on 2 busy cores from an empty cache (NMPC takes half of it); seconds when cached.
+# 7.5 to 13 min on 2 cores from an empty cache (NMPC takes half of it); seconds when cached.
 ## robustness grid, every controller on mu x speed x mass x lag x manoeuvre -> results/robustness.{md,csv,png}
 robustness: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.robustness_grid --out results --workers 2 $(ROBUSTNESS_ARGS)
