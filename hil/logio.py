@@ -10,15 +10,17 @@
 - `LogContents`: the frames plus counts (frames per contract ID, IDs outside the DBC,
   error / remote / extended frames, skipped lines) and the warnings.
 - `frame_times(messages)`: the time base of a log. Lockstep logs (with HIL_SYNC) are
-  timed by virtual time: an input frame belongs to the TICK of the HIL_SYNC that follows
-  it (the master sends the frames due at t, then HIL_SYNC t), an ECU frame to the TICK it
-  answered (the HIL_SYNC before it). Other logs use their timestamps relative to the
-  first frame.
+  timed by virtual time (`TickStamper`): an input frame belongs to the TICK of the
+  HIL_SYNC that follows it (the master sends the frames due at t, then HIL_SYNC t), an
+  ECU frame to the TICK it answered (the HIL_SYNC before it). Other logs use their
+  timestamps relative to the first frame. The recorder stamps lockstep logs with the
+  same rule (wall-clock start + virtual time), so every tool sees the drive's true speed.
 - Sidecar ``<log>.json`` (`LogMetadata`): which controller and reference paths produced
   a log, so `python -m hil replay` needs no flags for logs written by ``make run``.
 """
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -42,8 +44,8 @@ SUPPORTED_SUFFIXES: tuple[str, ...] = (".log", ".asc", ".blf", ".csv", ".db", ".
 ECU_OUTPUT_IDS: frozenset[int] = frozenset(
     {FrameId.HIL_SYNC_ACK, FrameId.STEER_TORQUE_CMD, FrameId.CTRL_DIAG})
 
-#: Version of the sidecar JSON layout.
-SIDECAR_VERSION = 1
+#: Version of the sidecar JSON layout (2 added ``wall_start`` / ``wall_end``; 1 is read too).
+SIDECAR_VERSION = 2
 
 #: Root of the checkout: relative paths in sidecars are relative to it.
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -307,35 +309,73 @@ def sync_tick(message: can.Message) -> int | None:
     return int.from_bytes(bytes(message.data[0:4]), "little")
 
 
+class TickStamper:
+    """Which virtual tick each frame of a lockstep stream belongs to, frame by frame.
+
+    The rule of the contract's lockstep protocol: the master sends the frames due at t,
+    then HIL_SYNC t; the ECU answers after it. So HIL_SYNC t belongs to t, a frame the ECU
+    sent (HIL_SYNC_ACK, STEER_TORQUE_CMD, CTRL_DIAG) to the TICK before it, and every
+    other frame to the TICK of the HIL_SYNC that follows it. Frames before the first TICK
+    (the handshake) get the first TICK; frames after the last one get the last one. The
+    handshake TICK 0xFFFFFFFF is not a tick.
+
+    A frame's tick may only be known once a later frame has arrived, so `push` returns
+    the frames whose tick is settled, in arrival order, and `flush` the rest at the end.
+    Used offline (`frame_times`) and live by the recorder (`hil.recorder.BusRecorder`),
+    so a lockstep log's timestamps and the replay's time base are one rule.
+    """
+
+    def __init__(self) -> None:
+        self.previous_tick: int | None = None
+        # (frame, tick or None while it waits for the next HIL_SYNC), in arrival order
+        self._pending: list[tuple[can.Message, int | None]] = []
+
+    def push(self, message: can.Message) -> list[tuple[can.Message, int]]:
+        """Take the next frame; returns the frames whose tick (ms) is now known."""
+        tick = sync_tick(message) if message.arbitration_id == FrameId.HIL_SYNC else None
+        if tick is not None and tick != HANDSHAKE_TICK:
+            self._pending = [(m, tick if t is None else t) for m, t in self._pending]
+            self._pending.append((message, tick))
+            self.previous_tick = tick
+        elif (self.previous_tick is not None and is_contract_data_frame(message)
+              and message.arbitration_id in ECU_OUTPUT_IDS):
+            self._pending.append((message, self.previous_tick))
+        else:
+            self._pending.append((message, None))
+        settled = 0
+        while settled < len(self._pending) and self._pending[settled][1] is not None:
+            settled += 1
+        ready = [(m, int(t)) for m, t in self._pending[:settled]]  # type: ignore[arg-type]
+        del self._pending[:settled]
+        return ready
+
+    def flush(self) -> list[tuple[can.Message, int]]:
+        """The frames still waiting, with the last TICK (0 when no TICK was seen)."""
+        last = self.previous_tick if self.previous_tick is not None else 0
+        ready = [(m, last if t is None else t) for m, t in self._pending]
+        self._pending = []
+        return ready
+
+
+def has_sync_ticks(messages: list[can.Message]) -> bool:
+    """True when a well-formed HIL_SYNC with a real TICK (not the handshake) is present."""
+    return any(message.arbitration_id == FrameId.HIL_SYNC
+               and sync_tick(message) not in (None, HANDSHAKE_TICK) for message in messages)
+
+
 def frame_times(messages: list[can.Message]) -> tuple[list[float], str]:
     """Time of every frame (s) and a description of the time base.
 
-    With HIL_SYNC frames: virtual time from the TICKs (see the module docstring); frames
-    before the first TICK get its time; the handshake TICK does not count. Without: the
+    With HIL_SYNC frames: virtual time from the TICKs (`TickStamper`). Without: the
     timestamps relative to the first frame.
     """
-    ticks = [(index, tick) for index, message in enumerate(messages)
-             if message.arbitration_id == FrameId.HIL_SYNC
-             and (tick := sync_tick(message)) is not None and tick != HANDSHAKE_TICK]
-    if not ticks:
+    if not has_sync_ticks(messages):
         start = messages[0].timestamp if messages else 0.0
         return [m.timestamp - start for m in messages], "log timestamps (no HIL_SYNC in the log)"
-    times: list[float] = []
-    position = 0  # index into ticks of the next HIL_SYNC at or after the frame
-    previous_tick = ticks[0][1]
-    for index, message in enumerate(messages):
-        while position < len(ticks) and ticks[position][0] < index:
-            previous_tick = ticks[position][1]
-            position += 1
-        is_output = message.arbitration_id in ECU_OUTPUT_IDS and is_contract_data_frame(message)
-        if position < len(ticks) and ticks[position][0] == index:
-            tick = ticks[position][1]  # the HIL_SYNC itself
-        elif is_output or position >= len(ticks):
-            tick = previous_tick
-        else:
-            tick = ticks[position][1]
-        times.append(tick / 1000.0)
-    return times, "virtual time from HIL_SYNC TICKs (lockstep log)"
+    stamper = TickStamper()
+    ticks = [tick for message in messages for _, tick in stamper.push(message)]
+    ticks.extend(tick for _, tick in stamper.flush())
+    return [tick / 1000.0 for tick in ticks], "virtual time from HIL_SYNC TICKs (lockstep log)"
 
 
 # --- sidecar metadata ------------------------------------------------------------------
@@ -344,18 +384,30 @@ def frame_times(messages: list[can.Message]) -> tuple[list[float], str]:
 @dataclass(frozen=True)
 class LogMetadata:
     """What produced a log: ``controller`` (registry name), ``mode`` ("lockstep" or
-    "realtime"), reference ``paths`` (PATH_ID -> CSV file) and optionally the scenario."""
+    "realtime"), reference ``paths`` (PATH_ID -> CSV file), optionally the scenario, and
+    the wall clock of the recording (Unix time, s): ``wall_start`` (its first frame) and
+    ``wall_end`` (its last). A lockstep log's frames are stamped ``wall_start`` + virtual
+    time, so these two are the only wall-clock record of such a run."""
 
     controller: str
     mode: str
     paths: dict[int, str]
     scenario: str | None = None
+    wall_start: float | None = None
+    wall_end: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form (PATH_IDs as strings)."""
-        return {"version": SIDECAR_VERSION, "controller": self.controller, "mode": self.mode,
-                "paths": {str(k): v for k, v in sorted(self.paths.items())},
-                "scenario": self.scenario}
+        data: dict[str, Any] = {
+            "version": SIDECAR_VERSION, "controller": self.controller, "mode": self.mode,
+            "paths": {str(k): v for k, v in sorted(self.paths.items())},
+            "scenario": self.scenario}
+        if self.wall_start is not None:
+            data["wall_start"] = self.wall_start
+            data["wall_end"] = self.wall_end
+            data["timestamps"] = ("wall_start + virtual time of the tick"
+                                  if self.mode == "lockstep" else "wall clock")
+        return data
 
 
 def sidecar_path(log_path: str | Path) -> Path:
@@ -378,7 +430,7 @@ def write_sidecar(log_path: str | Path, metadata: LogMetadata) -> Path:
             stored[path_id] = resolved.relative_to(REPO_ROOT).as_posix()
         except ValueError:
             stored[path_id] = str(resolved)
-    data = LogMetadata(metadata.controller, metadata.mode, stored, metadata.scenario).as_dict()
+    data = dataclasses.replace(metadata, paths=stored).as_dict()
     try:
         target.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     except OSError as error:
@@ -430,5 +482,12 @@ def read_sidecar(log_path: str | Path) -> LogMetadata | None:
             candidate = beside if beside.exists() else REPO_ROOT / candidate
         paths[path_id] = str(candidate)
     scenario = data.get("scenario")
+    wall = {}
+    for name in ("wall_start", "wall_end"):
+        value = data.get(name)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise SidecarError(f"{target}: field {name!r} must be a number (Unix time, s), "
+                               f"got {value!r}")
+        wall[name] = None if value is None else float(value)
     return LogMetadata(controller=controller, mode=mode, paths=paths,
-                       scenario=scenario if isinstance(scenario, str) else None)
+                       scenario=scenario if isinstance(scenario, str) else None, **wall)

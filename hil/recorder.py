@@ -4,8 +4,14 @@
   listener like any other node: on the virtual bus it hears all other bus objects, on
   SocketCAN all other sockets) and a `can.Notifier` feeding `can.Logger`. The format
   follows the file suffix as in python-can: ``.log`` candump (the default, readable by
-  can-utils' ``canplayer``), ``.asc``, ``.blf``, ``.csv``, ``.trc``, ... and ``.gz``
-  compressed variants.
+  can-utils' ``canplayer``), ``.asc``, ``.blf``, ``.csv``, ``.trc`` and ``.gz``
+  compressed variants (only the suffixes `hil.logio` reads back: `hil.logio.check_log_suffix`).
+  In lockstep (``virtual_time=True``) every frame is stamped with the wall-clock start
+  of the recording plus the virtual time of the tick it belongs to
+  (`hil.logio.TickStamper`), so ``cantools plot``, ``can.player``, ``canplayer`` and
+  ``hil play`` see the drive at its true speed, not at the speed the PC computed it;
+  the wall clock of the first and last frame is kept in `wall_start` / `wall_end` for
+  the sidecar. Real-time recordings keep the bus timestamps (wall clock).
 - `EcuFrameMonitor`: a node for the time master that keeps the ECU's frames with the
   virtual tick they answered (STEER_TORQUE_CMD, CTRL_DIAG), for time series and metrics.
 """
@@ -21,6 +27,7 @@ from can_defs.codec import decode
 from can_defs.errors import CanDefsError
 from can_defs.frames import CtrlDiag, FrameId, SteerTorqueCmd
 from hil.errors import HilError
+from hil.logio import TickStamper, check_log_suffix
 
 #: Default log format: candump ``-L`` lines (``(timestamp) channel ID#DATA``).
 DEFAULT_LOG_SUFFIX = ".log"
@@ -41,25 +48,47 @@ class BusRecorder:
     Args:
         bus: a bus object of its own (the recorder closes it on `stop`).
         path: the log file; its folder must exist (checked by the commands beforehand).
+        virtual_time: stamp frames with the wall-clock start + their lockstep tick
+            (module docstring) instead of the bus timestamps.
 
     Raises:
-        RecorderError: unknown suffix or the file cannot be created.
+        RecorderError: a suffix the project's log readers do not read, or the file cannot
+            be created.
     """
 
-    def __init__(self, bus: can.BusABC, path: str | Path) -> None:
+    def __init__(self, bus: can.BusABC, path: str | Path, virtual_time: bool = False) -> None:
         self.path = Path(path)
         self.bus = bus
         self.count = 0
+        #: Wall clock (Unix time, s) of the first and the last frame received.
+        self.wall_start: float | None = None
+        self.wall_end: float | None = None
+        self._stamper = TickStamper() if virtual_time else None
         try:
+            check_log_suffix(self.path)
             self._writer = can.Logger(self.path)
-        except (ValueError, OSError) as e:
+        except (HilError, ValueError, OSError) as e:
             bus.shutdown()
             raise RecorderError(f"cannot record to {self.path}: {e}") from e
-        self._notifier = can.Notifier(bus, [self._writer, self._count], timeout=0.05)
+        self._notifier = can.Notifier(bus, [self._receive], timeout=0.05)
         self._stopped = False
 
-    def _count(self, message: can.Message) -> None:
+    def _receive(self, message: can.Message) -> None:
+        """Notifier callback (its thread): count, then write now or once the tick is known."""
         self.count += 1
+        if self.wall_start is None:
+            self.wall_start = message.timestamp
+        self.wall_end = message.timestamp
+        if self._stamper is None:
+            self._writer.on_message_received(message)
+            return
+        self._write_stamped(self._stamper.push(message))
+
+    def _write_stamped(self, ready: list[tuple[can.Message, int]]) -> None:
+        start = self.wall_start if self.wall_start is not None else 0.0
+        for message, tick_ms in ready:
+            message.timestamp = start + tick_ms / 1000.0
+            self._writer.on_message_received(message)
 
     def wait_for(self, n_frames: int, timeout_s: float = 5.0) -> bool:
         """Wait until ``n_frames`` frames were recorded (the frames are in flight on the
@@ -82,10 +111,15 @@ class BusRecorder:
             seen = self.count
             time.sleep(settle_s)
         try:
-            # Notifier.stop() also stops (and closes) its listeners, the writer included.
             self._notifier.stop()
+            if self._stamper is not None:
+                # frames after the last HIL_SYNC (an interrupted run): the last tick
+                self._write_stamped(self._stamper.flush())
         finally:
-            self.bus.shutdown()
+            try:
+                self._writer.stop()  # flush and close the log
+            finally:
+                self.bus.shutdown()
 
     def __enter__(self) -> "BusRecorder":
         return self

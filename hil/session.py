@@ -286,7 +286,8 @@ def run_hil(scenario: Scenario, options: RunOptions,
     started = time.monotonic()
     try:
         if options.log_path is not None:
-            recorder = BusRecorder(open_bus(options.bus), options.log_path)
+            recorder = BusRecorder(open_bus(options.bus), options.log_path,
+                                   virtual_time=options.lockstep)
         ecu = InProcessEcu(scenario, options) if options.bus.is_virtual \
             else EcuProcess(scenario, options)
         nodes = [plant, planner, monitor]
@@ -317,7 +318,8 @@ def run_hil(scenario: Scenario, options: RunOptions,
                     controller=options.controller,
                     mode="lockstep" if options.lockstep else "realtime",
                     paths={scenario.path_id: str(scenario.path_file)},
-                    scenario=scenario.name))
+                    scenario=scenario.name, wall_start=recorder.wall_start,
+                    wall_end=recorder.wall_end))
             master_bus.shutdown()
     wall = time.monotonic() - started
     plant_trace = plant.trace()
