@@ -6,10 +6,11 @@ is imported. Building loads the tuning and the model files: build time, never st
 from __future__ import annotations
 
 import importlib
+from collections.abc import Sequence
 from pathlib import Path
 
 from controller.base import Controller
-from controller.errors import UnknownControllerError
+from controller.errors import ControllerError, UnknownControllerError
 from controller.tuning import load_tuning
 
 #: The paper's four controllers: the default set of ``make run``, the timing studies and
@@ -32,14 +33,71 @@ CONTROLLERS: dict[str, tuple[str, str]] = {
 }
 
 
-def create_controller(name: str, tuning_path: str | Path | None = None) -> Controller:
+def create_controller(name: str, tuning_path: str | Path | None = None,
+                      model_path: str | Path | None = None) -> Controller:
     """Build controller ``name`` (one of ``ALL_CONTROLLER_NAMES``) with the tuning file
-    (default ``controller/tuning.toml``). Raises ``UnknownControllerError`` for other
-    names, ``TuningError`` for a bad tuning file and the model package's errors for a
-    missing or bad model artefact."""
+    (default ``controller/tuning.toml``) and, with ``model_path``, another model file
+    (``MODEL_FILE_KINDS``) instead of the default one. Raises ``UnknownControllerError``
+    for other names, ``TuningError`` for a bad tuning file and the model package's errors
+    for a missing or bad model artefact."""
     if name not in CONTROLLERS:
         raise UnknownControllerError(f"unknown controller {name!r}; choose one of {', '.join(ALL_CONTROLLER_NAMES)}")
     tuning = load_tuning(tuning_path)
     module_name, class_name = CONTROLLERS[name]
     controller_class = getattr(importlib.import_module(module_name), class_name)
-    return controller_class.from_tuning(tuning)
+    if model_path is None:
+        return controller_class.from_tuning(tuning)
+    return controller_class(load_controller_model(name, model_path),
+                            tuning.for_controller(name), tuning.longitudinal)
+
+
+class ModelFileError(ControllerError):
+    """A ``--model`` file does not fit the controller (kind, states or inputs; names the file)."""
+
+
+#: ``--model`` (another model file): controller -> the kind of file its constructor takes.
+MODEL_FILE_KINDS: dict[str, str] = {"eso-dkmpc": "koopman", "dkmpc": "koopman",
+                                    "lmpc": "bicycle", "lmpc-eso": "bicycle"}
+#: The states and inputs an ECU model must have (the frames carry nothing else).
+ECU_MODEL_INPUTS = ("torque", "steer")
+
+
+def load_controller_model(name: str, model_path: str | Path) -> object:
+    """The model file for controller ``name``: a Koopman artefact (``.npz`` + ``.json``)
+    or a fitted bicycle file (JSON of ``models.bicycle_fit``).
+
+    Raises:
+        ModelFileError: the controller takes no model file, or the file is of the other
+            kind, or a Koopman model whose inputs or states the ECU cannot supply (a model
+            for study, e.g. one trained on throttle and brake).
+        models.errors.ModelError: the file does not load.
+    """
+    kind = MODEL_FILE_KINDS.get(name)
+    if kind is None:
+        raise ModelFileError(f"--model: controller {name!r} takes no model file (those that do: "
+                             f"{', '.join(MODEL_FILE_KINDS)})")
+    if kind == "bicycle":
+        from models.bicycle_fit import load_bicycle
+        return load_bicycle(model_path)
+    from models.koopman import KoopmanModel
+    model = KoopmanModel.load(model_path)
+    check_ecu_model_names(model.state_names, model.input_names, str(model_path))
+    return model
+
+
+def check_ecu_model_names(states: Sequence[str], inputs: Sequence[str], where: str) -> None:
+    """Refuse a Koopman model whose states or inputs the ECU cannot supply from the bus.
+
+    Raises:
+        ModelFileError: names the file, the model's states and inputs, and says that such
+            a model is for study only.
+    """
+    from controller.lifted_mpc import MEASURED_STATES
+    states, inputs = tuple(states), tuple(inputs)
+    if inputs != ECU_MODEL_INPUTS or states[:3] != ("vx", "vy", "yaw_rate") \
+            or not set(states) <= set(MEASURED_STATES):
+        raise ModelFileError(
+            f"--model {where}: a model of states {list(states)} and inputs {list(inputs)} is for "
+            f"study only: the ECU's inputs are {list(ECU_MODEL_INPUTS)} and its states vx, vy, "
+            f"yaw_rate (optionally {', '.join(sorted(set(MEASURED_STATES) - {'vx', 'vy', 'yaw_rate'}))}), "
+            "as the bus carries them")

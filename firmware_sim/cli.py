@@ -12,6 +12,11 @@ all of it is checked before the bus is opened, and tracebacks only with ``--debu
 content of a path file is checked when it is loaded: a bad one latches FAULT (contract).
 SIGINT / SIGTERM / SIGHUP send one last STEER_TORQUE_CMD with CMD_VALID = 0, close the
 bus, write the timing record and exit 0.
+
+``--model PATH`` builds the controller on another model file (a Koopman artefact for
+eso-dkmpc / dkmpc, a fitted bicycle for lmpc / lmpc-eso); ``--excite PROGRAM`` adds an
+identification excitation while ACTIVE (``firmware_sim/excitation.py``,
+docs/identification.md). Both are checked before the bus is opened.
 """
 from __future__ import annotations
 
@@ -25,11 +30,14 @@ import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import can
 
 from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumentError
+
+if TYPE_CHECKING:
+    from firmware_sim.excitation import ExcitationProgram
 
 #: The registry's names (the paper's four, then the ablations), repeated here so that
 #: ``--help`` needs no controller import; a test checks they equal
@@ -172,6 +180,14 @@ def build_parser() -> argparse.ArgumentParser:
                              "exist; checked at start)")
     parser.add_argument("--replace", action="store_true",
                         help="overwrite an existing --timing-out file")
+    parser.add_argument("--model", type=Path, default=None, metavar="PATH",
+                        help="another model file: a Koopman artefact (PATH.npz + PATH.json) for "
+                             "eso-dkmpc / dkmpc, a fitted bicycle (JSON) for lmpc / lmpc-eso "
+                             "(docs/identification.md)")
+    parser.add_argument("--excite", default=None, metavar="PROGRAM",
+                        help="superimpose an identification excitation while ACTIVE: chirp, prbs, "
+                             "steps, prbs-torque, or a .toml / .csv program file "
+                             "(docs/identification.md)")
     parser.add_argument("--dbc", type=Path, default=None, metavar="FILE.dbc",
                         help="CAN matrix to use (default: the contract's can_defs/vehicle.dbc); "
                              "one that does not load is an error before the bus is opened")
@@ -201,6 +217,8 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
             inputs = [*paths.values(), *([args.dbc] if args.dbc else [])]
             check_output_file(args.timing_out, "--timing-out", args.replace, inputs)
         prepare_codec(args.dbc)
+        excitation = load_excitation(args.excite)
+        controller_factory = model_controller_factory(args.controller, args.model)
         bus = open_bus(args.interface, args.channel, args.bitrate)
     except EcuError as error:
         if args.debug:
@@ -229,7 +247,8 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     ecu = None
     try:
         ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep,
-                  reopen_bus=lambda: open_bus(args.interface, args.channel, args.bitrate))
+                  reopen_bus=lambda: open_bus(args.interface, args.channel, args.bitrate),
+                  controller_factory=controller_factory, excitation=excitation)
         logging.getLogger("firmware_sim").info(
             "ready: controller %s, PATH_IDs %s, %s, mode %s", args.controller,
             sorted(paths), "lockstep" if args.lockstep else "real time", ecu.mode.name)
@@ -249,6 +268,60 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
                   f"{error.strerror or error}", file=sys.stderr)
             return EXIT_BUS
     return EXIT_OK
+
+
+def load_excitation(spec: str | None) -> "ExcitationProgram | None":
+    """The ``--excite`` program (None without it); ConfigError names the file and field."""
+    if spec is None:
+        return None
+    from firmware_sim.excitation import load_program
+    return load_program(spec)
+
+
+def model_controller_factory(controller: str, model: Path | None) -> Callable[[str], object] | None:
+    """The ECU's controller factory for ``--model`` (None without it: the registry's default).
+
+    A file the controller could never use is refused here, before the bus is opened: a
+    controller without model files, a missing file, the other kind of file, a model whose
+    states or inputs the bus does not carry (for study only). A file that passes these
+    checks but does not load (damaged weights) latches FAULT in the ECU (contract).
+
+    Raises:
+        ConfigError: names the file and what is wrong with it.
+    """
+    if model is None:
+        return None
+    import json
+    from controller.errors import ControllerError
+    from controller.registry import MODEL_FILE_KINDS, check_ecu_model_names, create_controller
+    kind = MODEL_FILE_KINDS.get(controller)
+    if kind is None:
+        raise ConfigError(f"--model {model}: controller {controller!r} takes no model file (those "
+                          f"that do: {', '.join(MODEL_FILE_KINDS)})")
+    meta_file = model.with_suffix(".json") if kind == "koopman" else model
+    needed = [model.with_suffix(".npz"), meta_file] if kind == "koopman" else [model]
+    for file in needed:
+        if not file.is_file():
+            raise ConfigError(f"--model {model}: {file} not found (a {kind} model file for "
+                              f"{controller})")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ConfigError(f"--model {model}: {meta_file} is not readable JSON: {error}") from error
+    if not isinstance(meta, dict):
+        raise ConfigError(f"--model {model}: {meta_file} is not a JSON object")
+    if kind == "bicycle" and meta.get("kind") != "linear_bicycle":
+        raise ConfigError(f"--model {model}: not a fitted bicycle file (kind {meta.get('kind')!r}); "
+                          f"{controller} takes the bicycle JSON of python -m models.koopman_train --logs")
+    if kind == "koopman":
+        if meta.get("kind") == "linear_bicycle":
+            raise ConfigError(f"--model {model}: a fitted bicycle file; {controller} takes a "
+                              "Koopman artefact")
+        try:
+            check_ecu_model_names(meta.get("state_names", ()), meta.get("input_names", ()), str(model))
+        except ControllerError as error:
+            raise ConfigError(str(error)) from error
+    return lambda name: create_controller(name, model_path=model)
 
 
 def prepare_codec(dbc: Path | None) -> None:

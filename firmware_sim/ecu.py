@@ -43,6 +43,7 @@ from firmware_sim.clock import (HANDSHAKE_TICK, LockstepClock, MonotonicClock, R
 from firmware_sim.config import (BUS_LOST_AFTER_MS, BUS_REOPEN_INTERVAL_S, NS_PER_MS, NS_PER_S,
                                  EcuConfig)
 from firmware_sim.errors import ConfigError
+from firmware_sim.excitation import Excitation, ExcitationProgram, describe
 from firmware_sim.guard import GuardLimits, guard_command
 from firmware_sim.modes import VALID_COMMAND_MODES, ModeEvents, transition
 from firmware_sim.ratelimit import RateLimitedLog
@@ -93,6 +94,13 @@ def _default_controller_factory(name: str) -> Controller:
     return create_controller(name)
 
 
+def _path_tracker(path: Any) -> Any:
+    """A ``PathTracker`` for e_Y of the excitation's bound; None for a stand-in path of a
+    test (the bound is then not checked)."""
+    from controller.reference import PathTracker, ReferencePath
+    return PathTracker(path) if isinstance(path, ReferencePath) else None
+
+
 def _default_path_loader(path: Path) -> Any:
     from controller.reference import ReferencePath
     return ReferencePath.from_csv(path)
@@ -129,6 +137,8 @@ class Ecu:
             ``ReferencePath.from_csv``.
         reopen_bus: opens the bus again after it was lost (None: the ECU waits, logging
             once a second, until it is stopped).
+        excitation: identification excitation superimposed on the law's command while
+            ACTIVE (``firmware_sim.excitation``); None: none.
 
     A failure to create the controller (model load) or to load a path latches FAULT
     (CMD_VALID = 0) instead of raising, as the contract requires. The lockstep handshake is
@@ -143,7 +153,8 @@ class Ecu:
                  config: EcuConfig | None = None,
                  controller_factory: ControllerFactory | None = None,
                  path_loader: PathLoader | None = None,
-                 reopen_bus: BusFactory | None = None) -> None:
+                 reopen_bus: BusFactory | None = None,
+                 excitation: ExcitationProgram | None = None) -> None:
         self._bus = bus
         self._reopen_bus = reopen_bus
         self._config = config or EcuConfig()
@@ -165,6 +176,11 @@ class Ecu:
         self.timing = TimingRecorder(self._config.timing_capacity)
         self._closed = False
         self._warned: set[str] = set()
+        self._excitation = (None if excitation is None
+                            else Excitation(excitation, self._config.control_period_ms / 1000.0))
+        self._excitation_tracker: Any = None  # PathTracker of the active path (e_Y bound)
+        if excitation is not None:
+            _LOG.warning("%s", describe(excitation))
         for path_id in paths:
             if not isinstance(path_id, int) or isinstance(path_id, bool) or not 0 <= path_id <= 255:
                 raise ConfigError(f"PATH_ID must be an integer in 0..255, got {path_id!r}")
@@ -201,6 +217,7 @@ class Ecu:
         self._pending_model_reset = False
         self.overruns = 0
         self.cycles = 0
+        self._task_now_ns = 0
 
     @property
     def rx_counts(self) -> dict[str, int]:
@@ -419,6 +436,9 @@ class Ecu:
             _LOG.error("controller reset/set_path(PATH_ID %d) failed: %s", path_id, error)
             return False
         self._active_path_id = path_id
+        if self._excitation is not None:
+            self._excitation.reset()  # a new engagement: the program starts again
+            self._excitation_tracker = _path_tracker(self._paths[path_id])
         return True
 
     def _step_controller(self, sample: VehicleSample) -> tuple[Command | None, StepDebug | None]:
@@ -438,6 +458,7 @@ class Ecu:
         """One control cycle: events -> mode -> request -> guard -> TX (never raises)."""
         started = time.perf_counter()
         self.cycles += 1
+        self._task_now_ns = now_ns
         events, sample_age = self._mode_events(now_ns)
         previous_mode = self._update_mode(events)
         faults = self._input_faults(events)
@@ -521,8 +542,26 @@ class Ecu:
             faults |= FaultBit.SOLVER_FALLBACK
         if debug.observer_reset:
             faults |= FaultBit.MODEL_RESET
-        return _Request(command.steer_angle, command.drive_torque, self._qp_status(debug),
+        steer, torque = command.steer_angle, command.drive_torque
+        if self._excitation is not None:
+            steer, torque = self._excite(self._task_now_ns / NS_PER_S, measurement, steer, torque)
+        return _Request(steer, torque, self._qp_status(debug),
                         int(debug.iterations), float(debug.solve_time_s), faults)
+
+    def _excite(self, now_s: float, measurement: Any, steer: float, torque: float) -> tuple[float, float]:
+        """The law's command with the identification excitation (ACTIVE only) added."""
+        assert self._excitation is not None
+        lateral_error = None
+        if self._excitation_tracker is not None and self.mode is CtrlMode.ACTIVE:
+            lateral_error = self._excitation_tracker.update(
+                measurement.x, measurement.y, measurement.yaw).lateral_error
+        was_stopped = self._excitation.stopped_reason
+        steer, torque, status = self._excitation.step(
+            now_s, self.mode is CtrlMode.ACTIVE, measurement.vx, lateral_error, steer, torque,
+            self._limits.steer_range(), self._limits.torque_range())
+        if status.stopped_reason is not None and was_stopped is None:
+            _LOG.warning("excitation stopped for this engagement: %s", status.stopped_reason)
+        return steer, torque
 
     def _predict(self, sample: VehicleSample, sample_age_ns: int | None) -> VehicleSample | None:
         from controller.dead_reckoning import predict_sample

@@ -82,6 +82,10 @@ class RunOptions:
     #: ``controller_factory``; e.g. another model artefact); None: the registry. Only on
     #: the virtual bus: a separate ECU process builds its own.
     controller_factory: Callable[[str], Any] | None = None
+    #: The ECU's ``--model`` (another model file) and ``--excite`` (identification
+    #: excitation program), passed to the in-process ECU or to the ECU process alike.
+    model: Path | None = None
+    excite: str | None = None
 
 
 @dataclass
@@ -162,11 +166,15 @@ class InProcessEcu(_EcuRunner):
     def __init__(self, scenario: Scenario, options: RunOptions) -> None:
         from firmware_sim.ecu import Ecu  # the ECU package: only needed in-process
 
+        from firmware_sim.cli import load_excitation, model_controller_factory
+
         self._bus = open_bus(options.bus)
         try:
             self.ecu = Ecu(self._bus, options.controller, {scenario.path_id: scenario.path_file},
                            lockstep=options.lockstep, clock=time.monotonic,
-                           controller_factory=options.controller_factory)
+                           controller_factory=options.controller_factory
+                           or model_controller_factory(options.controller, options.model),
+                           excitation=load_excitation(options.excite))
         except Exception as e:
             self._bus.shutdown()
             raise SessionError(f"cannot start the ECU with controller "
@@ -208,7 +216,10 @@ def ecu_command(scenario: Scenario, options: RunOptions) -> list[str]:
             "--interface", options.bus.interface, "--channel", options.bus.channel,
             "--controller", options.controller,
             "--path", f"{scenario.path_id}={scenario.path_file}",
-            "--lockstep" if options.lockstep else "--realtime", *options.ecu_extra_args]
+            "--lockstep" if options.lockstep else "--realtime",
+            *(["--model", str(options.model)] if options.model is not None else []),
+            *(["--excite", options.excite] if options.excite is not None else []),
+            *options.ecu_extra_args]
 
 
 class EcuProcess(_EcuRunner):

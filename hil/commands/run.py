@@ -49,6 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--faults", action="store_true",
                         help="inject the scenario's [faults] table (bus, vehicle, sensor faults of "
                              "hil/faults.py; without it only its mu_step acts)")
+    parser.add_argument("--model", type=Path, default=None, metavar="PATH",
+                        help="the ECU's --model: another Koopman artefact (eso-dkmpc, dkmpc) or a "
+                             "fitted bicycle (lmpc, lmpc-eso)")
+    parser.add_argument("--excite", default=None, metavar="PROGRAM",
+                        help="the ECU's --excite: identification excitation (chirp, prbs, steps, "
+                             "prbs-torque or a program file; docs/identification.md)")
     parser.add_argument("--handshake-timeout", type=float, default=None, metavar="S",
                         help="seconds to wait for the ECU's lockstep handshake (default 60)")
     parser.add_argument("--ack-timeout", type=float, default=None, metavar="S",
@@ -81,6 +87,7 @@ def main(args: argparse.Namespace) -> int:
         ack_timeout_s=args.ack_timeout or DEFAULT_ACK_TIMEOUT_S,
         ecu_output=args.out / "ecu_output.txt" if args.out is not None else None,
         faults=scenario_fault_spec(scenario) if args.faults else None,
+        model=args.model, excite=args.excite,
     )
     result = run_hil(scenario, options)
     summary = result.summary()
