@@ -12,6 +12,16 @@ The plot draws each signal at the frames that carry it (commands as steps): spee
 steering (STEER_ANGLE_CMD against the measured STEER_ANGLE), yaw rate, the path driven
 (POS_X, POS_Y) against the reference path, and the lateral deviation e_Y from it
 (`hil.metrics.path_errors`) over time.
+
+Another DBC (``--dbc FILE``, `load_display_dbc`): a foreign log is decoded with its own
+DBC through cantools (`decode_with_dbc`): the same leading columns (without the contract's
+alive counter and E2E verdict), then one column per signal, ``MESSAGE.SIGNAL``; its plot
+(`plot_signals`) has one panel per message, a line per signal with its unit. The DBC only
+changes how a log is read and shown, never what an ECU uses.
+
+Nothing to plot (a foreign log read with the contract's DBC, or a DBC none of whose
+messages are in the log): `nothing_to_plot` says why, and the command warns instead of
+writing an empty figure.
 """
 from __future__ import annotations
 
@@ -22,14 +32,16 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 
 from can_defs.codec import decode
+from can_defs.dbc import DBC_PATH
 from can_defs.e2e import E2EMonitor
 from can_defs.errors import CanDefsError
 from can_defs.frames import FRAME_CLASSES, FrameId
 from hil.errors import HilError
-from hil.logio import LogContents, frame_times, is_contract_data_frame
+from hil.logio import LogContents, dbc_message, frame_times, is_contract_data_frame
 
 #: Signal columns in table order: every field of every contract frame, once.
 SIGNAL_COLUMNS: tuple[str, ...] = tuple(dict.fromkeys(
@@ -51,13 +63,18 @@ class DecodedLog:
     rows: list[dict[str, Any]]
     e2e_counts: dict[str, int] = field(default_factory=dict)
     undecodable: int = 0
+    #: CSV columns in order (the contract's by default).
+    columns: tuple[str, ...] = FRAME_COLUMNS + SIGNAL_COLUMNS
+    #: Another DBC's signals: column -> (message name, signal name, unit); empty for the
+    #: contract's DBC.
+    dbc_signals: dict[str, tuple[str, str, str]] = field(default_factory=dict)
 
     def series(self, signal: str, frame_id: FrameId | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(time (n,), value (n,)) of one signal over the frames that carry it and whose
         E2E verdict accepted them (ok / lost, or a HIL frame)."""
         times, values = [], []
         for row in self.rows:
-            if signal in row and row["e2e"] in ("ok", "lost") and (
+            if signal in row and row.get("e2e", "ok") in ("ok", "lost") and (
                     frame_id is None or row["id"] == int(frame_id)):
                 times.append(row["time_s"])
                 values.append(float(row[signal]))
@@ -103,12 +120,99 @@ def decode_log(contents: LogContents) -> DecodedLog:
     return DecodedLog(time_base=time_base, rows=rows, e2e_counts=counts, undecodable=undecodable)
 
 
+def load_display_dbc(path: str | Path | None) -> Any:
+    """The cantools database of ``--dbc FILE``; None for the contract's own DBC (``None``
+    or ``can_defs/vehicle.dbc``), which `decode_log` reads with the project's codec.
+
+    Any format cantools reads (.dbc, .kcd, .sym, .arxml), loaded without the strict
+    overlap checks the contract's DBC gets: a foreign file is read as its authors wrote it.
+
+    Raises:
+        DecodeLogError: the file is missing or not a CAN database.
+    """
+    if path is None:
+        return None
+    path = Path(path)
+    try:
+        if path.resolve() == DBC_PATH.resolve():
+            return None
+    except OSError:
+        pass
+    import cantools
+
+    if not path.is_file():
+        raise DecodeLogError(f"--dbc {path}: no such file")
+    try:
+        database = cantools.database.load_file(str(path), strict=False)
+    except Exception as error:  # noqa: BLE001 - cantools' parsers raise many kinds
+        raise DecodeLogError(f"--dbc {path}: not a readable CAN database: "
+                             f"{type(error).__name__}: {error}") from error
+    if not isinstance(database, cantools.database.can.Database) or not database.messages:
+        raise DecodeLogError(f"--dbc {path}: holds no CAN message")
+    return database
+
+
+def decode_with_dbc(contents: LogContents, database: Any) -> DecodedLog:
+    """Decode every frame of a log with another DBC (module docstring): one row per
+    frame; signals as numbers (choices as their raw values), ``MESSAGE.SIGNAL`` columns."""
+    times, time_base = frame_times(contents.messages)
+    signals: dict[str, tuple[str, str, str]] = {}
+    for db_message in database.messages:
+        for signal in db_message.signals:
+            signals[f"{db_message.name}.{signal.name}"] = (db_message.name, signal.name,
+                                                           signal.unit or "")
+    rows: list[dict[str, Any]] = []
+    undecodable = 0
+    for message, time_s in zip(contents.messages, times):
+        row: dict[str, Any] = {"time_s": time_s, "timestamp": message.timestamp,
+                               "id": message.arbitration_id, "data": bytes(message.data or b"").hex()}
+        rows.append(row)
+        db_message = dbc_message(database, message)
+        if message.is_error_frame or message.is_remote_frame:
+            row["frame"] = "(error frame)" if message.is_error_frame else (
+                f"{db_message.name} (remote)" if db_message is not None else "(remote frame)")
+            continue
+        if db_message is None:
+            row["frame"] = "(not in DBC)"
+            continue
+        row["frame"] = db_message.name
+        try:
+            values = db_message.decode(bytes(message.data), decode_choices=False,
+                                       allow_truncated=True)
+        except Exception:  # noqa: BLE001 - a foreign payload may not fit its message
+            undecodable += 1
+            continue
+        for name, value in values.items():
+            if isinstance(value, (int, float)):
+                row[f"{db_message.name}.{name}"] = value
+    leading = tuple(c for c in FRAME_COLUMNS if c not in ("counter", "e2e"))
+    return DecodedLog(time_base=time_base, rows=rows, undecodable=undecodable,
+                      columns=leading + tuple(signals), dbc_signals=signals)
+
+
+#: Signals of the contract's overview plot; without any of them there is nothing to plot.
+_OVERVIEW_SIGNALS: tuple[tuple[str, FrameId], ...] = (
+    ("vx", FrameId.VEH_DYN), ("steer_angle", FrameId.VEH_POSE_YAW),
+    ("pos_x", FrameId.VEH_POSE_XY), ("steer_angle_cmd", FrameId.STEER_TORQUE_CMD))
+
+
+def nothing_to_plot(decoded: DecodedLog) -> str | None:
+    """Why a plot of ``decoded`` would be empty, None when it has something to show."""
+    if decoded.dbc_signals:
+        if any(column in row for row in decoded.rows for column in decoded.dbc_signals):
+            return None
+        return "no frame of the log decodes to a signal of this DBC"
+    if any(decoded.series(signal, frame_id)[0].size for signal, frame_id in _OVERVIEW_SIGNALS):
+        return None
+    return ("the log holds no accepted VEH_DYN, VEH_POSE_XY, VEH_POSE_YAW or STEER_TORQUE_CMD "
+            "frame of the contract (a foreign log? decode it with its own DBC: --dbc FILE)")
+
+
 def write_csv(decoded: DecodedLog, path: str | Path) -> Path:
     """Write the one-row-per-frame table (module docstring)."""
     path = Path(path)
-    columns = FRAME_COLUMNS + SIGNAL_COLUMNS
+    columns = decoded.columns
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         with path.open("w", newline="", encoding="ascii") as handle:
             writer = csv.writer(handle)
             writer.writerow(columns)
@@ -167,6 +271,7 @@ def plot_log(decoded: DecodedLog, path: Any, out: str | Path, title: str = "") -
     if t_target.size:
         speed.step(t_target, target, where="post", label="TARGET_SPEED (planner)", linestyle="--")
     speed.set_ylabel("speed [m/s]")
+    speed.set_title("Longitudinal speed: measured and requested")
 
     t_cmd, steer_cmd = decoded.series("steer_angle_cmd", FrameId.STEER_TORQUE_CMD)
     t_meas, steer_meas = decoded.series("steer_angle", FrameId.VEH_POSE_YAW)
@@ -174,11 +279,14 @@ def plot_log(decoded: DecodedLog, path: Any, out: str | Path, title: str = "") -
     if t_cmd.size:
         steer.step(t_cmd, steer_cmd, where="post", label="STEER_ANGLE_CMD (ECU)", linestyle="--")
     steer.set_ylabel("front wheel angle [rad]")
+    steer.set_title("Steering: ECU command and measured angle")
 
     t_r, r = decoded.series("yaw_rate", FrameId.VEH_DYN)
     yaw_rate.plot(t_r, r, label="YAW_RATE")
     yaw_rate.set_ylabel("yaw rate [rad/s]")
-    yaw_rate.set_xlabel(f"time [s] ({decoded.time_base})")
+    yaw_rate.set_title("Yaw rate (measured)")
+    for axis in (speed, steer, yaw_rate):
+        axis.set_xlabel(f"time [s] ({decoded.time_base})")
 
     t_xy, x = decoded.series("pos_x", FrameId.VEH_POSE_XY)
     _, y = decoded.series("pos_y", FrameId.VEH_POSE_XY)
@@ -190,12 +298,15 @@ def plot_log(decoded: DecodedLog, path: Any, out: str | Path, title: str = "") -
     xy.plot(x, y, label="driven (POS_X, POS_Y)")
     xy.set_xlabel("X [m]")
     xy.set_ylabel("Y [m]")
+    xy.set_title("Path driven against the reference path")
 
     if path is not None and t_xy.size:
         t_e, e_y = lateral_deviation(decoded, path)
-        lateral.plot(t_e, e_y, label="e_Y")
-        lateral.set_title(f"e_Y: max |e_Y| {np.max(np.abs(e_y)):.4f} m")
+        lateral.plot(t_e, e_y, label="e_Y (at each accepted VEH_POSE_XY)")
+        lateral.set_title(f"Lateral deviation e_Y from the reference: max |e_Y| "
+                          f"{np.max(np.abs(e_y)):.4f} m")
     else:
+        lateral.set_title("Lateral deviation e_Y from the reference")
         lateral.text(0.5, 0.5, "no reference path or no pose frames", ha="center",
                      transform=lateral.transAxes)
     lateral.set_ylabel("e_Y [m] (left +)")
@@ -204,10 +315,66 @@ def plot_log(decoded: DecodedLog, path: Any, out: str | Path, title: str = "") -
         axis.grid(True, alpha=0.3)
         if axis.get_legend_handles_labels()[0]:
             axis.legend(loc="best", fontsize="small")
-    if title:
-        figure.suptitle(title)
+    figure.suptitle(title or "CAN log overview")
+    return _save(figure, out)
+
+
+#: At most this many panels (messages) in `plot_signals`; the most frequent are shown.
+MAX_SIGNAL_PANELS = 8
+#: At most this many signals (lines) per panel.
+MAX_SIGNALS_PER_PANEL = 8
+
+
+def plot_signals(decoded: DecodedLog, out: str | Path, title: str) -> Path:
+    """Figure of a log decoded with another DBC: one panel per message (the
+    :data:`MAX_SIGNAL_PANELS` most frequent), a line per signal labelled with its unit.
+
+    Raises:
+        DecodeLogError: nothing to plot (`nothing_to_plot`) or the file cannot be written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    problem = nothing_to_plot(decoded)
+    if problem is not None:
+        raise DecodeLogError(f"nothing to plot: {problem}")
+    per_message: dict[str, dict[str, tuple[list[float], list[float]]]] = {}
+    for row in decoded.rows:
+        for column, (message, signal, _) in decoded.dbc_signals.items():
+            if column in row:
+                times, values = per_message.setdefault(message, {}).setdefault(signal, ([], []))
+                times.append(row["time_s"])
+                values.append(float(row[column]))
+    ranked = sorted(per_message, key=lambda m: -max(len(t) for t, _ in per_message[m].values()))
+    shown = ranked[:MAX_SIGNAL_PANELS]
+    units = {(m, sig): unit for m, sig, unit in decoded.dbc_signals.values()}
+    figure, axes = plt.subplots(len(shown), 1, figsize=(9, 2.6 * len(shown) + 0.6),
+                                constrained_layout=True, squeeze=False)
+    for axis, message in zip(axes[:, 0], shown):
+        signals = list(per_message[message].items())
+        for signal, (times, values) in signals[:MAX_SIGNALS_PER_PANEL]:
+            unit = units.get((message, signal)) or "no unit"
+            axis.plot(times, values, label=f"{signal} [{unit}]")
+        more = len(signals) - MAX_SIGNALS_PER_PANEL
+        axis.set_title(message + (f" ({more} more signals in the CSV)" if more > 0 else ""))
+        axis.set_ylabel("value [unit in legend]")
+        axis.set_xlabel(f"time [s] ({decoded.time_base})")
+        axis.grid(True, alpha=0.3)
+        axis.legend(loc="best", fontsize="small")
+    left_out = len(ranked) - len(shown)
+    figure.suptitle(title + (f"; {left_out} less frequent messages only in the CSV"
+                             if left_out > 0 else ""))
+    return _save(figure, out)
+
+
+def _save(figure: Any, out: str | Path) -> Path:
+    """Write and close a figure; `DecodeLogError` when the file cannot be written."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
         figure.savefig(out, dpi=110)
     except (OSError, ValueError) as error:
         raise DecodeLogError(f"cannot write the plot {out}: {error}") from error

@@ -112,24 +112,45 @@ class LogContents:
         """Data frames with an 11-bit ID of the contract."""
         return sum(self.frames_by_id.values())
 
-    def summary_lines(self) -> list[str]:
-        """Human-readable counts (one line each) and the warnings."""
+    def summary_lines(self, database: Any = None, dbc_name: str = "") -> list[str]:
+        """Human-readable counts (one line each; the warnings are `warnings`, printed
+        once on stderr by the commands); with ``database`` (a
+        cantools database of another DBC, named ``dbc_name``) the frames are counted per
+        message of that DBC instead of the contract's."""
         lines = [f"{self.path}: {len(self.messages)} frames read"
                  + ("" if self.complete else " (incomplete: see warnings)")]
-        per_id = ", ".join(f"{FrameId(fid).name} {n}" for fid, n in sorted(self.frames_by_id.items()))
-        lines.append(f"  contract frames: {self.contract_frames} ({per_id or 'none'})")
-        if self.unknown_ids:
-            foreign = ", ".join(f"0x{fid:03X} x{n}" for fid, n in sorted(self.unknown_ids.items()))
-            lines.append(f"  frames with IDs outside the DBC: {sum(self.unknown_ids.values())} "
+        if database is None:
+            per_id = ", ".join(f"{FrameId(fid).name} {n}"
+                               for fid, n in sorted(self.frames_by_id.items()))
+            lines.append(f"  contract frames: {self.contract_frames} ({per_id or 'none'})")
+            outside = self.unknown_ids
+            extended_label = "extended-ID frames (not in the DBC)"
+        else:
+            per_name: Counter[str] = Counter()
+            outside = Counter()
+            for message in self.messages:
+                if message.is_error_frame:
+                    continue
+                found = dbc_message(database, message)
+                if found is not None:
+                    per_name[found.name] += 1
+                else:
+                    outside[message.arbitration_id] += 1
+            listed = ", ".join(f"{name} {n}" for name, n in per_name.most_common())
+            lines.append(f"  frames of {dbc_name or 'the DBC'}: {sum(per_name.values())} "
+                         f"({listed or 'none'})")
+            extended_label = "extended-ID frames"
+        if outside:
+            foreign = ", ".join(f"0x{fid:03X} x{n}" for fid, n in sorted(outside.items()))
+            lines.append(f"  frames with IDs outside the DBC: {sum(outside.values())} "
                          f"({foreign})")
         for label, count in (("error frames", self.error_frames),
                              ("remote frames", self.remote_frames),
-                             ("extended-ID frames (not in the DBC)", self.extended_frames),
+                             (extended_label, self.extended_frames),
                              ("damaged lines skipped", self.skipped_lines),
                              ("timestamps going backwards", self.timestamps_backwards)):
             if count:
                 lines.append(f"  {label}: {count}")
-        lines.extend(f"  warning: {warning}" for warning in self.warnings)
         return lines
 
 
@@ -293,6 +314,18 @@ def _count(contents: LogContents) -> None:
     if contents.timestamps_backwards:
         contents.warnings.append(f"{contents.timestamps_backwards} timestamp(s) go backwards; "
                                  "file order is kept")
+
+
+def dbc_message(database: Any, message: can.Message) -> Any:
+    """The message of a cantools ``database`` a log frame belongs to (same ID, same ID
+    kind), None for error frames and IDs it does not define."""
+    if message.is_error_frame:
+        return None
+    try:
+        found = database.get_message_by_frame_id(message.arbitration_id)
+    except KeyError:
+        return None
+    return found if bool(found.is_extended_frame) == bool(message.is_extended_id) else None
 
 
 def is_contract_data_frame(message: can.Message) -> bool:

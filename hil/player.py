@@ -6,12 +6,14 @@
   spliced or edited log is a well-formed sequence that drives another ECU. HIL frames,
   frames outside the DBC and frames of the wrong length pass unchanged.
 - `scale_timing`: play faster or slower (``--speed``).
-- `play`: `can.MessageSync` paces the frames by their timestamps; each goes to the bus as
-  a fresh message (no channel of the recording, no timestamp).
+- `play`: `can.MessageSync` paces the frames by their timestamps (or ignores them), with
+  can.player's options: ``gap`` (minimum time between frames), ``skip`` (longest pause
+  kept) and error frames left out unless asked for; each frame goes to the bus as a
+  fresh message (no channel of the recording, no timestamp).
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import can
@@ -25,6 +27,8 @@ COUNTER_MODULUS = 16
 #: MessageSync does not sleep longer than this between two frames (s): a pause in the
 #: recording longer than this is shortened (python-can's ``skip``).
 DEFAULT_MAX_GAP_S = 60.0
+#: Minimum time between two frames sent (s), as can.player's ``--gap`` default.
+DEFAULT_MIN_GAP_S = 0.0001
 
 
 class PlayError(HilError):
@@ -99,16 +103,22 @@ def scale_timing(messages: Sequence[can.Message], speed: float) -> list[can.Mess
     return [_copy(m, timestamp=start + (m.timestamp - start) / speed) for m in messages]
 
 
-def play(messages: Sequence[can.Message], bus: can.BusABC, *, max_gap_s: float = DEFAULT_MAX_GAP_S,
+def play(messages: Iterable[can.Message], bus: can.BusABC, *, max_gap_s: float = DEFAULT_MAX_GAP_S,
+         min_gap_s: float = DEFAULT_MIN_GAP_S, timestamps: bool = True,
+         error_frames: bool = False,
          on_sent: Callable[[int, can.Message], None] | None = None) -> int:
-    """Send ``messages`` on ``bus`` with the time between them as recorded; returns the
-    number sent.
+    """Send ``messages`` on ``bus`` with the time between them as recorded (``timestamps``
+    False: back to back, ``min_gap_s`` apart); error frames only with ``error_frames``
+    (as can.player); returns the number sent.
 
     Raises:
         PlayError: the bus refused a frame.
     """
     sent = 0
-    for message in can.MessageSync(messages, timestamps=True, skip=max_gap_s):
+    for message in can.MessageSync(messages, timestamps=timestamps, gap=min_gap_s,
+                                   skip=max_gap_s):
+        if message.is_error_frame and not error_frames:
+            continue
         outgoing = _copy(message, timestamp=0.0)
         try:
             bus.send(outgoing)
@@ -121,22 +131,26 @@ def play(messages: Sequence[can.Message], bus: can.BusABC, *, max_gap_s: float =
     return sent
 
 
-def parse_ids(text: str) -> list[int]:
-    """``"0x100,0x101,256"`` -> [0x100, 0x101, 0x100]: hex with 0x, else decimal; frame
-    names of the contract are accepted too (``VEH_DYN``)."""
+def parse_ids(text: str, names: Mapping[str, int] | None = None) -> list[int]:
+    """``"0x100,0x101,256"`` -> [0x100, 0x101, 0x100]: hex with 0x, else decimal; message
+    names are accepted too: the contract's (``VEH_DYN``), or those of ``names`` (name ->
+    ID, from ``--dbc``), case-insensitive."""
     from can_defs.frames import FrameId
 
+    known = {name.upper(): int(fid) for name, fid in FrameId.__members__.items()} \
+        if names is None else {name.upper(): fid for name, fid in names.items()}
     ids = []
     for item in (part.strip() for part in text.split(",")):
         if not item:
             continue
-        if item.upper() in FrameId.__members__:
-            ids.append(int(FrameId[item.upper()]))
+        if item.upper() in known:
+            ids.append(known[item.upper()])
             continue
         try:
             value = int(item, 0)
         except ValueError:
-            raise PlayError(f"--ids: {item!r} is neither an ID (0x100, 256) nor a frame name") from None
+            raise PlayError(f"--ids: {item!r} is neither an ID (0x100, 256) nor a message "
+                            "name of the DBC") from None
         if not 0 <= value <= 0x1FFFFFFF:
             raise PlayError(f"--ids: {item!r} is outside 0..0x1FFFFFFF")
         ids.append(value)

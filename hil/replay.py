@@ -22,9 +22,9 @@ from typing import Any
 from can_defs.codec import decode
 from can_defs.errors import CanDefsError
 from can_defs.frames import FrameId, PlannerReq
-from hil.logio import LogContents, frame_times, is_contract_data_frame
-from hil.replay_feed import (CONTROL_PERIOD_NS, DEFAULT_ACK_TIMEOUT_S, NS_PER_S, ReplayClock,
-                             ReplayRun, expected_from_log, replay_log)
+from hil.logio import ECU_OUTPUT_IDS, LogContents, frame_times, is_contract_data_frame
+from hil.replay_feed import (CONTROL_PERIOD_NS, DEFAULT_ACK_TIMEOUT_S, NS_PER_S, InputWrapper,
+                             ReplayClock, ReplayRun, expected_from_log, replay_log)
 from hil.replay_outputs import (COMPARED_IDS, COMPARED_SIGNALS, DEFAULT_TOLERANCES,
                                 MEASURED_TIMING_SIGNALS, SIGNAL_UNITS, Comparison, Divergence,
                                 OutputFrame, ReplayError, SignalDiff, compare_outputs,
@@ -34,8 +34,8 @@ from hil.replay_outputs import (COMPARED_IDS, COMPARED_SIGNALS, DEFAULT_TOLERANC
 __all__ = [
     "COMPARED_IDS", "COMPARED_SIGNALS", "CONTROL_PERIOD_NS", "DEFAULT_ACK_TIMEOUT_S",
     "DEFAULT_TOLERANCES", "MEASURED_TIMING_SIGNALS", "SIGNAL_UNITS", "Comparison", "Divergence",
-    "OutputFrame", "ReplayClock", "ReplayError", "ReplayReport", "ReplayRun", "SignalDiff",
-    "compare_outputs", "default_paths_for", "exact_masks", "expected_from_log",
+    "InputWrapper", "OutputFrame", "ReplayClock", "ReplayError", "ReplayReport", "ReplayRun", "SignalDiff",
+    "check_has_inputs", "compare_outputs", "default_paths_for", "exact_masks", "expected_from_log",
     "normalise_timing", "read_reference", "reference_path_for", "replay_log", "run_replay",
     "write_reference",
 ]
@@ -56,14 +56,19 @@ class ReplayReport:
     comparison: Comparison
     log_contents: LogContents
     notes: list[str] = field(default_factory=list)
+    #: How the report counts and names the log's frames (``--dbc``): a cantools database
+    #: and its name, None for the contract's DBC. Never what the replayed ECU uses.
+    display_database: Any = None
+    dbc_name: str = ""
 
     @property
     def match(self) -> bool:
         """True when the replayed frames match the expected ones (and the replay ran through)."""
         return self.comparison.match and self.run.aborted is None
 
-    def text(self) -> str:
-        """The human-readable report."""
+    def text(self, writing: bool = False) -> str:
+        """The human-readable report; ``writing``: the replay wrote reference outputs and
+        the comparison is for information."""
         c = self.comparison
         lines = [f"replay of {self.log}",
                  f"  controller: {self.controller} ({self.controller_source})",
@@ -94,12 +99,21 @@ class ReplayReport:
             lines.append(f"  note: {note}")
         if self.run.aborted:
             lines.append(f"  replay aborted: {self.run.aborted}")
-        for warning in self.log_contents.warnings:
-            lines.append(f"  log warning: {warning}")
+        if self.log_contents.warnings:
+            lines.append(f"  log: {len(self.log_contents.warnings)} warning(s), printed on "
+                         "stderr and in the JSON report")
+        if self.display_database is not None:
+            lines.extend("  log " + line.strip() for line in self.log_contents.summary_lines(
+                self.display_database, self.dbc_name)[1:])
         if self.log_contents.unknown_ids:
             lines.append(f"  log: {sum(self.log_contents.unknown_ids.values())} frame(s) with IDs "
-                         "outside the DBC were fed as they are")
-        lines.append("  result: " + ("MATCH" if self.match else "DIFFERENT"))
+                         "outside the contract's DBC were fed as they are")
+        result = "MATCH" if self.match else "DIFFERENT"
+        if writing:
+            lines.append(f"  result: reference outputs written; compared with "
+                         f"{self.expected_source}: {result} (for information)")
+        else:
+            lines.append(f"  result: {result}")
         return "\n".join(lines)
 
     def as_dict(self) -> dict[str, Any]:
@@ -145,21 +159,42 @@ def default_paths_for(contents: LogContents, default_file: Path) -> dict[int, Pa
     return {path_id: default_file for path_id in sorted(ids or {1})}
 
 
+def check_has_inputs(contents: LogContents) -> None:
+    """Refuse a log without any of the ECU's inputs: replaying it would feed the ECU
+    nothing and compare nothing it computed.
+
+    Raises:
+        ReplayError: no contract frame other than the ECU's own (HIL_SYNC_ACK,
+            STEER_TORQUE_CMD, CTRL_DIAG) is in the log.
+    """
+    if any(fid not in ECU_OUTPUT_IDS for fid in contents.frames_by_id):
+        return
+    wanted = ", ".join(fid.name for fid in FrameId if fid not in ECU_OUTPUT_IDS)
+    raise ReplayError(
+        f"{contents.path}: the log holds none of the ECU's input frames ({wanted}): nothing "
+        "to replay (a log of another bus? show it with: eso-hil decode LOG --dbc ITS.dbc)")
+
+
 def run_replay(contents: LogContents, controller: str, paths: Mapping[int, Path], *,
                controller_source: str = "given", paths_source: str = "given",
                reference: str | Path | None = None, mode: str | None = None,
                tolerances: Mapping[str, float] | None = None, realtime: bool = False,
                ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
                controller_factory: Callable[[str], Any] | None = None,
-               allow_no_expected: bool = False) -> ReplayReport:
+               allow_no_expected: bool = False, display_database: Any = None,
+               dbc_name: str = "", wrap_inputs: InputWrapper | None = None) -> ReplayReport:
     """Replay a log and compare: with ``reference`` (a file of `write_reference`) when
-    given, else with the ECU frames recorded in the log.
+    given, else with the ECU frames recorded in the log. ``display_database`` /
+    ``dbc_name``: how the report counts the log's frames (``--dbc``); ``wrap_inputs``:
+    wraps the frames as they are fed (a progress bar).
 
     Raises:
-        ReplayError: nothing to compare with (no ECU frames in the log and no reference,
-            unless ``allow_no_expected``: writing references), the ECU could not start, a
-            bad comparison mode.
+        ReplayError: the log holds none of the ECU's inputs (nothing to replay), nothing
+            to compare with (no ECU frames in the log and no reference, unless
+            ``allow_no_expected``: writing references), the ECU could not start, a bad
+            comparison mode.
     """
+    check_has_inputs(contents)
     notes: list[str] = []
     _, time_base = frame_times(contents.messages)
     if reference is not None:
@@ -183,7 +218,8 @@ def run_replay(contents: LogContents, controller: str, paths: Mapping[int, Path]
         raise ReplayError(f"comparison mode must be 'exact' or 'tolerance', got {mode!r}")
     expected_end = max((f.time_s for f in expected), default=None)
     run = replay_log(contents, controller, paths, realtime=realtime, ack_timeout_s=ack_timeout_s,
-                     expected_end_s=expected_end, controller_factory=controller_factory)
+                     expected_end_s=expected_end, controller_factory=controller_factory,
+                     wrap_inputs=wrap_inputs)
     cut_short = not contents.complete or run.aborted is not None
     if reference is None and not contents.is_lockstep:
         notes.append("without HIL_SYNC the recorded ECU's control instants and input ages are only "
@@ -198,4 +234,5 @@ def run_replay(contents: LogContents, controller: str, paths: Mapping[int, Path]
         time_base=time_base + ("; ECU in lockstep" if contents.is_lockstep
                                else "; ECU on an injected clock"),
         expected_source=expected_source, run=run, comparison=comparison,
-        log_contents=contents, notes=notes)
+        log_contents=contents, notes=notes, display_database=display_database,
+        dbc_name=dbc_name)

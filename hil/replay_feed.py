@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -109,7 +109,8 @@ def _make_ecu(bus: can.BusABC, controller: str, paths: Mapping[int, Path], locks
 def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path], *,
                realtime: bool = False, ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
                expected_end_s: float | None = None,
-               controller_factory: Callable[[str], Any] | None = None) -> ReplayRun:
+               controller_factory: Callable[[str], Any] | None = None,
+               wrap_inputs: InputWrapper | None = None) -> ReplayRun:
     """Feed the log's inputs into a fresh ECU and collect its frames (module docstring).
 
     Args:
@@ -121,6 +122,7 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
         expected_end_s: time-stamped logs: run the control releases up to this time (the
             last recorded ECU frame) after the last input, then stop the ECU there.
         controller_factory: replaces the controller registry (tests).
+        wrap_inputs: wraps the sequence of input frames as it is fed (a progress bar).
 
     Raises:
         ReplayError: the ECU could not start. A missing ACK ends the replay early with
@@ -133,15 +135,23 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
     try:
         if contents.is_lockstep:
             run = _replay_lockstep(contents, controller, paths, ecu_bus, feeder, realtime,
-                                   ack_timeout_s, controller_factory)
+                                   ack_timeout_s, controller_factory, wrap_inputs or _as_is)
         else:
             run = _replay_timestamped(contents, controller, paths, ecu_bus, feeder, realtime,
-                                      expected_end_s, controller_factory)
+                                      expected_end_s, controller_factory, wrap_inputs or _as_is)
         run.wall_time_s = time.perf_counter() - started
         return run
     finally:
         feeder.shutdown()
         ecu_bus.shutdown()
+
+
+#: Wraps the input frames as they are fed (e.g. a progress bar); must yield them unchanged.
+InputWrapper = Callable[[Sequence[can.Message]], Iterable[can.Message]]
+
+
+def _as_is(frames: Sequence[can.Message]) -> Iterable[can.Message]:
+    return frames
 
 
 class _Pacer:
@@ -161,7 +171,8 @@ class _Pacer:
 
 def _replay_lockstep(contents: LogContents, controller: str, paths: Mapping[int, Path],
                      ecu_bus: can.BusABC, feeder: can.BusABC, realtime: bool,
-                     ack_timeout_s: float, controller_factory: Any) -> ReplayRun:
+                     ack_timeout_s: float, controller_factory: Any,
+                     wrap_inputs: InputWrapper) -> ReplayRun:
     inputs, _ = _input_frames(contents)
     run = ReplayRun(outputs=[], lockstep=True)
     ecu = _make_ecu(ecu_bus, controller, paths, True, time.monotonic, controller_factory)
@@ -191,7 +202,7 @@ def _replay_lockstep(contents: LogContents, controller: str, paths: Mapping[int,
             feeder.send(_sync_frame(HANDSHAKE_TICK))
             await_ack(HANDSHAKE_TICK)
             synchronised = True
-        for message in inputs:
+        for message in wrap_inputs(inputs):
             pacer.wait_for(message.timestamp)
             feeder.send(_copy_for_bus(message))
             run.frames_fed += 1
@@ -249,7 +260,8 @@ def _collect(run: ReplayRun, message: can.Message, time_s: float) -> int | None:
 
 def _replay_timestamped(contents: LogContents, controller: str, paths: Mapping[int, Path],
                         ecu_bus: can.BusABC, feeder: can.BusABC, realtime: bool,
-                        expected_end_s: float | None, controller_factory: Any) -> ReplayRun:
+                        expected_end_s: float | None, controller_factory: Any,
+                        wrap_inputs: InputWrapper) -> ReplayRun:
     inputs, input_times = _input_frames(contents)
     run = ReplayRun(outputs=[], lockstep=False)
     clock = ReplayClock()
@@ -279,7 +291,7 @@ def _replay_timestamped(contents: LogContents, controller: str, paths: Mapping[i
             release_ns += CONTROL_PERIOD_NS
 
     try:
-        for message, time_s in zip(inputs, input_times):
+        for message, time_s in zip(wrap_inputs(inputs), input_times):
             # A monotonic clock never goes back: a frame stamped earlier than the one
             # before it (threads of the recorder) is taken as arriving with it.
             time_s = max(time_s, now_s)

@@ -12,7 +12,7 @@ REPLAY_RESULTS := results/replay
 ## regenerate the reference outputs of the test logs after an intended ECU change
 replay-refs: setup
 	@for log in $(REPLAY_LOGS); do \
-		$(PY) -m hil replay $$log --write-ref > /dev/null || exit 1; \
+		$(PY) -m hil replay $$log --write-ref --replace > /dev/null || exit 1; \
 		echo "reference of $$log regenerated"; \
 	done
 
@@ -35,11 +35,11 @@ replay-report: setup
 	@mkdir -p $(REPLAY_RESULTS)
 	@for log in $(REPLAY_LOGS); do \
 		name=$$(basename $$log); \
-		( time -p $(PY) -m hil replay $$log --json $(REPLAY_RESULTS)/$$name.json ) \
+		( time -p $(PY) -m hil replay $$log --replace --json $(REPLAY_RESULTS)/$$name.json ) \
 			> $(REPLAY_RESULTS)/$$name.txt 2>&1; \
 		echo "replay $$name: exit $$? -> $(REPLAY_RESULTS)/$$name.txt"; \
 	done
-	$(PY) -m hil decode $(REPLAY_LOG_DIR)/faults_lmpc.asc --csv $(REPLAY_RESULTS)/faults_lmpc.csv \
+	$(PY) -m hil decode $(REPLAY_LOG_DIR)/faults_lmpc.asc --replace --csv $(REPLAY_RESULTS)/faults_lmpc.csv \
 		--plot $(REPLAY_RESULTS)/faults_lmpc.png | tee $(REPLAY_RESULTS)/faults_lmpc_decode.txt
 	$(PROVENANCE_STAMP) $(foreach log,$(REPLAY_LOGS),$(REPLAY_RESULTS)/$(notdir $(log)).json $(REPLAY_RESULTS)/$(notdir $(log)).txt) \
 		$(addprefix $(REPLAY_RESULTS)/faults_lmpc,.csv .png _decode.txt) --command "make replay-report" \

@@ -93,7 +93,7 @@ def test_truncated_log_gives_a_warning_and_a_partial_report(hil_cli, capsys, tmp
 def test_write_ref_then_compare_with_it(hil_cli, capsys, tmp_path: Path) -> None:
     reference = tmp_path / "lockstep.ref.log"
     assert hil_cli(["replay", str(LOCKSTEP), "--write-ref", str(reference)]) == 0
-    assert "wrote" in capsys.readouterr().out
+    assert "wrote" in capsys.readouterr().err  # stdout: the report only
     assert reference.read_text() == (LOGS / "lockstep_lmpc.ref.log").read_text()
 
 
@@ -118,5 +118,5 @@ def test_log_from_elsewhere_replays_with_a_clear_report(hil_cli, capsys, tmp_pat
     print(out)
     assert status == 0 and "result: MATCH" in out
     assert "no HIL_SYNC in the log" in out and "per signal with tolerances" in out
-    assert "80 frame(s) with IDs outside the DBC" in out
+    assert "80 frame(s) with IDs outside the contract's DBC" in out
     assert "paths: 1=" in out and "default: hil/paths/dlc.csv" in out

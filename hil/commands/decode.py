@@ -1,22 +1,27 @@
-"""``python -m hil decode LOG --csv OUT.csv --plot OUT.png``: decoded signals of a CAN log.
+"""``eso-hil decode LOG --csv OUT.csv --plot OUT.png``: decoded signals of a CAN log.
 
 The CSV has one row per frame (see `hil.decode_log`); the plot shows speed, steering
 (command and measured), yaw rate, the path driven against the reference and e_Y.
-Without ``--csv`` / ``--plot`` it prints what the log holds.
+``--dbc FILE`` decodes the log with another DBC (a foreign log: its own DBC), giving one
+column per signal and one plot panel per message. Without ``--csv`` / ``--plot`` it
+prints what the log holds. A log with nothing to plot gets a warning, not an empty
+figure. Output files are checked before anything is read: an existing file needs
+``--replace``, a missing folder is an error.
 """
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
+
+from hil.commands import add_dbc_option, display_database, warn
 
 HELP = "decode a recorded CAN log to a CSV table (one row per frame) and an overview plot"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``python -m hil decode``."""
+    """Options of ``eso-hil decode``."""
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
-                        ".trc; optionally .gz)")
+                        ".db, .trc; optionally .gz)")
     parser.add_argument("--csv", type=Path, default=None, metavar="OUT.csv",
                         help="write the decoded frames, one row per frame")
     parser.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
@@ -24,37 +29,73 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--path", action="append", default=[], metavar="ID=FILE",
                         help="reference path of a PATH_ID (repeatable); the plot uses the "
                         "PATH_ID the planner requested; default hil/paths/dlc.csv")
+    add_dbc_option(parser, "decode the log with")
+    parser.add_argument("--replace", action="store_true",
+                        help="overwrite existing --csv / --plot files")
 
 
 def main(args: argparse.Namespace) -> int:
     """Decode; write the requested files; 0 on success."""
-    from controller.reference import ReferencePath
     from firmware_sim.cli import parse_paths
-    from hil.decode_log import decode_log, most_requested_path_id, plot_log, write_csv
-    from hil.logio import REPO_ROOT, read_log, read_sidecar
+    from hil.decode_log import decode_log, decode_with_dbc, nothing_to_plot, write_csv
+    from hil.logio import read_log
+    from hil.output_paths import check_output_file
 
+    paths = parse_paths(args.path)
+
+    inputs = [args.log] + ([args.dbc] if args.dbc is not None else [])
+    for option, target in (("--csv", args.csv), ("--plot", args.plot)):
+        if target is not None:
+            check_output_file(target, option, replace=args.replace, inputs=inputs)
+    if args.csv is not None and args.plot is not None and args.csv.resolve() == args.plot.resolve():
+        from hil.errors import OutputPathError
+
+        raise OutputPathError(f"--csv and --plot are the same file {args.csv}")
+    database, dbc_name = display_database(args.dbc)
     contents = read_log(args.log)
-    for line in contents.summary_lines():
+    for line in contents.summary_lines(database, dbc_name):
         print(line)
     for warning in contents.warnings:
-        print(f"warning: {args.log}: {warning}", file=sys.stderr)
-    decoded = decode_log(contents)
+        warn(f"{args.log}: {warning}")
+    decoded = decode_log(contents) if database is None else decode_with_dbc(contents, database)
     print(f"  time base: {decoded.time_base}")
-    print("  E2E verdicts: " + ", ".join(f"{k} {v}" for k, v in sorted(decoded.e2e_counts.items())))
+    if decoded.e2e_counts:
+        print("  E2E verdicts: " + ", ".join(f"{k} {v}"
+                                             for k, v in sorted(decoded.e2e_counts.items())))
+    if decoded.undecodable:
+        print(f"  frames that did not decode: {decoded.undecodable}")
     if args.csv is not None:
         write_csv(decoded, args.csv)
         print(f"wrote {args.csv} ({len(decoded.rows)} rows)")
     if args.plot is not None:
-        paths = parse_paths(args.path)
-        if not paths:
-            metadata = read_sidecar(args.log)
-            paths = ({k: Path(v) for k, v in metadata.paths.items()} if metadata and metadata.paths
-                     else {})
-        path_id = most_requested_path_id(decoded)
-        file = paths.get(path_id) if path_id is not None else None
-        if file is None:
-            file = next(iter(paths.values()), REPO_ROOT / "hil" / "paths" / "dlc.csv")
-        reference = ReferencePath.from_csv(file)
-        plot_log(decoded, reference, args.plot, title=f"{args.log.name} (reference {Path(file).name})")
-        print(f"wrote {args.plot}")
+        problem = nothing_to_plot(decoded)
+        if problem is not None:
+            warn(f"{args.log}: nothing to plot, {args.plot} not written: {problem}")
+        else:
+            _plot(args, decoded, database, dbc_name, paths)
+            print(f"wrote {args.plot}")
     return 0
+
+
+def _plot(args: argparse.Namespace, decoded: object, database: object, dbc_name: str,
+          paths: dict[int, Path]) -> None:
+    from controller.reference import ReferencePath
+    from hil.decode_log import most_requested_path_id, plot_log, plot_signals
+    from hil.logio import REPO_ROOT, read_sidecar
+
+    if database is not None:
+        plot_signals(decoded, args.plot,  # type: ignore[arg-type]
+                     title=f"{args.log.name}: signals decoded with {dbc_name}")
+        return
+    if not paths:
+        metadata = read_sidecar(args.log)
+        paths = ({k: Path(v) for k, v in metadata.paths.items()} if metadata and metadata.paths
+                 else {})
+    path_id = most_requested_path_id(decoded)  # type: ignore[arg-type]
+    file = paths.get(path_id) if path_id is not None else None
+    if file is None:
+        file = next(iter(paths.values()), REPO_ROOT / "hil" / "paths" / "dlc.csv")
+    reference = ReferencePath.from_csv(file)
+    plot_log(decoded, reference, args.plot,  # type: ignore[arg-type]
+             title=f"CAN log {args.log.name}: vehicle signals and tracking "
+                   f"(reference path {Path(file).name})")

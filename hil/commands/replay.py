@@ -1,9 +1,23 @@
-"""``python -m hil replay LOG``: re-run the ECU on a recorded CAN log and compare its frames.
+"""``eso-hil replay LOG``: re-run the ECU on a recorded CAN log and compare its frames.
 
-Exit status: 0 when the replayed STEER_TORQUE_CMD / CTRL_DIAG frames match the expected
-ones (the log's own ECU frames, or ``--ref FILE``), 3 when they differ, 1 for bad input
-(``error: ...``). With ``--write-ref`` the replay's frames are written as reference outputs
-and the status is 0 once written (the comparison is then for information).
+Exit status, in every mode (exact or tolerance comparison, ``--ref``, ``--realtime``):
+
+- 0 (:data:`EXIT_MATCH`): the replayed STEER_TORQUE_CMD / CTRL_DIAG frames match the
+  expected ones (the log's own ECU frames, or ``--ref FILE``);
+- 3 (:data:`EXIT_DIFFERENT`): they differ, or the ECU stopped answering (replay aborted);
+- 1 (:data:`EXIT_ERROR`): bad input, one ``error: ...`` line: no such log, a log without
+  the ECU's inputs (nothing to replay), nothing to compare with, unknown controller, an
+  output file that exists without ``--replace``; 2: a bad option (argparse).
+
+``--write-ref [FILE]`` writes the replay's frames as reference outputs: 0 once written
+(the comparison with the log's own frames is then shown for information), 1 when
+nothing was written (a log without inputs, an aborted replay).
+
+``--json`` alone prints the report as JSON, alone on stdout (the text report goes to
+stderr); ``--json FILE`` writes it to FILE besides the text report. ``--dbc FILE``
+changes how the log's frames are counted and named in the report, never the DBC of the
+ECU under replay (always the project's). Output files are checked before the replay
+runs (an existing file needs ``--replace``; a missing folder is an error).
 """
 from __future__ import annotations
 
@@ -12,8 +26,15 @@ import json
 import sys
 from pathlib import Path
 
+from hil.commands import (add_dbc_option, add_quiet_option, controller_name, display_database,
+                          progress, warn)
+
 HELP = "re-run the ECU on a recorded CAN log and compare its output frames with the log's"
 
+#: Exit status when the replayed frames match the expected ones (or a reference was written).
+EXIT_MATCH = 0
+#: Exit status for bad input or a replay that could not run (``error: ...``).
+EXIT_ERROR = 1
 #: Exit status when the replayed frames differ from the expected ones.
 EXIT_DIFFERENT = 3
 
@@ -42,8 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tol", action="append", default=[], metavar="SIGNAL=VALUE",
                         help="tolerance of one signal in --compare tolerance, e.g. "
                         "steer_angle_cmd=0.005 (repeatable)")
-    parser.add_argument("--json", type=Path, default=None, metavar="FILE",
-                        help="also write the report as JSON")
+    parser.add_argument("--json", nargs="?", const="-", default=None, metavar="FILE",
+                        help="the report as JSON: alone on stdout (text report on stderr), or "
+                        "written to FILE")
+    parser.add_argument("--replace", action="store_true",
+                        help="overwrite an existing --json / --write-ref file")
+    add_dbc_option(parser, "count and name the log's frames with in the report")
+    add_quiet_option(parser)
     parser.add_argument("--ack-timeout", type=float, default=None, metavar="S",
                         help="seconds to wait for each HIL_SYNC_ACK (default 10)")
 
@@ -80,16 +106,29 @@ def main(args: argparse.Namespace) -> int:
     from controller.registry import ALL_CONTROLLER_NAMES
     from firmware_sim.cli import parse_paths
     from hil.logio import read_log, read_sidecar
+    from hil.output_paths import check_output_file
     from hil.replay import (DEFAULT_ACK_TIMEOUT_S, ReplayError, default_paths_for,
                             reference_path_for, run_replay, write_reference)
 
     if args.ack_timeout is not None and not args.ack_timeout > 0:
         raise ReplayError(f"--ack-timeout must be > 0 s, got {args.ack_timeout}")
     tolerances = _tolerances(args.tol)
+    writing = args.write_ref is not None
+    target = (Path(args.write_ref) if args.write_ref else reference_path_for(args.log)) \
+        if writing else None
+    json_file = Path(args.json) if args.json not in (None, "-") else None
+    inputs = [args.log] + ([args.ref] if args.ref is not None else []) \
+        + ([args.dbc] if args.dbc is not None else [])
+    for option, output in (("--write-ref", target), ("--json", json_file)):
+        if output is not None:
+            check_output_file(output, option, replace=args.replace, inputs=inputs)
+    paths_given = parse_paths(args.path) if args.path else None
+    controller_given = controller_name(args.controller) if args.controller else None
+    database, dbc_name = display_database(args.dbc)
     contents = read_log(args.log)
     metadata = read_sidecar(args.log)
-    if args.controller:
-        controller, controller_source = args.controller, "--controller"
+    if controller_given is not None:
+        controller, controller_source = controller_given, "--controller"
     elif metadata is not None:
         controller, controller_source = metadata.controller, "from the sidecar"
     elif (named := controller_from_file_name(args.log, ALL_CONTROLLER_NAMES)) is not None:
@@ -98,11 +137,9 @@ def main(args: argparse.Namespace) -> int:
         raise ReplayError(
             f"{args.log}: the log does not say which controller ran (no sidecar "
             f"{args.log.name}.json); pass --controller NAME ({', '.join(ALL_CONTROLLER_NAMES)})")
-    if controller not in ALL_CONTROLLER_NAMES:
-        raise ReplayError(f"unknown controller {controller!r} ({controller_source}); choose one "
-                          f"of {', '.join(ALL_CONTROLLER_NAMES)}")
-    if args.path:
-        paths, paths_source = parse_paths(args.path), "--path"
+    controller = controller_name(controller, f"controller ({controller_source})")
+    if paths_given is not None:
+        paths, paths_source = paths_given, "--path"
     elif metadata is not None and metadata.paths:
         paths = {k: Path(v) for k, v in metadata.paths.items()}
         paths_source = "from the sidecar"
@@ -112,24 +149,28 @@ def main(args: argparse.Namespace) -> int:
         paths = default_paths_for(contents, REPO_ROOT / "hil" / "paths" / "dlc.csv")
         paths_source = "default: hil/paths/dlc.csv for the PATH_IDs the log requested"
     for warning in contents.warnings:
-        print(f"warning: {args.log}: {warning}", file=sys.stderr)
+        warn(f"{args.log}: {warning}")
 
-    writing = args.write_ref is not None
     report = run_replay(
         contents, controller, paths, controller_source=controller_source,
         paths_source=paths_source, reference=None if writing else args.ref,
         mode=args.compare, tolerances=tolerances, realtime=args.realtime,
         ack_timeout_s=args.ack_timeout or DEFAULT_ACK_TIMEOUT_S,
-        allow_no_expected=writing)
-    print(report.text())
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report.as_dict(), indent=2) + "\n", encoding="utf-8")
+        allow_no_expected=writing, display_database=database, dbc_name=dbc_name,
+        wrap_inputs=lambda frames: progress(frames, len(frames), "replay", args.quiet))
+    as_json = json.dumps(report.as_dict(), indent=2)
+    text_stream = sys.stderr if args.json == "-" else sys.stdout
     if writing:
-        target = Path(args.write_ref) if args.write_ref else reference_path_for(args.log)
         if report.run.aborted:
+            print(report.text(), file=text_stream)
             raise ReplayError(f"reference not written: {report.run.aborted}")
-        write_reference(target, report.run.outputs)
-        print(f"wrote {target} ({len(report.run.outputs)} frames)")
-        return 0
-    return 0 if report.match else EXIT_DIFFERENT
+        write_reference(target, report.run.outputs)  # type: ignore[arg-type]
+    print(report.text(writing=writing), file=text_stream)
+    if args.json == "-":
+        print(as_json)
+    elif json_file is not None:
+        json_file.write_text(as_json + "\n", encoding="utf-8")
+    if writing:
+        print(f"wrote {target} ({len(report.run.outputs)} frames)", file=sys.stderr)
+        return EXIT_MATCH
+    return EXIT_MATCH if report.match else EXIT_DIFFERENT
