@@ -35,6 +35,11 @@ A fault spec comes from a scenario's ``[faults]`` table (or the CLI, hil/command
 
 Randomness: one ``numpy.random.Generator`` per fault, spawned from the seed in spec order,
 so a run is reproducible and adding a fault does not change the draws of the others.
+
+Two faults of the contract's revision 2 cannot be frames of the HIL nodes, so they are bus
+wrappers for a run that drives the ECU itself (studies/fault_campaign.py): a jump of
+virtual time (`TimeShiftingBus`, between the time master and the bus) and a lost bus
+(`LosableBus`, between the ECU and the bus).
 """
 from __future__ import annotations
 
@@ -51,7 +56,7 @@ import numpy as np
 from can_defs.codec import decode, encode
 from can_defs.crc import e2e_crc
 from can_defs.errors import CanDefsError
-from can_defs.frames import FRAME_LENGTH, FrameId, PlannerReq, VehDyn
+from can_defs.frames import FRAME_LENGTH, HANDSHAKE_TICK, FrameId, HilSync, VehDyn
 from hil.errors import HilError
 from models.vehicle import FourWheelVehicle, VehicleCommand
 
@@ -90,7 +95,21 @@ BUS_KINDS: dict[str, dict[str, Any]] = {
     "override": {"field": None, "value": None},
     # PLANNER_REQ.ENGAGE alternating every period_ms (starting with 0).
     "engage_toggle": {"period_ms": 50},
+    # After each frame, a look-alike of another kind (frame_kind: fd, extended, remote or
+    # error) with the same ID number; fd / extended ones carry the frame with the next
+    # counter and a valid CRC (taken for a contract frame, it would make the real next
+    # frame a repeat). sync_tick >= 0 adds one HIL_SYNC look-alike carrying that TICK per
+    # tick (0xFFFFFFFF: the handshake); -1 none.
+    "lookalike": {"frame_kind": None, "sync_tick": -1},
+    # The sender's frames of age_ms earlier re-sent unchanged (old counters and CRCs), after
+    # the real ones; replace = true drops the real ones (a replaying node in their place).
+    "replay": {"age_ms": None, "replace": False},
 }
+#: Frame kinds of ``lookalike`` -> python-can message flags.
+LOOKALIKE_KINDS = {"fd": "is_fd", "extended": "is_extended_id", "remote": "is_remote_frame",
+                   "error": "is_error_frame"}
+#: Largest lockstep TICK (32 bits).
+MAX_TICK = 0xFFFFFFFF
 _COMMON = {"kind", "sender", "ids", "start_s", "duration_s"}
 
 
@@ -280,6 +299,22 @@ def _check_params(kind: str, params: dict[str, Any], ids: tuple[int, ...], where
         params["frames_per_tick"] = int(params["frames_per_tick"])
         if not isinstance(params["starve"], bool):
             raise FaultSpecError(f"{where}.starve = {params['starve']!r}: must be true or false")
+    if kind == "lookalike":
+        if params["frame_kind"] not in LOOKALIKE_KINDS:
+            raise FaultSpecError(f"{where}.frame_kind = {params['frame_kind']!r}: must be one "
+                                 f"of {', '.join(LOOKALIKE_KINDS)}")
+        number("sync_tick", -1, MAX_TICK)
+        params["sync_tick"] = int(params["sync_tick"])
+        if params["sync_tick"] >= 0 and params["frame_kind"] not in ("fd", "extended"):
+            raise FaultSpecError(f"{where}.sync_tick: only fd and extended look-alikes carry "
+                                 "a payload")
+    if kind == "replay":
+        number("age_ms", TICK_MS, 10_000)
+        if params["age_ms"] % TICK_MS:
+            raise FaultSpecError(f"{where}.age_ms = {params['age_ms']!r}: must be a multiple of {TICK_MS}")
+        params["age_ms"] = int(params["age_ms"])
+        if not isinstance(params["replace"], bool):
+            raise FaultSpecError(f"{where}.replace = {params['replace']!r}: must be true or false")
     if kind == "engage_toggle":
         number("period_ms", 25, 10_000)
         if ids != PLANNER_IDS:
@@ -332,11 +367,26 @@ def _message(frame_id: int, data: bytes) -> can.Message:
     return can.Message(arbitration_id=frame_id, data=data, is_extended_id=False)
 
 
-def _rewrite(message: can.Message, change: Mapping[str, Any]) -> can.Message:
-    """Same frame and counter with fields replaced, CRC recomputed (a faulty sender)."""
+def _rewrite(message: can.Message, change: Mapping[str, Any], counter_step: int = 0) -> can.Message:
+    """Same frame with fields replaced and the counter moved on by ``counter_step``, CRC
+    recomputed (a faulty sender)."""
     decoded = decode(message.arbitration_id, bytes(message.data))
     frame = dataclasses.replace(decoded.frame, **change)
-    return _message(message.arbitration_id, encode(frame, decoded.counter or 0))
+    return _message(message.arbitration_id, encode(frame, ((decoded.counter or 0) + counter_step) % 16))
+
+
+def lookalike(message: can.Message, frame_kind: str) -> can.Message:
+    """``message`` as a frame of another kind with the same ID number (contract rev. 2: never
+    a contract frame): fd / extended carry the frame with the next counter (CRC valid), a
+    remote frame asks for 8 bytes and carries none, an error frame keeps the bytes."""
+    flag = LOOKALIKE_KINDS[frame_kind]
+    if frame_kind in ("fd", "extended"):
+        data = bytes(_rewrite(message, {}, counter_step=1).data) \
+            if message.arbitration_id != FrameId.HIL_SYNC else bytes(message.data)
+    else:
+        data = b"" if frame_kind == "remote" else bytes(message.data)
+    flags = {"is_extended_id": False, flag: True}
+    return can.Message(arbitration_id=message.arbitration_id, data=data, dlc=FRAME_LENGTH, **flags)
 
 
 class _BusFaultState:
@@ -350,11 +400,14 @@ class _BusFaultState:
         self.burst_left: dict[int, int] = {}
         self.frozen: dict[int, int] = {}
         self.swap_pending: list[can.Message] | None = None
+        self.history: dict[int, list[can.Message]] = {}   # replay: tick -> target frames
 
     def apply(self, tick_ms: int, frames: list[can.Message]) -> list[can.Message]:
         fault = self.fault
         out = [m for due, m in self.held if due <= tick_ms]
         self.held = [(due, m) for due, m in self.held if due > tick_ms]
+        if fault.kind == "replay":
+            return out + self._replay(tick_ms, frames)
         if fault.kind == "reorder" and self.swap_pending is not None and \
                 any(m.arbitration_id in fault.ids for m in frames):
             # The held instant goes out after the next one: CNT k+1 arrives before k.
@@ -364,6 +417,10 @@ class _BusFaultState:
             return out + frames
         if fault.kind == "babble":
             return out + self._babble(tick_ms, frames)
+        if fault.kind == "lookalike" and fault.params["sync_tick"] >= 0:
+            sync = _message(int(FrameId.HIL_SYNC), encode(HilSync(fault.params["sync_tick"])))
+            out.append(lookalike(sync, fault.params["frame_kind"]))
+            self.record.note(tick_ms)
         if fault.kind == "reorder":
             targets = [m for m in frames if m.arbitration_id in fault.ids]
             if targets and self.rng.random() < fault.params["rate"]:
@@ -428,12 +485,30 @@ class _BusFaultState:
                 return [message]  # another frame of the sender
             self.record.note(tick_ms)
             return [_rewrite(message, {p["field"]: p["value"]})]
+        if kind == "lookalike":
+            self.record.note(tick_ms)
+            return [message, lookalike(message, p["frame_kind"])]
         if kind == "engage_toggle":
             elapsed = tick_ms - round(self.fault.start_s * 1000)
             engage = (elapsed // p["period_ms"]) % 2 == 1
             self.record.note(tick_ms)
             return [_rewrite(message, {"engage": engage})]
         raise AssertionError(f"unhandled bus fault kind {kind}")  # parse refuses unknown kinds
+
+    def _replay(self, tick_ms: int, frames: list[can.Message]) -> list[can.Message]:
+        """Keep the target frames of every tick (also before the window) and, inside it,
+        re-send those of ``age_ms`` earlier unchanged."""
+        p = self.fault.params
+        self.history[tick_ms] = [m for m in frames if m.arbitration_id in self.fault.ids]
+        self.history.pop(tick_ms - p["age_ms"] - TICK_MS, None)   # older than needed
+        if not self.fault.active(tick_ms):
+            return frames
+        replayed = [_message(m.arbitration_id, bytes(m.data))
+                    for m in self.history.get(tick_ms - p["age_ms"], [])]
+        if replayed:
+            self.record.note(tick_ms, len(replayed))
+        kept = [m for m in frames if not (p["replace"] and m.arbitration_id in self.fault.ids)]
+        return kept + replayed
 
     def _babble(self, tick_ms: int, frames: list[can.Message]) -> list[can.Message]:
         p = self.fault.params
@@ -517,3 +592,94 @@ class OffsetSteeringVehicle(FourWheelVehicle):
         """Step with the offset added to the steering command (the model saturates it)."""
         return super().step(VehicleCommand(drive_torque=command.drive_torque,
                                            steer_angle=command.steer_angle + self.steer_offset_rad), dt)
+
+
+# --- bus wrappers: faults of the time base and of the ECU's own bus ----------------------
+
+
+class TimeShiftingBus:
+    """The time master's bus with virtual time jumping ahead: from master TICK
+    ``from_tick_ms`` on, every HIL_SYNC goes out with TICK + ``ahead_ms`` and every
+    HIL_SYNC_ACK of such a TICK comes back as the master's TICK, so the master and the
+    plant run on while the ECU sees its clock jump once (contract rev. 2, "jump of
+    virtual time"). The handshake passes unchanged.
+
+    Args:
+        bus: the master's open bus (shut down with this wrapper).
+        from_tick_ms: first master TICK sent shifted (ms, a multiple of 5).
+        ahead_ms: how far the ECU's clock jumps (ms, a multiple of 5).
+    """
+
+    def __init__(self, bus: can.BusABC, from_tick_ms: int, ahead_ms: int) -> None:
+        self.bus = bus
+        self.from_tick_ms = from_tick_ms
+        self.ahead_ms = ahead_ms
+        self.record = FaultRecord(f"HIL_SYNC {ahead_ms / 1000:g} s ahead from "
+                                  f"{from_tick_ms / 1000:g} s on (virtual time jumps once)")
+
+    @staticmethod
+    def _tick(message: can.Message, frame_id: FrameId) -> int | None:
+        if (message.arbitration_id != frame_id or message.is_extended_id
+                or len(message.data) != FRAME_LENGTH):
+            return None
+        return int.from_bytes(bytes(message.data[0:4]), "little")
+
+    def send(self, message: can.Message, timeout: float | None = None) -> None:
+        """Send, HIL_SYNC of a TICK at or after ``from_tick_ms`` shifted ahead."""
+        tick = self._tick(message, FrameId.HIL_SYNC)
+        if tick is not None and tick != HANDSHAKE_TICK and tick >= self.from_tick_ms:
+            self.record.note(tick)
+            message = _message(int(FrameId.HIL_SYNC), encode(HilSync(tick + self.ahead_ms)))
+        self.bus.send(message, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """Receive, an ACK of a shifted TICK shifted back to the master's TICK."""
+        message = self.bus.recv(timeout)
+        tick = None if message is None else self._tick(message, FrameId.HIL_SYNC_ACK)
+        if tick is not None and tick != HANDSHAKE_TICK and tick >= self.from_tick_ms + self.ahead_ms:
+            data = bytearray(message.data)
+            data[0:4] = (tick - self.ahead_ms).to_bytes(4, "little")
+            message = _message(int(FrameId.HIL_SYNC_ACK), bytes(data))
+        return message
+
+    def shutdown(self) -> None:
+        self.bus.shutdown()
+
+
+class BusDownError(can.CanOperationError):
+    """What a lost bus raises on every receive and send (an interface that went down)."""
+
+
+class LosableBus:
+    """The ECU's bus that can go away: after `lose`, every receive and send raises
+    `BusDownError` (as python-can's SocketCAN bus does when the interface goes down), and
+    the receive calls made meanwhile are counted (a busy loop shows as thousands).
+
+    Args:
+        bus: the ECU's open bus (shut down with this wrapper).
+    """
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.lost = False
+        self.calls_while_lost = 0
+
+    def lose(self) -> None:
+        """From now on the bus is gone."""
+        self.lost = True
+
+    def _check(self) -> None:
+        if self.lost:
+            self.calls_while_lost += 1
+            raise BusDownError("CAN interface down (fault injection: lost bus)")
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        self._check()
+        return self.bus.recv(timeout)
+
+    def send(self, message: can.Message, timeout: float | None = None) -> None:
+        self._check()
+        self.bus.send(message, timeout)
+
+    def shutdown(self) -> None:
+        self.bus.shutdown()

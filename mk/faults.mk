@@ -1,7 +1,8 @@
 # Fault injection and fuzzing of the ECU (issue 10; docs/faults.md).
 #   make faults   every fault in the high-mu double lane change, lockstep on the virtual
-#                 bus (32 runs, about 3-4 min here): results/faults.md, faults.json,
-#                 faults_vehicle.png; FAULTS_ARGS="--only NAME ..." for a subset
+#                 bus (44 runs, about 4-5 min here): results/faults.md, faults.json,
+#                 faults_vehicle.png (--replace: rewrites them); FAULTS_ARGS="--only NAME ..."
+#                 for a subset
 #   make fuzz     the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000,
 #                 about 14 min here; no pytest timeout); `make test` runs the same test
 #                 with 10000 (about 1 min)
@@ -12,7 +13,7 @@ FAULTS_ARGS ?=
 
 ## fault injection campaign, every fault in the high-mu lane change -> results/faults.*
 faults: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m hil faults --campaign --out results $(FAULTS_ARGS)
+	OPENBLAS_NUM_THREADS=1 $(PY) -m hil faults --campaign --out results --replace $(FAULTS_ARGS)
 	$(PROVENANCE_STAMP) results/faults.md results/faults.json results/faults_vehicle.png \
 		--command "$(call provenance_command,faults,FAULTS_ARGS)" \
 		--inputs $(PROVENANCE_HIL) --modules hil.commands.faults studies.fault_campaign

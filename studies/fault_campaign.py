@@ -31,6 +31,8 @@ import dataclasses
 import json
 import logging
 import math
+import sys
+import threading
 import time
 import types
 from collections.abc import Sequence
@@ -40,9 +42,9 @@ from typing import Any
 
 import numpy as np
 
-from can_defs.frames import CtrlMode, FrameId
+from can_defs.frames import HANDSHAKE_TICK, CtrlMode, FrameId
 from hil.errors import HilError
-from hil.faults import FaultSpec
+from hil.faults import PLANNER_IDS, PLANT_IDS, FaultSpec
 
 #: Where the fault starts in the campaign (s): mid first lane change of the DLC.
 ONSET_S = 3.0
@@ -57,19 +59,30 @@ CONTROL_PERIOD_MS = 25
 #: after the manoeuvre, where a steady-state offset shows.
 SETTLE_WINDOW_S = 2.0
 VALID_MODES = {int(CtrlMode.ACTIVE), int(CtrlMode.DEGRADED), int(CtrlMode.SAFE_STOP)}
+#: The campaign's scenario and the files it writes into its output folder.
+SCENARIO = "dlc_high_mu"
+RESULT_FILES = ("faults.md", "faults.json", "faults_vehicle.png")
 
 
 @dataclass(frozen=True)
 class Expect:
-    """An expected reaction: ``mode`` entered or FAULTS ``bit`` set within ``bound_ms`` of
-    the fault's first action, and why that bound (contract rule)."""
+    """An expected reaction within ``bound_ms`` of the fault's first action, and why that
+    bound (contract rule): ``mode`` entered, FAULTS ``bit`` set, ``recover`` (ACTIVE again
+    after the reaction) or ``quiet`` (no reaction at all: mode ACTIVE and none of the bus
+    bits 0, 1, 3 newly set for the whole ``bound_ms``)."""
 
     bound_ms: int
     why: str
     mode: CtrlMode | None = None
     bit: int | None = None
+    recover: bool = False
+    quiet: bool = False
 
     def label(self) -> str:
+        if self.quiet:
+            return f"no reaction for {self.bound_ms} ms"
+        if self.recover:
+            return f"ACTIVE again <= {self.bound_ms} ms"
         what = self.mode.name if self.mode is not None else f"bit {self.bit}"
         return f"{what} <= {self.bound_ms} ms"
 
@@ -90,6 +103,29 @@ STANDBY_PLANNER = Expect(25, "unknown PATH_ID / ENGAGE = 0 at the next task",
 # PLANNER_REQ every 25 ms on the control grid; the last one 25 ms before the first
 # missing, so its age passes 100 ms at the task t0 + 100 ms.
 STANDBY_TIMEOUT = Expect(100, "PLANNER_REQ missing > 100 ms", mode=CtrlMode.STANDBY)
+# Rev. 2, plausibility: an implausible sample is not a good sample (handled as a torn one):
+# FAULTS bit 0 in the CTRL_DIAG of the task that follows it.
+IMPLAUSIBLE = Expect(25, "implausible sample flagged at the next task", bit=0)
+# Rev. 2, frame kinds: CAN FD / extended / remote / error frames are ignored, never FAULTS.
+IGNORED = Expect(1000, "other frame kinds ignored, never in FAULTS", quiet=True)
+# Rev. 2, jump of virtual time: at the jump TICK (a control instant here) STANDBY with
+# CMD_VALID = 0 and bits 1 and 3; re-engaged by the usual rule (next fresh sample, 10 ms,
+# then the next task, at most 25 ms later).
+JUMP_STANDBY = Expect(0, "STANDBY at the jump TICK", mode=CtrlMode.STANDBY)
+JUMP_BIT_1 = Expect(0, "bit 1 in the next CTRL_DIAG", bit=1)
+JUMP_BIT_3 = Expect(0, "bit 3 (controller/observer reset) in the next CTRL_DIAG", bit=3)
+JUMP_REENGAGE = Expect(35, "re-engaged by the usual rule", recover=True)
+# Lockstep: a lost bus stops virtual time (no tick arrives), so once the bus is back the
+# run goes on with no reaction in virtual time.
+LOCKSTEP_PAUSE = Expect(500, "lockstep: no tick while the bus is lost, no input timeout",
+                        quiet=True)
+# A replay of 1 s whose counters read as next is accepted once its positions are
+# continuous; when the real frames return 1 s later their position is not continuous with
+# the replayed one for 100 ms, so the next is a restarted reference (lost): SAFE_STOP.
+REPLAY_END = Expect(1000 + 115, "real frames back: no continuous sample for 100 ms",
+                    mode=CtrlMode.SAFE_STOP)
+#: Bus bits whose new appearance counts as a reaction (bit 2 is the solver's fallback).
+REACTION_BITS = 0b1011
 
 
 @dataclass(frozen=True)
@@ -102,12 +138,26 @@ class FaultCase:
     controllers: tuple[str, ...]
     expects: tuple[Expect, ...] = ()
     note: str = ""
+    #: A fault of the time base or of the ECU's own bus (`ecu_cases`), run by
+    #: `run_ecu_case`: ``{"kind": "time_jump", "start_s", "ahead_ms"}`` or
+    #: ``{"kind": "lost_bus", "start_s", "outage_s"}``; None: the injector's ``table``.
+    ecu_fault: dict[str, Any] | None = None
 
 
 def _bus(kind: str, expects: tuple[Expect, ...] = (), note: str = "", name: str | None = None,
          **fault: Any) -> FaultCase:
     fault = {"kind": kind, "start_s": ONSET_S, **fault}
     return FaultCase(name or kind, "bus", {"seed": 1, "bus": [fault]}, ("eso-dkmpc",), expects, note)
+
+
+def _lookalikes(name: str, frame_kind: str, sync_tick: int, note: str,
+                also: str | None = None) -> FaultCase:
+    """Look-alikes of every frame the ECU receives (plant and planner), for 1 s."""
+    ids = list(PLANT_IDS + PLANNER_IDS)
+    faults = [{"kind": "lookalike", "ids": ids, "frame_kind": kind, "start_s": ONSET_S,
+               "duration_s": 1.0, "sync_tick": sync_tick if kind == frame_kind else -1}
+              for kind in (frame_kind, also) if kind is not None]
+    return FaultCase(name, "bus", {"seed": 1, "bus": faults}, ("eso-dkmpc",), (IGNORED,), note)
 
 
 def _vehicle(name: str, table: dict[str, Any], note: str = "") -> FaultCase:
@@ -139,8 +189,19 @@ def campaign_cases() -> list[FaultCase]:
         _bus("babble", (E2E_NEXT,), "random payloads on VEH_DYN's ID for 1 s",
              name="babble on 0x100", babble_id=0x100, frames_per_tick=10, starve=False,
              duration_s=1.0),
-        _bus("override", (), "VX raw max (327.67 m/s) for 100 ms", name="VX out of range",
+        _bus("override", (DEGRADED, IMPLAUSIBLE), "VX 327 m/s (valid CRC) for 50 ms",
+             name="VX 327 m/s", field="vx", value=327.0, duration_s=0.05),
+        _bus("override", (DEGRADED, IMPLAUSIBLE, SAFE_STOP),
+             "VX raw max (327.67 m/s) for 100 ms: the next good sample is > 100 ms after the "
+             "last, a restarted reference (SAFE_STOP)", name="VX out of range",
              field="vx", value=1e9, duration_s=0.1),
+        _bus("override", (DEGRADED, IMPLAUSIBLE), "YAW 4 rad, outside [-pi, pi), for 50 ms",
+             name="YAW 4 rad", field="yaw", value=4.0, duration_s=0.05),
+        _bus("override", (IMPLAUSIBLE,), "one sample with POS_X 5 km away",
+             name="position jump 5 km", field="pos_x", value=5000.0, duration_s=0.01),
+        _bus("override", (DEGRADED, IMPLAUSIBLE, SAFE_STOP),
+             "POS_X 5 km away from 3.0 s on: not continuous for 100 ms, then a restarted "
+             "reference", name="position 5 km off", field="pos_x", value=5000.0),
         _bus("override", (), "VX = 0 (division by Vx) for 100 ms", name="VX = 0",
              field="vx", value=0.0, duration_s=0.1),
         _bus("override", (), "TARGET_SPEED raw max (655.35 m/s) for 100 ms",
@@ -150,6 +211,22 @@ def campaign_cases() -> list[FaultCase]:
              sender="planner", field="path_id", value=99, duration_s=0.2),
         _bus("engage_toggle", (STANDBY_PLANNER,), "ENGAGE 0/1 every 50 ms for 0.5 s",
              sender="planner", period_ms=50, duration_s=0.5),
+        _lookalikes("CAN FD look-alikes", "fd", HANDSHAKE_TICK,
+                    "FD copies (next CNT, valid CRC) of every plant/planner frame and an FD "
+                    "HIL_SYNC with the handshake value, each tick for 1 s"),
+        _lookalikes("extended-ID look-alikes", "extended", 60_000,
+                    "29-bit copies of every plant/planner frame and a 29-bit HIL_SYNC "
+                    "60 s ahead, each tick for 1 s"),
+        _lookalikes("remote and error frames", "remote", -1,
+                    "remote frames on the plant/planner IDs plus error frames, 1 s",
+                    also="error"),
+        _bus("replay", (E2E_NEXT,), "the plant's frames of 1 s earlier re-sent after the "
+             "real ones (old CNT and CRC) for 1 s", name="stale replay", age_ms=1000,
+             duration_s=1.0),
+        _bus("replay", (DEGRADED, IMPLAUSIBLE, REPLAY_END), "the plant replaced by its own "
+             "frames of 160 ms earlier (16 instants: CNT reads as next) for 1 s: only the "
+             "position steps where the replay starts and ends show",
+             name="replay, CNT as next", age_ms=160, replace=True, duration_s=1.0),
         _vehicle("none", {}, "baseline"),
         _vehicle("mu step 0.85 -> 0.5", {"mu_step": {"time_s": ONSET_S, "mu": 0.5}},
                  "at 3.0 s"),
@@ -165,6 +242,27 @@ def campaign_cases() -> list[FaultCase]:
                  "sensor": {"vy_bias": 0.05, "vy_noise": 0.02, "yaw_rate_bias": 0.01,
                             "yaw_rate_noise": 0.005}}, "the five above at once"),
     ]
+
+
+def ecu_cases() -> list[FaultCase]:
+    """Faults no HIL node's frame can carry (contract rev. 2): a jump of virtual time (the
+    time master's HIL_SYNC far ahead) and a lost bus (the ECU's interface goes down)."""
+    return [
+        FaultCase("virtual time jump", "bus", {}, ("eso-dkmpc",),
+                  (JUMP_STANDBY, JUMP_BIT_1, JUMP_BIT_3, JUMP_REENGAGE),
+                  "HIL_SYNC 10 s ahead from 3.0 s on: the ECU's clock jumps once",
+                  ecu_fault={"kind": "time_jump", "start_s": ONSET_S, "ahead_ms": 10_000}),
+        FaultCase("lost bus", "bus", {}, ("eso-dkmpc",), (LOCKSTEP_PAUSE,),
+                  "the ECU's interface down for 2.5 s of wall clock at 3.0 s (every receive "
+                  "and send fails), then back",
+                  ecu_fault={"kind": "lost_bus", "start_s": ONSET_S, "outage_s": 2.5}),
+    ]
+
+
+def all_cases() -> list[FaultCase]:
+    """Every case of `make faults`: the injector's (`campaign_cases`, also the campaign
+    grid's fault catalogue) and the ECU-level ones (`ecu_cases`)."""
+    return campaign_cases() + ecu_cases()
 
 
 # --- judging one run ----------------------------------------------------------------------
@@ -263,15 +361,19 @@ def mode_sequence(times_s: np.ndarray, modes: np.ndarray, max_items: int = 7) ->
 
 def evaluate(case: FaultCase, controller: str, result: Any, error: BaseException | None,
              unexpected_errors: int, controller_errors: int, description: str,
-             path: Any = None) -> Verdict:
+             path: Any = None, onset_ms: int | None = None, frames_hit: int = 0) -> Verdict:
     """Judge one run (``result`` a ``hil.session.HilRunResult``, None when it raised;
-    ``path`` the reference path, to keep e_Y(t) for the figure)."""
+    ``path`` the reference path, to keep e_Y(t) for the figure; ``onset_ms`` the fault's
+    first action and ``frames_hit`` what it acted on, taken from the run's injector when
+    not given)."""
     verdict = Verdict(case.name, case.group, controller, description,
                       controller_errors=controller_errors)
     if error is not None or result is None:
         verdict.crashes = 1
         verdict.crash_reason = f"{type(error).__name__}: {error}"
         verdict.outcome = "CRASH"
+        verdict.expects = [{"expect": e.label(), "why": e.why, "at_ms": None, "met": False}
+                           for e in case.expects]
         return verdict
     verdict.wall_s = result.wall_time_s
     if unexpected_errors:
@@ -281,11 +383,13 @@ def evaluate(case: FaultCase, controller: str, result: Any, error: BaseException
     times, modes, faults = ecu["time"], ecu["ctrl_mode"].astype(int), ecu["faults"].astype(int)
     verdict.mode_sequence = mode_sequence(times, modes)
     injector = result.extra.get("injector")
-    onset_ms = injector.first_action_ms if injector is not None else None
+    if injector is not None:
+        onset_ms = injector.first_action_ms
+        frames_hit = sum(r.actions for r in injector.records())
     if case.group == "vehicle":
         onset_ms = None  # no bus evidence: the ECU is not expected to detect these
     verdict.faults_first_ms = onset_ms
-    verdict.frames_hit = sum(r.actions for r in injector.records()) if injector is not None else 0
+    verdict.frames_hit = frames_hit
     tick_ms = np.round(times * 1000).astype(int)
     if onset_ms is not None and len(times):
         after = tick_ms >= onset_ms
@@ -294,12 +398,9 @@ def evaluate(case: FaultCase, controller: str, result: Any, error: BaseException
         changed = after & ((modes != int(CtrlMode.ACTIVE)) | ((faults & ~baseline) != 0))
         if changed.any():
             verdict.detect_ms = int(tick_ms[np.argmax(changed)] - onset_ms)
+        reaction = after & ((modes != int(CtrlMode.ACTIVE)) | ((faults & ~baseline & REACTION_BITS) != 0))
         for expect in case.expects:
-            hit = after & ((modes == int(expect.mode)) if expect.mode is not None
-                           else ((faults >> expect.bit) & 1 == 1))
-            at = int(tick_ms[np.argmax(hit)] - onset_ms) if hit.any() else None
-            verdict.expects.append({"expect": expect.label(), "why": expect.why, "at_ms": at,
-                                    "met": at is not None and at <= expect.bound_ms})
+            verdict.expects.append(_judge(expect, tick_ms - onset_ms, after, modes, faults, reaction))
     elif case.expects:
         verdict.expects = [{"expect": e.label(), "why": e.why, "at_ms": None, "met": False}
                            for e in case.expects]
@@ -318,6 +419,31 @@ def evaluate(case: FaultCase, controller: str, result: Any, error: BaseException
     if path is not None:
         _keep_ey(verdict, result, path)
     return verdict
+
+
+def _judge(expect: Expect, since_ms: np.ndarray, after: np.ndarray, modes: np.ndarray,
+           faults: np.ndarray, reaction: np.ndarray) -> dict[str, Any]:
+    """One expectation against the cycles of a run (``since_ms`` each cycle's time after the
+    onset; ``after`` the cycles from the onset on; ``reaction`` those with a mode other than
+    ACTIVE or a newly set bus bit)."""
+    if expect.quiet:
+        window = after & (since_ms <= expect.bound_ms)
+        hit = reaction & window
+        at = int(since_ms[np.argmax(hit)]) if hit.any() else None
+        return {"expect": expect.label(), "why": expect.why, "at_ms": at,
+                "met": bool(at is None and window.any())}
+    if expect.recover:
+        first = np.flatnonzero(after & (modes != int(CtrlMode.ACTIVE)))
+        hit = np.zeros_like(after)
+        if len(first):
+            hit[first[0]:] = modes[first[0]:] == int(CtrlMode.ACTIVE)
+    elif expect.mode is not None:
+        hit = after & (modes == int(expect.mode))
+    else:
+        hit = after & ((faults >> expect.bit) & 1 == 1)
+    at = int(since_ms[np.argmax(hit)]) if hit.any() else None
+    return {"expect": expect.label(), "why": expect.why, "at_ms": at,
+            "met": bool(at is not None and at <= expect.bound_ms)}
 
 
 def _keep_ey(verdict: Verdict, result: Any, path: Any) -> None:
@@ -353,7 +479,7 @@ class _EcuLogCounter(logging.Handler):
             self.controller += 1
 
 
-def run_case(case: FaultCase, controller: str, scenario_name: str = "dlc_high_mu",
+def run_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
              duration_s: float | None = None, seed: int | None = None,
              source: object | None = None) -> Verdict:
     """Run one case with one controller on a private virtual bus and judge it
@@ -362,6 +488,8 @@ def run_case(case: FaultCase, controller: str, scenario_name: str = "dlc_high_mu
     from hil.session import SessionError, default_options, reference_path, run_hil
     from hil.time_master import TimeMasterError
 
+    if case.ecu_fault is not None:
+        return run_ecu_case(case, controller, scenario_name, duration_s)
     scenario = load_scenario(scenario_name)
     table = dict(case.table)
     if seed is not None:
@@ -390,6 +518,179 @@ def run_case(case: FaultCase, controller: str, scenario_name: str = "dlc_high_mu
         logger.removeHandler(counter)
     return evaluate(case, controller, result, error, counter.unexpected, counter.controller,
                     description, reference_path(scenario))
+
+
+class _LogLines(logging.Handler):
+    """Keeps what the ECU logs at WARNING and above (the lost bus's rate limit)."""
+
+    def __init__(self) -> None:
+        super().__init__(level=logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+
+@dataclass
+class _LostBusProbe:
+    """The lost-bus case's wall-clock measurements (`_lose_bus`)."""
+
+    noticed_ms: float | None = None
+    cpu_fraction: float = math.nan
+    lost_wall_s: float = 0.0
+    log_lines: int = 0
+    lost_lines: int = 0
+    reopen_tries: int = 0
+    recv_calls: int = 0
+    reopened_ms: float | None = None
+
+    def expects(self) -> list[dict[str, Any]]:
+        """The contract's rules for a lost bus as judged rows (bounds: wall clock)."""
+        wall = self.lost_wall_s
+        return [
+            {"expect": "lost bus noticed <= 300 ms", "why": "receive errors for 100 ms are a "
+             "lost bus (+ thread scheduling on a busy machine)",
+             "at_ms": None if self.noticed_ms is None else round(self.noticed_ms),
+             "met": self.noticed_ms is not None and self.noticed_ms <= 300},
+            {"expect": "ECU thread CPU < 20 % while lost", "why": "not a busy loop",
+             "at_ms": None, "shown": f"{100 * self.cpu_fraction:.1f} %, {self.recv_calls} "
+             f"receive calls", "met": self.cpu_fraction < 0.2},
+            {"expect": "lost-bus log lines <= 1/s", "why": "logged at most once a second",
+             "at_ms": None, "shown": f"{self.lost_lines} of {self.log_lines} lines in {wall:.1f} s",
+             "met": 1 <= self.lost_lines <= wall + 1 and self.log_lines <= 3 * (wall + 1)},
+            {"expect": "reopen tried every 1 s", "why": "tries to reopen the bus every second",
+             "at_ms": None, "shown": f"{self.reopen_tries} tries in {wall:.1f} s",
+             "met": 1 <= self.reopen_tries <= wall + 1},
+            {"expect": "reopened <= 1500 ms after the bus is back", "why": "next reopening "
+             "within 1 s", "at_ms": None if self.reopened_ms is None else round(self.reopened_ms),
+             "met": self.reopened_ms is not None and self.reopened_ms <= 1500},
+        ]
+
+
+def _lose_bus(ecu: Any, thread: threading.Thread, bus: Any, outage_s: float,
+              back: threading.Event, reopen_tries: list[float]) -> _LostBusProbe:
+    """Take ``bus`` away for ``outage_s`` of wall clock and watch the ECU meanwhile: when
+    it notices, its thread's CPU time from then on (a busy loop shows as ~100 %), its log
+    lines and reopening tries; then let the bus come back (``back``) and wait for the ECU
+    to reopen it."""
+    probe = _LostBusProbe()
+    lines = _LogLines()
+    logger = logging.getLogger("firmware_sim")
+    logger.addHandler(lines)
+    cpu_clock = time.pthread_getcpuclockid(thread.ident)
+    started = time.monotonic()
+    bus.lose()
+    cpu_from = wall_from = None
+    try:
+        while time.monotonic() - started < outage_s:
+            if cpu_from is None and ecu.bus_lost:
+                wall_from = time.monotonic()
+                cpu_from = time.clock_gettime(cpu_clock)
+                probe.noticed_ms = 1000 * (wall_from - started)
+            time.sleep(0.005)
+        if cpu_from is not None:
+            probe.lost_wall_s = time.monotonic() - wall_from
+            probe.cpu_fraction = (time.clock_gettime(cpu_clock) - cpu_from) / probe.lost_wall_s
+        probe.log_lines = len(lines.lines)
+        probe.lost_lines = sum("bus lost" in line or "still lost" in line for line in lines.lines)
+        probe.reopen_tries = len(reopen_tries)
+        probe.recv_calls = bus.calls_while_lost
+    finally:
+        logger.removeHandler(lines)
+    back.set()
+    back_at = time.monotonic()
+    while time.monotonic() - back_at < 3.0 and not ecu.bus_reopened:
+        time.sleep(0.005)
+    if ecu.bus_reopened:
+        probe.reopened_ms = 1000 * (time.monotonic() - back_at)
+    return probe
+
+
+def run_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
+                 duration_s: float | None = None) -> Verdict:
+    """Run a fault of the time base or of the ECU's own bus (``case.ecu_fault``): the same
+    nodes as ``hil.session.run_hil`` in lockstep on a private virtual bus, with the ECU in
+    a thread here so that its bus (`LosableBus`) or the master's (`TimeShiftingBus`) can
+    be wrapped; judged as `evaluate` judges every run, plus the case's own measurements."""
+    from firmware_sim.ecu import Ecu
+    from hil.bus import BusConfig, open_bus, private_virtual_channel
+    from hil.faults import BusDownError, LosableBus, TimeShiftingBus
+    from hil.planner_node import PlannerNode
+    from hil.plant_node import PlantNode
+    from hil.recorder import EcuFrameMonitor
+    from hil.scenario import load_scenario
+    from hil.session import HilRunResult, control_instant_metrics, reference_path
+    from hil.time_master import LockstepMaster, TimeMasterError
+
+    fault = case.ecu_fault
+    assert fault is not None
+    scenario = load_scenario(scenario_name)
+    if duration_s is not None:
+        scenario = dataclasses.replace(scenario, duration_s=duration_s)
+    onset_ms = round(fault["start_s"] * 1000)
+    config = BusConfig("virtual", private_virtual_channel("faults"))
+    back = threading.Event()
+    reopen_tries: list[float] = []
+    opened: list[Any] = []
+
+    def reopen() -> Any:
+        reopen_tries.append(time.monotonic())
+        if not back.is_set():
+            raise BusDownError("CAN interface still down")
+        opened.append(open_bus(config))
+        return opened[-1]
+
+    counter = _EcuLogCounter()
+    logging.getLogger("firmware_sim").addHandler(counter)
+    ecu_bus = LosableBus(open_bus(config))
+    master_bus: Any = open_bus(config)
+    if fault["kind"] == "time_jump":
+        master_bus = TimeShiftingBus(master_bus, onset_ms, fault["ahead_ms"])
+    ecu = Ecu(ecu_bus, controller, {scenario.path_id: scenario.path_file}, lockstep=True,
+              reopen_bus=reopen)
+    stop = threading.Event()
+    thread = threading.Thread(target=ecu.run, args=(stop,), name="ecu-fault-case", daemon=True)
+    plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
+    master = LockstepMaster(master_bus, [plant, planner, monitor], ack_timeout_s=5.0,
+                            peer_alive=lambda: None if thread.is_alive() else "ECU thread ended")
+    probe, error, result = None, None, None
+    started = time.monotonic()
+    thread.start()
+    try:
+        master.handshake()
+        for tick_ms in range(0, round(scenario.duration_s * 1000), 5):
+            if fault["kind"] == "lost_bus" and tick_ms == onset_ms:
+                probe = _lose_bus(ecu, thread, ecu_bus, fault["outage_s"], back, reopen_tries)
+            master.tick(tick_ms)
+    except TimeMasterError as e:   # the ECU stalled or died: a result of the case
+        error = e
+    finally:
+        stop.set()
+        thread.join(5.0)
+        ecu.close()
+        logging.getLogger("firmware_sim").removeHandler(counter)
+        master_bus.shutdown()   # the ECU shut down its own bus (the reopened one too)
+    if error is None:
+        plant_trace = plant.trace()
+        result = HilRunResult(
+            scenario=scenario.name, controller=controller, bus=config.describe(),
+            mode="lockstep", plant_trace=plant_trace, ecu_trace=monitor.trace(),
+            tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
+            stats=master.stats, wall_time_s=time.monotonic() - started,
+            extra={"ecu_frames_raw": monitor.raw})
+    frames_hit = master_bus.record.actions if fault["kind"] == "time_jump" else 1
+    verdict = evaluate(case, controller, result, error, counter.unexpected, counter.controller,
+                       case.note, reference_path(scenario), onset_ms=onset_ms,
+                       frames_hit=frames_hit)
+    if fault["kind"] == "time_jump":
+        tasks = sum(1 for tick, frame_id, _ in monitor.raw
+                    if tick == onset_ms and frame_id == FrameId.STEER_TORQUE_CMD)
+        verdict.expects.append({"expect": "<= 1 control task at the jump TICK",
+                                "why": "the skipped tasks are not run", "at_ms": None,
+                                "shown": f"{tasks} task(s)", "met": tasks <= 1})
+    elif probe is not None:
+        verdict.expects.extend(probe.expects())
+    return verdict
 
 
 def run_campaign(cases: Sequence[FaultCase], controllers: Sequence[str] | None = None,
@@ -439,8 +740,8 @@ def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
                   + "outcome | invalid / checked | crashes |",
                   "|---|---|---|---|---|---|---|---|---|" + ("---|" if vehicle else "")]
         for v in rows:
-            expected = "; ".join(f"{e['expect']} ({_ms(e['at_ms'])}) {'ok' if e['met'] else 'MISSED'}"
-                                 for e in v.expects) or "-"
+            expected = "; ".join(f"{e['expect']} ({e.get('shown', _ms(e['at_ms']))}) "
+                                 f"{'ok' if e['met'] else 'MISSED'}" for e in v.expects) or "-"
             crash = str(v.crashes) + (f" ({v.crash_reason})" if v.crash_reason else "")
             settled = f"{v.settled_abs_ey_m:.3f} | " if vehicle else ""
             lines.append(f"| {v.description} | {v.controller} | {v.mode_sequence} | "
@@ -459,8 +760,9 @@ def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
     return "\n".join(lines)
 
 
-def figure(verdicts: Sequence[Verdict], path: Path) -> Path:
-    """e_Y over time for the vehicle faults, ESO-DKMPC against DKMPC."""
+def figure(verdicts: Sequence[Verdict], path: Path, scenario_name: str = SCENARIO) -> Path:
+    """e_Y over time for the vehicle faults, ESO-DKMPC against DKMPC: one panel per fault,
+    one line per controller (its legend gives the max |e_Y|)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -469,27 +771,49 @@ def figure(verdicts: Sequence[Verdict], path: Path) -> Path:
     cases = list(dict.fromkeys(v.case for v in verdicts if v.group == "vehicle"))
     if not cases:
         return path
-    fig, axes = plt.subplots(len(cases), 1, figsize=(8, 1.9 * len(cases)), sharex=True)
+    fig, axes = plt.subplots(len(cases), 1, figsize=(8, 1.9 * len(cases) + 0.8), sharex=True)
     axes = np.atleast_1d(axes)
     for ax, case in zip(axes, cases):
         for v in verdicts:
             if v.case == case and v.e_y:
-                ax.plot(v.time_s, v.e_y, label=f"{v.controller} (max {v.max_abs_ey_m:.2f} m)")
-        ax.set_title(case, fontsize=9)
+                ax.plot(v.time_s, v.e_y, label=f"{v.controller} (max |e_Y| {v.max_abs_ey_m:.2f} m)")
+        ax.axhline(0.0, color="0.6", linewidth=0.6, label="reference path (e_Y = 0)")
+        ax.set_title(f"fault: {case}", fontsize=9)
         ax.set_ylabel("e_Y (m)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper right")
     axes[-1].set_xlabel("time (s)")
+    fig.suptitle(f"Vehicle faults in {scenario_name} (35 km/h, mu 0.85, lockstep HIL): lateral "
+                 "error e_Y of the true pose to the path, ESO-DKMPC against DKMPC", fontsize=10)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
+def check_paths(out_dir: Path, replace: bool, scenario_name: str = SCENARIO) -> None:
+    """Refuse an unusable output folder before any run: its parent missing, a file, not
+    writable, holding an earlier campaign's results (without ``replace``) or where an
+    input of the campaign (scenario, its path file, the DBC) would be overwritten.
+
+    Raises:
+        hil.errors.OutputPathError, hil.errors.ScenarioError, can_defs.errors.DbcLoadError.
+    """
+    from can_defs.codec import prepare
+    from can_defs.dbc import DBC_PATH
+    from hil.output_paths import check_output_folder
+    from hil.scenario import load_scenario
+
+    prepare()
+    scenario = load_scenario(scenario_name)
+    inputs = [Path(scenario.source), Path(scenario.path_file), DBC_PATH]
+    check_output_folder(out_dir, "--out", RESULT_FILES, replace=replace, inputs=inputs)
+
+
 def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, command: str) -> list[Path]:
-    """results/faults.md, faults.json and faults_vehicle.png."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """results/faults.md, faults.json and faults_vehicle.png (``out_dir`` checked by
+    `check_paths`; created when missing, its parent never)."""
+    out_dir.mkdir(exist_ok=True)
     md = out_dir / "faults.md"
     md.write_text(markdown(verdicts, wall_s, command), encoding="utf-8")
     js = out_dir / "faults.json"
@@ -508,14 +832,22 @@ def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, com
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m studies.fault_campaign [--out results] [--only NAME ...]``; exit 1 when a run
     crashed, sent an invalid command, left the path without a safe stop or missed a bound."""
+    from can_defs.errors import CanDefsError
+
     parser = argparse.ArgumentParser(prog="python -m studies.fault_campaign", description=__doc__.split("\n")[0])
     add_arguments(parser)
-    return run_from_args(parser.parse_args(argv))
+    try:
+        return run_from_args(parser.parse_args(argv))
+    except (HilError, CanDefsError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of the campaign (shared with ``python -m hil faults --campaign``)."""
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder")
+    parser.add_argument("--replace", action="store_true",
+                        help="overwrite the results of an earlier campaign in --out")
     parser.add_argument("--only", nargs="+", default=None, metavar="NAME",
                         help="run only these cases (names as in the table)")
     parser.add_argument("--controllers", nargs="+", default=None,
@@ -526,13 +858,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Run the campaign as ``args`` say, write the results, print the summary."""
-    cases = campaign_cases()
+    cases = all_cases()
     if args.only:
         known = {c.name for c in cases}
         unknown = [n for n in args.only if n not in known]
         if unknown:
             raise HilError(f"unknown case(s) {unknown}; known: {sorted(known)}")
         cases = [c for c in cases if c.name in args.only]
+    if args.duration is not None and not args.duration > 0:
+        raise HilError(f"--duration must be > 0 s, got {args.duration}")
+    check_paths(args.out, args.replace)
     started = time.monotonic()
     verdicts = run_campaign(cases, args.controllers, args.duration)
     wall = time.monotonic() - started
@@ -551,6 +886,4 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
     sys.exit(main())

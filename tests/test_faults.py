@@ -274,3 +274,229 @@ def test_cli_one_run_prints_the_verdict(capsys):
     assert verdict["mode_sequence"] == "ACTIVE, DEGRADED@0.225, ACTIVE@0.275"
     assert verdict["description"] == "silent plant, 0.2-0.26 s"
     assert (verdict["crashes"], verdict["invalid_commands"]) == (0, 0)
+
+
+# --- contract revision 2: look-alikes, replays, implausible values, jumps, a lost bus -------
+
+from can_defs.frames import HANDSHAKE_TICK  # noqa: E402
+from hil.faults import BusDownError, LosableBus, TimeShiftingBus  # noqa: E402
+from studies import fault_campaign  # noqa: E402
+
+RX_PLANT_AND_PLANNER = [0x100, 0x101, 0x102, 0x110]
+
+
+def test_lookalikes_follow_each_frame_in_another_kind_with_the_next_counter():
+    out = run_ticks(spec(kind="lookalike", ids=RX_PLANT_AND_PLANNER, frame_kind="fd",
+                         sync_tick=HANDSHAKE_TICK, start_s=0.05, duration_s=0.05))
+    before = [m for t, m in out if t < 50]
+    window = [(t, m) for t, m in out if 50 <= t < 100]
+    assert not any(m.is_fd for m in before)
+    fd = [m for _, m in window if m.is_fd]
+    classic = [m for _, m in window if not m.is_fd]
+    assert len(fd) == len(classic) + 10       # one copy per frame + one HIL_SYNC per tick
+    syncs = [m for m in fd if m.arbitration_id == FrameId.HIL_SYNC]
+    assert len(syncs) == 10 and all(decode(m.arbitration_id, bytes(m.data)).frame.tick
+                                    == HANDSHAKE_TICK for m in syncs)
+    for real, copy in zip(classic, [m for m in fd if m.arbitration_id != FrameId.HIL_SYNC]):
+        assert copy.arbitration_id == real.arbitration_id and not copy.is_extended_id
+        real_decoded, copy_decoded = (decode(m.arbitration_id, bytes(m.data)) for m in (real, copy))
+        assert copy_decoded.crc_ok and copy_decoded.counter == (real_decoded.counter + 1) % 16
+        assert copy_decoded.frame == real_decoded.frame
+
+
+@pytest.mark.parametrize("frame_kind, flag", [("extended", "is_extended_id"),
+                                              ("remote", "is_remote_frame"),
+                                              ("error", "is_error_frame")])
+def test_lookalikes_of_each_kind_carry_its_flag(frame_kind, flag):
+    out = run_ticks(spec(kind="lookalike", sender="plant", frame_kind=frame_kind))
+    odd = [m for _, m in out if getattr(m, flag)]
+    assert len(odd) == 60 and all(m.arbitration_id in (0x100, 0x101, 0x102) for m in odd)
+    assert all((len(m.data) == 0) == (frame_kind == "remote") for m in odd)
+
+
+def test_replay_resends_the_frames_of_age_ms_earlier_unchanged():
+    clean = run_ticks(FaultSpec())
+    by_tick = {}
+    for t, m in clean:
+        if m.arbitration_id in (0x100, 0x101, 0x102):
+            by_tick.setdefault(t, []).append(bytes(m.data))
+    added = run_ticks(spec(kind="replay", age_ms=50, start_s=0.1))
+    for tick in range(100, 200, 10):
+        sent = [bytes(m.data) for t, m in added if t == tick and m.arbitration_id != 0x110]
+        assert sent == by_tick[tick] + by_tick[tick - 50]     # real ones, then the replay
+    replaced = run_ticks(spec(kind="replay", age_ms=160, start_s=0.16, replace=True))
+    # 16 instants earlier: the counters read exactly as the real sender's would
+    assert counters(replaced) == [i % 16 for i in range(20)]
+    assert [bytes(m.data) for t, m in replaced if t == 170 and m.arbitration_id != 0x110] \
+        == by_tick[10]
+
+
+@pytest.mark.parametrize("fault, message", [
+    ({"kind": "lookalike", "frame_kind": "xl"}, "frame_kind = 'xl'"),
+    ({"kind": "lookalike", "frame_kind": "remote", "sync_tick": 5}, "only fd and extended"),
+    ({"kind": "lookalike"}, "needs frame_kind"),
+    ({"kind": "replay", "age_ms": 7}, "age_ms = 7: must be a multiple of 5"),
+    ({"kind": "replay", "age_ms": 50, "replace": 1}, "replace = 1"),
+])
+def test_bad_rev2_specs_name_what_is_wrong(fault, message):
+    with pytest.raises(FaultSpecError, match=message.replace("(", r"\(")):
+        FaultSpec.from_mapping({"bus": [fault]}, "scenario.toml")
+
+
+def test_time_shifting_bus_shifts_sync_out_and_ack_back():
+    channel = f"faults-shift-{id(object())}"
+    master, ecu = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    shifted = TimeShiftingBus(master, from_tick_ms=100, ahead_ms=10_000)
+    try:
+        for tick in (HANDSHAKE_TICK, 95, 100):
+            shifted.send(can.Message(arbitration_id=int(FrameId.HIL_SYNC), is_extended_id=False,
+                                     data=encode(HilSync(tick))))
+        seen = [decode(m.arbitration_id, bytes(m.data)).frame.tick
+                for m in iter(lambda: ecu.recv(0.1), None)]
+        assert seen == [HANDSHAKE_TICK, 95, 10_100]
+        for tick in (95, 10_100):
+            data = encode(HilSync(tick))   # an ACK has the same layout
+            ecu.send(can.Message(arbitration_id=int(FrameId.HIL_SYNC_ACK), data=data,
+                                 is_extended_id=False))
+        acks = [int.from_bytes(bytes(shifted.recv(0.1).data[:4]), "little") for _ in range(2)]
+        assert acks == [95, 100] and shifted.record.actions == 1
+    finally:
+        shifted.shutdown()
+        ecu.shutdown()
+
+
+def test_losable_bus_fails_every_call_once_lost_and_counts_them():
+    channel = f"faults-lose-{id(object())}"
+    bus = LosableBus(can.Bus(interface="virtual", channel=channel))
+    try:
+        assert bus.recv(0.0) is None
+        bus.lose()
+        for call in (lambda: bus.recv(0.0), lambda: bus.send(planner_frame(0))):
+            with pytest.raises(BusDownError):
+                call()
+        assert bus.calls_while_lost == 2
+    finally:
+        bus.shutdown()
+
+
+def short(name: str, start_s: float = 0.5, **ecu_fault) -> FaultCase:
+    """A case of the campaign as defined there, moved to ``start_s`` (short smoke runs)."""
+    case = next(c for c in fault_campaign.all_cases() if c.name == name)
+    table = {**case.table, "bus": [{**b, "start_s": start_s} for b in case.table.get("bus", [])]}
+    fault = None if case.ecu_fault is None else {**case.ecu_fault, "start_s": start_s, **ecu_fault}
+    return dataclasses.replace(case, table=table, ecu_fault=fault, controllers=("lmpc",))
+
+
+def smoke(case: FaultCase, duration_s: float = 1.0) -> fault_campaign.Verdict:
+    verdict = run_case(case, "lmpc", "dlc_smoke", duration_s=duration_s)
+    print(f"\n{case.name}: {verdict.mode_sequence}; "
+          f"{[(e['expect'], e.get('shown', e['at_ms']), e['met']) for e in verdict.expects]}")
+    assert verdict.crashes == 0 and verdict.invalid_commands == 0, verdict.crash_reason
+    return verdict
+
+
+def missed(verdict: fault_campaign.Verdict) -> list[str]:
+    return [e["expect"] for e in verdict.expects if not e["met"]]
+
+
+def test_implausible_vx_degrades_and_fails_the_case_without_the_plausibility_check(monkeypatch):
+    """VX 327 m/s with a valid CRC: DEGRADED and FAULTS bit 0 (rev. 2). The same case fails
+    against an ECU that takes the value as it is (the rev. 1 behaviour)."""
+    case = short("VX 327 m/s")
+    verdict = smoke(case)
+    assert verdict.passed() and verdict.mode_sequence.startswith("ACTIVE, DEGRADED@0.525")
+    monkeypatch.setattr("firmware_sim.rx.implausibility", lambda *args, **kwargs: None)
+    broken = smoke(case)
+    assert not broken.passed() and missed(broken) == ["DEGRADED <= 35 ms", "bit 0 <= 25 ms"]
+
+
+def test_fd_lookalikes_are_ignored_and_the_case_fails_if_they_were_taken(monkeypatch):
+    """CAN FD copies of the plant/planner frames and an FD handshake: no reaction. Taken for
+    contract frames, the handshake resets the ECU and the case fails."""
+    case = short("CAN FD look-alikes")
+    verdict = smoke(case, duration_s=1.6)
+    assert verdict.passed() and verdict.mode_sequence == "ACTIVE"
+    monkeypatch.setattr("firmware_sim.ecu.is_contract_frame_kind", lambda message: True)
+    broken = smoke(case, duration_s=1.6)
+    assert missed(broken) == ["no reaction for 1000 ms"]
+
+
+def test_stale_replay_is_an_e2e_error_and_tracking_goes_on():
+    verdict = smoke(short("stale replay"), duration_s=1.6)
+    assert verdict.passed() and verdict.frames_hit > 0
+
+
+def test_replay_with_counters_as_next_shows_only_at_its_ends():
+    verdict = smoke(short("replay, CNT as next"), duration_s=2.0)
+    assert verdict.expects_met
+    # in between, the ECU drove on the replayed samples (what no CRC or counter can catch)
+    assert "ACTIVE@0.550" in verdict.mode_sequence and "SAFE_STOP@1.600" in verdict.mode_sequence
+
+
+def test_time_jump_is_adopted_and_fails_the_case_without_the_jump_rule(monkeypatch):
+    """HIL_SYNC 10 s ahead: STANDBY with bits 1 and 3 at the jump TICK, one task there,
+    re-engaged, the run goes on. Without the rule the case fails."""
+    case = short("virtual time jump")
+    verdict = smoke(case)
+    assert verdict.passed() and verdict.mode_sequence == "ACTIVE, STANDBY@0.500, ACTIVE@0.525"
+    monkeypatch.setattr("firmware_sim.ecu.Ecu._on_time_jump", lambda self, tick, skipped: None)
+    broken = smoke(case)
+    assert "STANDBY <= 0 ms" in missed(broken)
+
+
+def test_lost_bus_is_noticed_without_spinning_and_the_run_resumes():
+    verdict = smoke(short("lost bus", outage_s=1.2))
+    assert verdict.passed() and verdict.mode_sequence == "ACTIVE"
+
+
+@pytest.mark.slow
+def test_lost_bus_case_fails_against_an_ecu_that_spins(monkeypatch):
+    """The lost-bus case can fail: an ECU that loops without waiting while its bus is lost
+    (defect 8) misses the CPU and reopening rules, and the run stalls (a crash)."""
+    monkeypatch.setattr("firmware_sim.ecu.Ecu._while_bus_lost", lambda self, stop: None)
+    case = short("lost bus", outage_s=1.2)
+    verdict = run_case(case, "lmpc", "dlc_smoke", duration_s=1.0)
+    print(verdict.expects, verdict.crash_reason)
+    assert {"ECU thread CPU < 20 % while lost", "reopen tried every 1 s"} <= set(missed(verdict))
+    assert not verdict.passed()
+
+
+def test_campaign_checks_its_output_folder_before_running(tmp_path, capsys):
+    from hil.__main__ import main
+
+    assert main(["faults", "--campaign", "--out", str(tmp_path / "no" / "such")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: --out ") and "does not exist" in err and "Traceback" not in err
+    (tmp_path / "faults.json").write_text("[]")
+    assert main(["faults", "--campaign", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "holds another run's outputs (faults.json)" in err and "--replace" in err
+    assert main(["faults", "--campaign", "--out", str(tmp_path), "--only", "nonsense"]) == 1
+    assert "unknown case(s) ['nonsense']" in capsys.readouterr().err
+    fault_campaign.check_paths(tmp_path, replace=True)     # told to replace: accepted
+    assert not (tmp_path / "no").exists()                   # nothing created on refusal
+
+
+def test_vehicle_figure_has_a_title_units_and_a_legend_per_line(tmp_path):
+    verdicts = [fault_campaign.Verdict("mass +200 kg", "vehicle", c, "", max_abs_ey_m=0.1,
+                                       time_s=[0.0, 0.025], e_y=[0.0, 0.01])
+                for c in ("eso-dkmpc", "dkmpc")]
+    import matplotlib.pyplot as plt
+
+    created = []
+    original = plt.subplots
+    def spy(*args, **kwargs):
+        created.append(original(*args, **kwargs))
+        return created[-1]
+    plt.subplots = spy
+    try:
+        fault_campaign.figure(verdicts, tmp_path / "f.png")
+    finally:
+        plt.subplots = original
+    fig, axes = created[0]
+    assert "dlc_high_mu" in fig._suptitle.get_text() and "e_Y" in fig._suptitle.get_text()
+    ax = np.atleast_1d(axes)[0]
+    assert ax.get_ylabel() == "e_Y (m)" and np.atleast_1d(axes)[-1].get_xlabel() == "time (s)"
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert len(labels) == len(ax.get_lines()) == 3
+    assert (tmp_path / "f.png").stat().st_size > 0

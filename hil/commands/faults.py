@@ -11,7 +11,9 @@ One run: the scenario's ``[faults]`` table (hil/faults.py) plus faults from flag
 (mode sequence, detection, max |e_Y|, invalid commands, crashes) as JSON.
 
 ``--campaign``: every fault of studies/fault_campaign.py (what ``make faults`` runs), writing
-``results/faults.md``, ``faults.json`` and ``faults_vehicle.png``.
+``results/faults.md``, ``faults.json`` and ``faults_vehicle.png``. The output folder is
+checked before any run: its parent must exist, and results of an earlier campaign in it
+are an error unless ``--replace`` is given (``make faults`` gives it).
 """
 from __future__ import annotations
 
@@ -42,7 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="shorten the scenario (s)")
     parser.add_argument("--out", type=Path, default=Path("results"),
-                        help="campaign output folder (default results)")
+                        help="campaign output folder (default results; its parent must exist)")
+    parser.add_argument("--replace", action="store_true",
+                        help="campaign: overwrite the results of an earlier campaign in --out")
     parser.add_argument("--only", nargs="+", default=None, metavar="NAME",
                         help="campaign: only these cases")
     parser.add_argument("--controllers", nargs="+", default=None,
