@@ -1,0 +1,271 @@
+/*
+ * The data file's reader (layout: firmware/tools/ecu_data.py). Every record is checked
+ * against the shape this build was generated for (ecu_build.h): a model or tuning of
+ * another shape is refused with both shapes named, never silently truncated.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "ecu_internal.h"
+
+#define NAME_BYTES 48
+#define N_TUNING_VALUES 20
+#define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
+
+static const char *const CONTROLLER_NAMES[ECU_N_CONTROLLERS] = {"eso-dkmpc", "dkmpc", "lmpc"};
+
+/* One record as read: name, rank, dims and values (static: no heap). */
+static char rec_name[NAME_BYTES + 1];
+static uint32_t rec_rank, rec_dims[4];
+static double rec_values[MAX_RECORD_VALUES];
+
+static void format_shape(char *buf, size_t len, uint32_t rank, const uint32_t *dims) {
+  size_t used = (size_t)snprintf(buf, len, "(");
+  for (uint32_t i = 0; i < rank && used < len; i++)
+    used += (size_t)snprintf(buf + used, len - used, i + 1 < rank || rank == 1 ? "%u," : "%u", dims[i]);
+  if (used < len) snprintf(buf + used, len - used, ")");
+}
+
+/* Wanted shape of each record; 0 when the name is known, -1 (err set) otherwise. */
+static int check_shape(const char *path, uint32_t rank, const uint32_t *dims, char *err, size_t err_len) {
+  char got[64], want[64];
+  if (rec_rank != rank || memcmp(rec_dims, dims, rank * sizeof(uint32_t)) != 0) {
+    format_shape(got, sizeof got, rec_rank, rec_dims);
+    format_shape(want, sizeof want, rank, dims);
+    snprintf(err, err_len, "%s: record %s has shape %s, this build needs %s (rebuild with make firmware "
+             "for this model or tuning)", path, rec_name, got, want);
+    return -1;
+  }
+  return 0;
+}
+
+static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, size_t err_len) {
+  const uint32_t dims[1] = {N_TUNING_VALUES};
+  static const int BUILD_NP[ECU_N_CONTROLLERS] = {ECU_NP_ESO_DKMPC, ECU_NP_DKMPC, ECU_NP_LMPC};
+  static const int BUILD_NC[ECU_N_CONTROLLERS] = {ECU_NC_ESO_DKMPC, ECU_NC_DKMPC, ECU_NC_LMPC};
+  const double *v = rec_values;
+  if (check_shape(path, 1, dims, err, err_len) != 0) return -1;
+  t->n_pred = (int)v[0];
+  t->n_ctrl = (int)v[1];
+  if (t->n_pred != BUILD_NP[id] || t->n_ctrl != BUILD_NC[id]) {
+    snprintf(err, err_len, "%s: [%s] horizons (Np %d, Nc %d) differ from this build's (Np %d, Nc %d)",
+             path, CONTROLLER_NAMES[id], t->n_pred, t->n_ctrl, BUILD_NP[id], BUILD_NC[id]);
+    return -1;
+  }
+  t->q_position = v[2];
+  t->q_yaw = v[3];
+  t->r_steer = v[4];
+  t->p_steer_rate = v[5];
+  memcpy(t->state_min, v + 6, sizeof t->state_min);
+  memcpy(t->state_max, v + 9, sizeof t->state_max);
+  t->slack_l1 = v[12];
+  t->slack_l2 = v[13];
+  t->max_iter = (int)v[14];
+  t->eps_abs = v[15];
+  t->eps_rel = v[16];
+  t->eso_pole = v[17];
+  t->eso_second_pole = v[18];
+  t->disturbance_decay = v[19];
+  for (int i = 2; i < 17; i++) {
+    if (!isfinite(v[i])) {
+      snprintf(err, err_len, "%s: [%s] value %d is not finite", path, CONTROLLER_NAMES[id], i);
+      return -1;
+    }
+  }
+  return 0;
+}
+
+/* Store the record just read into cfg; *seen gets the bit of the record. */
+static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen, char *err, size_t err_len) {
+  static const int WIDTHS[] = ECU_LAYER_WIDTHS;
+  const uint32_t one[1] = {1};
+  if (strcmp(rec_name, "ts") == 0) {
+    if (check_shape(path, 1, one, err, err_len)) return -1;
+    cfg->ts = rec_values[0];
+    *seen |= 1ul << 0;
+  } else if (strcmp(rec_name, "longitudinal") == 0) {
+    const uint32_t d[1] = {3};
+    if (check_shape(path, 1, d, err, err_len)) return -1;
+    cfg->speed_gain = rec_values[0];
+    cfg->torque_min = rec_values[1];
+    cfg->torque_max = rec_values[2];
+    *seen |= 1ul << 1;
+  } else if (strcmp(rec_name, "bicycle") == 0) {
+    const uint32_t d[1] = {6};
+    if (check_shape(path, 1, d, err, err_len)) return -1;
+    cfg->cf = rec_values[0];
+    cfg->cr = rec_values[1];
+    cfg->mass = rec_values[2];
+    cfg->yaw_inertia = rec_values[3];
+    cfg->lf = rec_values[4];
+    cfg->lr = rec_values[5];
+    *seen |= 1ul << 2;
+  } else if (strncmp(rec_name, "tuning.", 7) == 0) {
+    for (int id = 0; id < ECU_N_CONTROLLERS; id++) {
+      if (strcmp(rec_name + 7, CONTROLLER_NAMES[id]) == 0) {
+        if (read_tuning(path, id, &cfg->tuning[id], err, err_len)) return -1;
+        *seen |= 1ul << (3 + id);
+      }
+    }
+  } else if (strcmp(rec_name, "koopman.form") == 0) {
+    if (check_shape(path, 1, one, err, err_len)) return -1;
+    cfg->form = (int)rec_values[0];
+    if (cfg->form != ECU_FORM) {
+      snprintf(err, err_len, "%s: model form %d, this build is for form %d (0 linear, 2 scheduled)",
+               path, cfg->form, ECU_FORM);
+      return -1;
+    }
+    *seen |= 1ul << 6;
+  } else if (strcmp(rec_name, "koopman.knots") == 0) {
+    const uint32_t d[1] = {ECU_NK};
+    if (check_shape(path, 1, d, err, err_len)) return -1;
+    memcpy(cfg->knots, rec_values, sizeof cfg->knots);
+    *seen |= 1ul << 7;
+  } else if (strcmp(rec_name, "koopman.A") == 0) {
+    const uint32_t d[3] = {ECU_NK, ECU_NZ, ECU_NZ};
+    if (check_shape(path, 3, d, err, err_len)) return -1;
+    memcpy(cfg->A, rec_values, sizeof cfg->A);
+    *seen |= 1ul << 8;
+  } else if (strcmp(rec_name, "koopman.B") == 0) {
+    const uint32_t d[3] = {ECU_NK, ECU_NZ, ECU_NU};
+    if (check_shape(path, 3, d, err, err_len)) return -1;
+    memcpy(cfg->B, rec_values, sizeof cfg->B);
+    *seen |= 1ul << 9;
+  } else if (strcmp(rec_name, "koopman.offset") == 0) {
+    const uint32_t d[2] = {ECU_NK, ECU_NZ};
+    if (check_shape(path, 2, d, err, err_len)) return -1;
+    memcpy(cfg->offset, rec_values, sizeof cfg->offset);
+    *seen |= 1ul << 10;
+  } else if (strcmp(rec_name, "koopman.state_fields") == 0) {
+    const uint32_t d[1] = {ECU_NX};
+    if (check_shape(path, 1, d, err, err_len)) return -1;
+    for (int i = 0; i < ECU_NX; i++) {
+      cfg->state_fields[i] = (int)rec_values[i];
+      if (cfg->state_fields[i] < 0 || cfg->state_fields[i] > 8) {
+        snprintf(err, err_len, "%s: koopman.state_fields[%d] = %d is not a sample field", path, i,
+                 cfg->state_fields[i]);
+        return -1;
+      }
+    }
+    *seen |= 1ul << 11;
+  } else if (strcmp(rec_name, "koopman.dictionary") == 0) {
+    const uint32_t d[1] = {ECU_NDICT};
+    if (check_shape(path, 1, d, err, err_len)) return -1;
+    for (int i = 0; i < ECU_NDICT; i++) cfg->dictionary[i] = (int)rec_values[i];
+    *seen |= 1ul << 12;
+  } else if (rec_name[0] == 'k' && strncmp(rec_name, "koopman.", 8) == 0 &&
+             (rec_name[8] == 'w' || rec_name[8] == 'b')) {
+    int layer = -1;
+    char tail = 0;
+    if (sscanf(rec_name + 9, "%d%c", &layer, &tail) != 1 || layer < 0 || layer >= ECU_N_LAYERS) {
+      snprintf(err, err_len, "%s: record %s: this build's encoder has %d layers", path, rec_name, ECU_N_LAYERS);
+      return -1;
+    }
+    uint32_t width_in = (uint32_t)(layer == 0 ? ECU_NX : WIDTHS[layer - 1]);
+    uint32_t width_out = (uint32_t)WIDTHS[layer];
+    if (rec_name[8] == 'w') {
+      const uint32_t d[2] = {width_out, width_in};
+      if (check_shape(path, 2, d, err, err_len)) return -1;
+      memcpy(cfg->weights + cfg->weight_at[layer], rec_values, width_out * width_in * sizeof(double));
+      *seen |= 1ul << (13 + layer);
+    } else {
+      const uint32_t d[1] = {width_out};
+      if (check_shape(path, 1, d, err, err_len)) return -1;
+      memcpy(cfg->biases + cfg->bias_at[layer], rec_values, width_out * sizeof(double));
+      *seen |= 1ul << (13 + ECU_N_LAYERS + layer);
+    }
+  }
+  /* Other records: written by a newer tool, not needed by this build. */
+  return 0;
+}
+
+int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len) {
+  static const int WIDTHS[] = ECU_LAYER_WIDTHS;
+  char magic[8];
+  uint32_t count = 0;
+  unsigned long seen = 0, wanted = (1ul << (13 + 2 * ECU_N_LAYERS)) - 1ul;
+  int weight_at = 0, bias_at = 0;
+  memset(cfg, 0, sizeof *cfg);
+  for (int i = 0; i < ECU_N_LAYERS; i++) {
+    cfg->layer_in[i] = i == 0 ? ECU_NX : WIDTHS[i - 1];
+    cfg->layer_out[i] = WIDTHS[i];
+    cfg->weight_at[i] = weight_at;
+    cfg->bias_at[i] = bias_at;
+    weight_at += cfg->layer_in[i] * cfg->layer_out[i];
+    bias_at += cfg->layer_out[i];
+  }
+  FILE *file = fopen(path, "rb");
+  if (!file) {
+    snprintf(err, err_len, "%s: cannot open the ECU data file (make firmware writes it)", path);
+    return -1;
+  }
+  int status = 0;
+  if (fread(magic, 1, 8, file) != 8 || memcmp(magic, "ECUDATA1", 8) != 0 || fread(&count, 4, 1, file) != 1) {
+    snprintf(err, err_len, "%s: not an ECU data file (magic ECUDATA1 missing)", path);
+    status = -1;
+  }
+  for (uint32_t r = 0; status == 0 && r < count; r++) {
+    uint32_t head[5];
+    size_t n = 1;
+    if (fread(rec_name, 1, NAME_BYTES, file) != NAME_BYTES || fread(head, 4, 5, file) != 5) {
+      snprintf(err, err_len, "%s: truncated at record %u", path, r);
+      status = -1;
+      break;
+    }
+    rec_name[NAME_BYTES] = '\0';
+    rec_rank = head[0];
+    if (rec_rank > 4) {
+      snprintf(err, err_len, "%s: record %s has rank %u (at most 4)", path, rec_name, rec_rank);
+      status = -1;
+      break;
+    }
+    for (int i = 0; i < 4; i++) {
+      rec_dims[i] = head[1 + i];
+      if (i < (int)rec_rank) n *= rec_dims[i];
+    }
+    if (n > MAX_RECORD_VALUES) {
+      /* Larger than anything this build stores: its shape cannot be the build's. */
+      if (fseek(file, (long)(n * sizeof(double)), SEEK_CUR) != 0) {
+        snprintf(err, err_len, "%s: truncated in record %s", path, rec_name);
+        status = -1;
+        break;
+      }
+      rec_values[0] = NAN;
+      if (strncmp(rec_name, "koopman.", 8) == 0 || strncmp(rec_name, "tuning.", 7) == 0) {
+        snprintf(err, err_len, "%s: record %s holds %zu values, more than any shape of this build", path,
+                 rec_name, n);
+        status = -1;
+      }
+      continue;
+    }
+    if (fread(rec_values, sizeof(double), n, file) != n) {
+      snprintf(err, err_len, "%s: truncated in record %s", path, rec_name);
+      status = -1;
+      break;
+    }
+    status = store_record(path, cfg, &seen, err, err_len);
+  }
+  fclose(file);
+  if (status == 0 && (seen & wanted) != wanted) {
+    static const char *const NAMES[13] = {"ts", "longitudinal", "bicycle", "tuning.eso-dkmpc", "tuning.dkmpc",
+                                          "tuning.lmpc", "koopman.form", "koopman.knots", "koopman.A",
+                                          "koopman.B", "koopman.offset", "koopman.state_fields",
+                                          "koopman.dictionary"};
+    int missing = 0;
+    while (seen & (1ul << missing)) missing++;
+    if (missing < 13)
+      snprintf(err, err_len, "%s: record %s missing", path, NAMES[missing]);
+    else
+      snprintf(err, err_len, "%s: encoder record koopman.%c%d missing (this build's encoder has %d layers)",
+               path, missing - 13 < ECU_N_LAYERS ? 'w' : 'b', (missing - 13) % ECU_N_LAYERS, ECU_N_LAYERS);
+    status = -1;
+  }
+  if (status == 0 && !(cfg->ts > 0.0 && cfg->torque_min < cfg->torque_max && cfg->mass > 0.0 &&
+                       cfg->yaw_inertia > 0.0)) {
+    snprintf(err, err_len, "%s: ts, torque limits or bicycle parameters out of range", path);
+    status = -1;
+  }
+  return status;
+}

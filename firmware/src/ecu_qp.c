@@ -1,0 +1,181 @@
+/*
+ * The condensed steering QP of eq. 15 (a port of controller/steering_qp.py) on the
+ * solvers OSQP generated at build time (build/firmware/gen/qp, one workspace per
+ * controller, embedded mode 2). The sparsity is fixed by the generator; each step writes
+ * the values in the same column order as the Python SteeringQp and updates them in place.
+ *
+ * Variables v = [U (Nc steer angles), s (3 slacks)]. Constraints, in row order: the Nc
+ * steer bounds, the 3 slack bounds s >= 0, then per prediction step and state
+ * [vx, vy, yaw_rate] an upper row (gain U - s <= max - free) and a lower row
+ * (gain U + s >= min - free).
+ */
+#include <math.h>
+#include <string.h>
+#include <stdio.h>
+
+#include "ecu_internal.h"
+#include "osqp.h"
+#include "qp_dkmpc_workspace.h"
+#include "qp_eso_dkmpc_workspace.h"
+#include "qp_lmpc_workspace.h"
+
+#define N_SOFT 3
+#define STEER_LIMIT 0.3 /* rad, eq. 22 (controller.base.STEER_LIMIT_RAD) */
+#define NP ECU_NP_MAX
+#define NC ECU_NC_MAX
+#define N_VAR (NC + N_SOFT)
+#define N_CON (NC + N_SOFT + 2 * N_SOFT * NP)
+#define P_NNZ (NC * (NC + 1) / 2 + N_SOFT)
+#define A_NNZ (NC * (1 + 2 * N_SOFT * NP) + N_SOFT * (1 + 2 * NP))
+
+static OSQPSolver *solver;
+static const ecu_tuning_t *tun;
+static int n_pred, n_ctrl;
+static int constraints_were_active;
+static double fixed_hessian[NC][NC];
+static double p_data[P_NNZ], a_data[A_NNZ], q[N_VAR], lower[N_CON], upper[N_CON];
+static double warm[N_VAR], initial_dual[N_CON], pose_weight[3 * NP];
+
+int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t err_len) {
+  OSQPSolver *const solvers[ECU_N_CONTROLLERS] = {&qp_eso_dkmpc_solver, &qp_dkmpc_solver, &qp_lmpc_solver};
+  OSQPSettings settings;
+  solver = solvers[controller];
+  tun = tuning;
+  n_pred = tuning->n_pred;
+  n_ctrl = tuning->n_ctrl;
+  /* A reload starts the solver afresh: rho back to its generated value (the rest of the
+   * solver's state is rewritten by the first step's update and warm start). */
+  static double initial_rho[ECU_N_CONTROLLERS];
+  if (initial_rho[controller] == 0.0) initial_rho[controller] = solver->settings->rho;
+  else if (osqp_update_rho(solver, initial_rho[controller]) != 0) {
+    snprintf(err, err_len, "OSQP refused to restore rho %g", initial_rho[controller]);
+    return -1;
+  }
+  settings = *solver->settings;
+  settings.max_iter = tuning->max_iter;
+  settings.eps_abs = tuning->eps_abs;
+  settings.eps_rel = tuning->eps_rel;
+  if (osqp_update_settings(solver, &settings) != 0) {
+    snprintf(err, err_len, "OSQP refused the tuning's settings (max_iter %d, eps_abs %g, eps_rel %g)",
+             tuning->max_iter, tuning->eps_abs, tuning->eps_rel);
+    return -1;
+  }
+  /* r I + p D'D, D the increment operator (U_j - U_{j-1}). */
+  memset(fixed_hessian, 0, sizeof fixed_hessian);
+  for (int j = 0; j < n_ctrl; j++) {
+    fixed_hessian[j][j] = tuning->r_steer + tuning->p_steer_rate * (j + 1 < n_ctrl ? 2.0 : 1.0);
+    if (j + 1 < n_ctrl) fixed_hessian[j][j + 1] = fixed_hessian[j + 1][j] = -tuning->p_steer_rate;
+  }
+  for (int i = 0; i < n_pred; i++) {
+    pose_weight[3 * i] = pose_weight[3 * i + 1] = tuning->q_position;
+    pose_weight[3 * i + 2] = tuning->q_yaw;
+  }
+  /* The parts of P, A, q, l, u that never change. */
+  int upper_count = n_ctrl * (n_ctrl + 1) / 2;
+  for (int k = 0; k < N_SOFT; k++) p_data[upper_count + k] = 2.0 * tuning->slack_l2;
+  int col_len = 1 + 2 * N_SOFT * n_pred;
+  for (int j = 0; j < n_ctrl; j++) a_data[j * col_len] = 1.0;
+  double *slack_cols = a_data + n_ctrl * col_len;
+  for (int k = 0; k < N_SOFT; k++) {
+    double *col = slack_cols + k * (1 + 2 * n_pred);
+    col[0] = 1.0;
+    for (int i = 0; i < n_pred; i++) {
+      col[1 + 2 * i] = -1.0;
+      col[2 + 2 * i] = 1.0;
+    }
+  }
+  for (int j = 0; j < n_ctrl; j++) {
+    q[j] = 0.0;
+    lower[j] = -STEER_LIMIT;
+    upper[j] = STEER_LIMIT;
+  }
+  int soft_first = n_ctrl + N_SOFT;
+  for (int k = 0; k < N_SOFT; k++) {
+    q[n_ctrl + k] = tuning->slack_l1;
+    lower[n_ctrl + k] = 0.0;
+    upper[n_ctrl + k] = OSQP_INFTY;
+  }
+  for (int r = 0; r < N_SOFT * n_pred; r++) {
+    lower[soft_first + 2 * r] = -OSQP_INFTY;
+    upper[soft_first + 2 * r + 1] = OSQP_INFTY;
+  }
+  memset(warm, 0, sizeof warm);
+  memset(initial_dual, 0, sizeof initial_dual);
+  for (int k = 0; k < N_SOFT; k++) initial_dual[n_ctrl + k] = -tuning->slack_l1;
+  constraints_were_active = 0;
+  return 0;
+}
+
+static int map_status(OSQPInt status) {
+  switch (status) {
+    case OSQP_SOLVED: return ECU_SOLVED;
+    case OSQP_SOLVED_INACCURATE: return ECU_SOLVED_INACCURATE;
+    case OSQP_MAX_ITER_REACHED: return ECU_MAX_ITERATIONS;
+    case OSQP_PRIMAL_INFEASIBLE:
+    case OSQP_PRIMAL_INFEASIBLE_INACCURATE:
+    case OSQP_DUAL_INFEASIBLE:
+    case OSQP_DUAL_INFEASIBLE_INACCURATE: return ECU_INFEASIBLE;
+    default: return ECU_NUMERICAL_ERROR;
+  }
+}
+
+void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_steer, const double *gain,
+                  const double *free_states, const double *warm_steer, ecu_qp_solution_t *sol) {
+  const int rows = 3 * n_pred, soft_first = n_ctrl + N_SOFT, col_len = 1 + 2 * N_SOFT * n_pred;
+  double weighted[3 * NP][NC];
+  double hessian[NC][NC];
+  for (int r = 0; r < rows; r++)
+    for (int c = 0; c < n_ctrl; c++) weighted[r][c] = jac[r * n_ctrl + c] * pose_weight[r];
+  /* Half of OSQP's P: J' W J + the fixed part; its upper triangle in column order. */
+  for (int a = 0; a < n_ctrl; a++) {
+    for (int b = a; b < n_ctrl; b++) {
+      double sum = 0.0;
+      for (int r = 0; r < rows; r++) sum += jac[r * n_ctrl + a] * weighted[r][b];
+      hessian[a][b] = sum + fixed_hessian[a][b];
+    }
+  }
+  int k = 0;
+  for (int j = 0; j < n_ctrl; j++)
+    for (int i = 0; i <= j; i++) p_data[k++] = 2.0 * hessian[i][j];
+  for (int c = 0; c < n_ctrl; c++) {
+    double sum = 0.0;
+    for (int r = 0; r < rows; r++) sum += pose_offset[r] * weighted[r][c];
+    q[c] = 2.0 * sum;
+  }
+  q[0] -= 2.0 * tun->p_steer_rate * previous_steer;
+  /* The dense state-gain block of A (both rows of a soft pair) and the soft bounds. */
+  for (int j = 0; j < n_ctrl; j++) {
+    double *col = a_data + j * col_len + 1;
+    for (int r = 0; r < rows; r++) col[2 * r] = col[2 * r + 1] = gain[r * n_ctrl + j];
+  }
+  for (int r = 0; r < rows; r++) {
+    upper[soft_first + 2 * r] = tun->state_max[r % 3] - free_states[r];
+    lower[soft_first + 2 * r + 1] = tun->state_min[r % 3] - free_states[r];
+  }
+  /* The Python interface's order: vectors first, then matrices (rescaled, refactored). */
+  osqp_update_data_vec(solver, q, lower, upper);
+  osqp_update_data_mat(solver, p_data, OSQP_NULL, n_ctrl * (n_ctrl + 1) / 2 + N_SOFT, a_data, OSQP_NULL,
+                       n_ctrl * col_len + N_SOFT * (1 + 2 * n_pred));
+  for (int c = 0; c < n_ctrl; c++) warm[c] = warm_steer[c];
+  /* Dual start at the inactive-constraint values unless a state constraint was active. */
+  osqp_warm_start(solver, warm, constraints_were_active ? OSQP_NULL : initial_dual);
+  osqp_solve(solver);
+  sol->status = map_status(solver->info->status_val);
+  sol->iterations = (int)solver->info->iter;
+  sol->solve_time_s = 0.0;
+  const double *x = solver->solution->x, *y = solver->solution->y;
+  for (int c = 0; c < n_ctrl; c++) sol->steer[c] = x[c];
+  for (int s = 0; s < N_SOFT; s++) sol->slack[s] = x[n_ctrl + s];
+  if (sol->status == ECU_SOLVED || sol->status == ECU_SOLVED_INACCURATE) {
+    double largest = 0.0;
+    for (int r = soft_first; r < soft_first + 2 * rows; r++) largest = fmax(largest, fabs(y[r]));
+    constraints_were_active = largest > 1.0;
+  } else {
+    osqp_warm_start(solver, OSQP_NULL, initial_dual);
+    constraints_were_active = 0;
+  }
+  double constant = 0.0;
+  for (int r = 0; r < rows; r++) constant += pose_offset[r] * (pose_offset[r] * pose_weight[r]);
+  constant += tun->p_steer_rate * previous_steer * previous_steer;
+  sol->cost = solver->info->obj_val + constant;
+}

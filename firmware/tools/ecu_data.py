@@ -1,0 +1,136 @@
+"""Write the ECU's data file: tuning, Koopman model and bicycle in one compact binary.
+
+The C core (firmware/src) reads this file at start-up instead of parsing TOML, JSON and
+.npz itself: the Python packages load and validate the sources (``controller.tuning``,
+``models.koopman.KoopmanModel.load``, ``models.bicycle``) and fold the normalisation
+exactly as the Python controllers do, so both implementations step on the same numbers.
+
+Layout (little-endian): the magic ``ECUDATA1``, a uint32 record count, then per record a
+48-byte NUL-padded name, a uint32 rank, four uint32 dimensions (unused ones 1) and the
+float64 values in C order. The C loader (firmware/src/ecu_data.c) checks every record's
+shape against the build's (build/firmware/gen/ecu_build.h) and names both on a mismatch.
+
+    python firmware/tools/ecu_data.py --out build/firmware/ecu_data.bin \
+        [--tuning controller/tuning.toml] [--model models/artifacts/dk_d5.npz]
+"""
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from controller.errors import ControllerError
+from controller.lifted_mpc import MEASURED_STATES
+from controller.tuning import ControllerTuning, load_tuning
+from models.bicycle import nominal_model_params
+from models.errors import ModelError
+from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
+
+MAGIC = b"ECUDATA1"
+NAME_BYTES = 48
+#: The QP controllers the C core implements, in the order of its controller ids.
+QP_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
+#: Order of VehicleSample's fields (controller.base), as the C core's ecu_sample_t.
+SAMPLE_FIELDS = ("vx", "vy", "yaw_rate", "x", "y", "yaw", "steer_angle", "drive_torque", "target_speed")
+#: Dictionary functions by the C core's code (models.koopman.DICTIONARY names).
+DICTIONARY_CODES = {"vy/vx": 0, "r/vx": 1, "vx*r": 2, "vx^2/100": 3}
+#: Model forms by the C core's code; the bilinear form is not in the C core.
+FORM_CODES = {"linear": 0, "scheduled": 2}
+#: Fields of one "tuning.<controller>" record, in order (NaN where a table lacks one).
+TUNING_FIELDS = ("prediction_horizon", "control_horizon", "q_position", "q_yaw", "r_steer",
+                 "p_steer_rate", "state_min", "state_max", "slack_l1", "slack_l2",
+                 "osqp_max_iter", "osqp_eps_abs", "osqp_eps_rel", "eso_pole", "eso_second_pole",
+                 "disturbance_decay")
+
+
+class EcuDataError(Exception):
+    """A source cannot be expressed in the C core's data file."""
+
+
+def tuning_vector(tuning: ControllerTuning, name: str) -> np.ndarray:
+    """The 20 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
+    table = tuning.for_controller(name)
+    values: list[float] = []
+    for field in TUNING_FIELDS:
+        value = getattr(table, field, float("nan"))
+        values.extend(value if isinstance(value, tuple) else [value])
+    return np.array(values, dtype=float)
+
+
+def model_records(model: KoopmanModel) -> dict[str, np.ndarray]:
+    """The Koopman model in physical units (normalisation folded, as the Python ECU uses it)."""
+    if model.form not in FORM_CODES:
+        raise EcuDataError(f"model form {model.form!r}: the C core implements {', '.join(FORM_CODES)}")
+    unknown = [n for n in model.state_names if n not in MEASURED_STATES]
+    if unknown:
+        raise EcuDataError(f"model states {unknown} are not measured by the ECU")
+    if model.form == "scheduled":
+        knots, a, b, offset = model.speed_knots, model.A_knots, model.B_knots, model.offset_knots
+    else:
+        knots, a, b, offset = np.zeros(1), model.A[None], model.B[None], model.offset[None]
+    records = {
+        "koopman.form": np.array([FORM_CODES[model.form]], dtype=float),
+        "koopman.knots": np.asarray(knots, dtype=float),
+        "koopman.A": a, "koopman.B": b, "koopman.offset": offset,
+        "koopman.state_fields": np.array([SAMPLE_FIELDS.index(MEASURED_STATES[n]) for n in model.state_names],
+                                         dtype=float),
+        "koopman.dictionary": np.array([DICTIONARY_CODES[n] for n in model.dictionary], dtype=float),
+    }
+    for i, (w, bias) in enumerate(model._layers):  # the encoder on physical x, folded (read only)
+        records[f"koopman.w{i}"] = w
+        records[f"koopman.b{i}"] = bias
+    return records
+
+
+def collect(tuning_path: Path | None, model_path: Path) -> dict[str, np.ndarray]:
+    """Every record of the data file, by name."""
+    tuning = load_tuning(tuning_path)
+    model = KoopmanModel.load(model_path)
+    bicycle = nominal_model_params()
+    records: dict[str, np.ndarray] = {
+        "ts": np.array([model.ts]),
+        "longitudinal": np.array([tuning.longitudinal.speed_gain, tuning.longitudinal.torque_min,
+                                  tuning.longitudinal.torque_max]),
+        "bicycle": np.array([bicycle.cornering_stiffness_front, bicycle.cornering_stiffness_rear,
+                             bicycle.mass, bicycle.yaw_inertia, bicycle.lf, bicycle.lr]),
+    }
+    for name in QP_CONTROLLERS:
+        records[f"tuning.{name}"] = tuning_vector(tuning, name)
+    records.update(model_records(model))
+    return records
+
+
+def write_data(records: dict[str, np.ndarray], out: Path) -> None:
+    """Write ``records`` in the layout of the module docstring."""
+    chunks = [MAGIC, struct.pack("<I", len(records))]
+    for name, values in records.items():
+        values = np.ascontiguousarray(values, dtype="<f8")
+        if values.ndim > 4 or len(name) >= NAME_BYTES:
+            raise EcuDataError(f"record {name}: rank {values.ndim} or name too long")
+        dims = list(values.shape) + [1] * (4 - values.ndim)
+        chunks.append(name.encode("ascii").ljust(NAME_BYTES, b"\0"))
+        chunks.append(struct.pack("<5I", values.ndim, *dims))
+        chunks.append(values.tobytes())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(b"".join(chunks))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True, help="data file to write")
+    parser.add_argument("--tuning", type=Path, default=None, help="tuning TOML (default controller/tuning.toml)")
+    parser.add_argument("--model", type=Path, default=DEFAULT_ARTIFACT, help="Koopman artefact (.npz + .json)")
+    args = parser.parse_args(argv)
+    try:
+        write_data(collect(args.tuning, args.model), args.out)
+    except (EcuDataError, ControllerError, ModelError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

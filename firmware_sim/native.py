@@ -1,0 +1,184 @@
+"""The Python face of the C control core ``build/firmware/libecu.so`` (ctypes).
+
+``NativeController`` is a ``controller.base.Controller`` whose ``step`` is the C core's
+``ecu_step`` (firmware/src, docs/firmware.md): ``python -m firmware_sim --native`` puts it
+in place of the Python control law, and ``studies/bench_native.py`` times it. The library
+holds ONE core per process (static storage, as on the ECU): building a second
+``NativeController`` reloads that core and the first one must no longer be stepped.
+
+The core reads its data file (tuning, Koopman model, bicycle) written by
+``firmware/tools/ecu_data.py``; ``make firmware`` writes the default one,
+``build/firmware/ecu_data.bin``, and ``data_file_for_model`` writes one for another
+Koopman artefact. ``ECU_LIB`` / ``ECU_DATA`` in the environment point at other builds
+(``make firmware-asan`` uses them).
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from controller.base import Command, Controller, SolverStatus, StepDebug, VehicleSample
+from controller.reference import ReferencePath
+from firmware_sim.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_LIBRARY = ROOT / "build" / "firmware" / "libecu.so"
+DEFAULT_DATA = ROOT / "build" / "firmware" / "ecu_data.bin"
+#: The controllers the C core implements (NMPC and the ablations stay Python).
+NATIVE_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
+#: ecu_core.h ECU_MAX_HORIZON: rows of the predicted arrays.
+MAX_HORIZON = 200
+_ERROR_BYTES = 512
+_SAMPLE_FIELDS = ("vx", "vy", "yaw_rate", "x", "y", "yaw", "steer_angle", "drive_torque", "target_speed")
+
+
+class _Sample(ctypes.Structure):
+    """ecu_sample_t."""
+
+    _fields_ = [(name, ctypes.c_double) for name in _SAMPLE_FIELDS]
+
+
+class _Output(ctypes.Structure):
+    """ecu_output_t."""
+
+    _fields_ = [("steer_angle", ctypes.c_double), ("drive_torque", ctypes.c_double),
+                ("status", ctypes.c_int), ("iterations", ctypes.c_int), ("fallback", ctypes.c_int),
+                ("observer_reset", ctypes.c_int), ("n_pred", ctypes.c_int),
+                ("solve_time_s", ctypes.c_double), ("cost", ctypes.c_double), ("slack_max", ctypes.c_double),
+                ("predicted_pose", ctypes.c_double * 3 * MAX_HORIZON),
+                ("predicted_state", ctypes.c_double * 3 * MAX_HORIZON)]
+
+
+_library: ctypes.CDLL | None = None
+
+
+def load_library(path: str | Path | None = None) -> ctypes.CDLL:
+    """libecu.so (``path``, else ``ECU_LIB``, else the build's), loaded once per process.
+
+    Raises:
+        ConfigError: the library is missing (run ``make firmware``) or does not load.
+    """
+    global _library
+    if _library is not None:
+        return _library
+    file = Path(path or os.environ.get("ECU_LIB") or DEFAULT_LIBRARY)
+    if not file.is_file():
+        raise ConfigError(f"{file}: the C core is not built (run make firmware)")
+    try:
+        library = ctypes.CDLL(str(file.resolve()))
+    except OSError as error:
+        raise ConfigError(f"{file}: does not load: {error}") from error
+    double_p = ctypes.POINTER(ctypes.c_double)
+    library.ecu_load.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_size_t]
+    library.ecu_load.restype = ctypes.c_int
+    library.ecu_set_path.argtypes = [double_p, double_p, double_p, double_p, ctypes.c_int, ctypes.c_char_p,
+                                     ctypes.c_size_t]
+    library.ecu_set_path.restype = ctypes.c_int
+    library.ecu_reset.argtypes = []
+    library.ecu_reset.restype = None
+    library.ecu_step.argtypes = [ctypes.POINTER(_Sample), ctypes.POINTER(_Output)]
+    library.ecu_step.restype = None
+    library.ecu_version.restype = ctypes.c_char_p
+    library.ecu_build_shapes.restype = ctypes.c_char_p
+    _library = library
+    return library
+
+
+def version() -> str:
+    """The generator inputs' hashes compiled into libecu.so (``ecu_version()``)."""
+    return load_library().ecu_version().decode()
+
+
+def data_file_for_model(model: Path, out_dir: Path | None = None) -> Path:
+    """The C core's data file for Koopman artefact ``model`` (written once per content).
+
+    Raises:
+        ConfigError: firmware/tools/ecu_data.py refused the artefact (its message).
+    """
+    digest = hashlib.sha256(model.with_suffix(".npz").read_bytes()
+                            + model.with_suffix(".json").read_bytes()).hexdigest()[:12]
+    out = (out_dir or DEFAULT_DATA.parent / "data") / f"{model.stem}-{digest}.bin"
+    if not out.is_file():
+        result = subprocess.run([sys.executable, str(ROOT / "firmware" / "tools" / "ecu_data.py"),
+                                 "--model", str(model), "--out", str(out)],
+                                capture_output=True, text=True, check=False)
+        if result.returncode != 0:
+            lines = result.stderr.strip().splitlines() or ["ecu_data.py failed"]
+            raise ConfigError(f"--model {model}: {lines[-1].removeprefix('error: ')}")
+    return out
+
+
+class NativeController(Controller):
+    """A controller whose step runs in libecu.so; same interface as the Python ones."""
+
+    def __init__(self, name: str, data: str | Path | None = None, library: str | Path | None = None) -> None:
+        """Load the core for controller ``name`` from ``data`` (default: ``ECU_DATA``, else
+        the build's data file).
+
+        Raises:
+            ConfigError: unknown name, missing library or data file, or a data file the
+                build refuses (the C core's message: file, record, both shapes).
+        """
+        if name not in NATIVE_CONTROLLERS:
+            raise ConfigError(f"--native: controller {name!r} is not in the C core "
+                              f"(it has {', '.join(NATIVE_CONTROLLERS)})")
+        self.name = name
+        self._lib = load_library(library)
+        self.data = Path(data or os.environ.get("ECU_DATA") or DEFAULT_DATA)
+        error = ctypes.create_string_buffer(_ERROR_BYTES)
+        if self._lib.ecu_load(str(self.data).encode(), name.encode(), error, _ERROR_BYTES) != 0:
+            raise ConfigError(error.value.decode(errors="replace"))
+        self._sample = _Sample()
+        self._output = _Output()
+        self._path_arrays: tuple[np.ndarray, ...] = ()
+
+    def set_path(self, path: ReferencePath) -> None:
+        """Hand the path's arrays (x, y, yaw unwrapped, s; each (n,)) to the core."""
+        arrays = tuple(np.ascontiguousarray(a, dtype=float) for a in (path.x, path.y, path.yaw, path.s))
+        pointers = [a.ctypes.data_as(ctypes.POINTER(ctypes.c_double)) for a in arrays]
+        error = ctypes.create_string_buffer(_ERROR_BYTES)
+        if self._lib.ecu_set_path(*pointers, len(arrays[0]), error, _ERROR_BYTES) != 0:
+            raise ConfigError(f"{path.name or 'path'}: {error.value.decode(errors='replace')}")
+        self._path_arrays = arrays  # the core copied them; kept only for inspection
+
+    def reset(self) -> None:
+        """Forget plans, progress and the observer (``ecu_reset``)."""
+        self._lib.ecu_reset()
+
+    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
+        """One control step in C; predicted arrays (Np, 3), empty when no plan was made."""
+        raw = self._sample
+        for name in _SAMPLE_FIELDS:
+            setattr(raw, name, float(getattr(sample, name)))
+        out = self._output
+        self._lib.ecu_step(ctypes.byref(raw), ctypes.byref(out))
+        n_pred = out.n_pred
+        pose = np.ctypeslib.as_array(out.predicted_pose)[:n_pred].copy()
+        state = np.ctypeslib.as_array(out.predicted_state)[:n_pred].copy()
+        debug = StepDebug(status=SolverStatus(out.status), iterations=out.iterations,
+                          solve_time_s=out.solve_time_s, cost=out.cost if math.isfinite(out.cost) else math.nan,
+                          predicted_pose=pose, predicted_state=state, fallback=bool(out.fallback),
+                          slack_max=out.slack_max, observer_reset=bool(out.observer_reset))
+        return Command(steer_angle=out.steer_angle, drive_torque=out.drive_torque), debug
+
+
+def native_controller_factory(controller: str, model: Path | None = None):  # noqa: ANN201 (ECU factory)
+    """The ECU's controller factory for ``--native``: the core is loaded here, before the bus
+    opens, so a refused data file is an ``error:`` line at start-up.
+
+    Raises:
+        ConfigError: as ``NativeController``; a ``--model`` for lmpc (fitted bicycles are
+            not in the C core's data file yet).
+    """
+    if model is not None and controller == "lmpc":
+        raise ConfigError(f"--native --model {model}: the C core has no fitted bicycle yet (lmpc uses the nominal one)")
+    data = data_file_for_model(model) if model is not None else None
+    native = NativeController(controller, data)
+    return lambda name: native

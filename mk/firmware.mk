@@ -1,0 +1,75 @@
+# The ECU as C firmware (issue 18, docs/firmware.md): the control core libecu.so, built
+# from firmware/src and the sources the generators write at build time (OSQP code
+# generation of the three steering QPs, the build's shapes, the inputs' hashes) plus the
+# data file the C core reads at start-up (tuning + Koopman model + bicycle).
+#   make firmware        - build/firmware/libecu.so, build/firmware/ecu_data.bin
+#   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
+#   make firmware-asan   - the same tests on an -fsanitize=address,undefined build
+#   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
+.PHONY: firmware firmware-deps firmware-test firmware-asan bench-native
+
+FW_DIR := build/firmware
+FW_GEN := $(FW_DIR)/gen
+FW_CC ?= gcc
+FW_CFLAGS := -std=c11 -O2 -Wall -Wextra -Werror -fPIC
+# Generated OSQP sources: the same flags, minus five warnings the generated code trips
+# (unused static helpers and parameters, missing initialisers, an empty if body, && within ||).
+FW_GEN_CFLAGS := $(FW_CFLAGS) -Wno-unused-function -Wno-missing-field-initializers \
+	-Wno-empty-body -Wno-parentheses -Wno-unused-parameter
+FW_SAN_FLAGS := -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=all
+FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public -I$(FW_GEN)/qp/inc/private
+FW_SOURCES := $(wildcard firmware/src/*.c)
+FW_HEADERS := $(wildcard firmware/src/*.h)
+FW_TOOLS := $(wildcard firmware/tools/*.py)
+# Generator inputs: a change of any regenerates (their hashes are in ecu_version()).
+FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py models/vehicle.toml \
+	models/artifacts/dk_d5.npz models/artifacts/dk_d5.json
+FW_PACKAGES := gcc cmake
+
+## build the C control core build/firmware/libecu.so and its data file (generated QPs)
+firmware: firmware-deps $(FW_DIR)/libecu.so $(FW_DIR)/ecu_data.bin
+
+# make test builds the firmware first (its tests load libecu.so).
+test: firmware
+
+## install gcc and cmake (as root, with apt-get) where they are missing
+firmware-deps:
+	@if command -v $(FW_CC) >/dev/null && command -v cmake >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "installing $(FW_PACKAGES)"; \
+		DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(FW_PACKAGES) >/dev/null; \
+	else echo "note: not root; the firmware needs: sudo apt-get install $(FW_PACKAGES)"; fi
+
+$(FW_GEN)/stamp: $(FW_GEN_INPUTS) | $(STAMP)
+	$(PY) firmware/tools/generate.py --out $(FW_GEN)
+	touch $@
+
+$(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) | $(STAMP)
+	$(PY) firmware/tools/ecu_data.py --out $@
+
+# One shared object from the core, the generated version source and the OSQP sources.
+$(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS)
+	@mkdir -p $(FW_DIR)/obj
+	for f in $(FW_GEN)/qp/src/*.c $(FW_GEN)/qp/*_workspace.c; do \
+		$(FW_CC) $(FW_GEN_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -c $$f -o $(FW_DIR)/obj/$$(basename $$f .c).o || exit 1; \
+	done
+	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -shared -o $@ $(FW_SOURCES) $(FW_GEN)/ecu_version.c \
+		$(FW_DIR)/obj/*.o -lm
+
+## the C core's tests (libecu.so against the Python controllers)
+firmware-test: firmware
+	$(PY) -m pytest -q tests/test_firmware_c*.py
+
+## the C core's tests on a build with -fsanitize=address,undefined (build/firmware-asan)
+firmware-asan: firmware
+	$(MAKE) --no-print-directory FW_DIR=build/firmware-asan FW_EXTRA_CFLAGS="$(FW_SAN_FLAGS)" \
+		build/firmware-asan/libecu.so
+	cp $(FW_DIR)/ecu_data.bin build/firmware-asan/
+	ECU_LIB=build/firmware-asan/libecu.so LD_PRELOAD="$$($(FW_CC) -print-file-name=libasan.so) \
+		$$($(FW_CC) -print-file-name=libubsan.so)" ASAN_OPTIONS=detect_leaks=0 \
+		$(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py
+
+## C control step vs the Python controller step on the same recorded inputs (last line JSON)
+bench-native: firmware
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.bench_native

@@ -1,0 +1,164 @@
+"""The C control core libecu.so (firmware/, docs/firmware.md) against the Python controllers.
+
+The firmware is built by ``make firmware`` (the fixture runs it: a no-op when up to date).
+A twin controller steps the Python controller and the C core on the same samples inside
+the closed loop of ``studies.closed_loop`` (the Python command drives the plant), so every
+step compares both on identical inputs, invalid samples included.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.base import Command, Controller, SolverStatus, StepDebug, VehicleSample
+from controller.reference import ReferencePath
+from controller.registry import create_controller
+from firmware_sim.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+STEER_LSB = 1e-4  # rad: STEER_ANGLE_CMD's scale (can_defs/vehicle.dbc)
+
+
+@pytest.fixture(scope="module")
+def native():
+    """The firmware_sim.native module on an up-to-date build."""
+    build = subprocess.run(["make", "-s", "--no-print-directory", "firmware"], cwd=ROOT,
+                           capture_output=True, text=True, check=False)
+    assert build.returncode == 0, build.stdout + build.stderr
+    from firmware_sim import native as module
+    return module
+
+
+def _tool(name: str):
+    """A module of firmware/tools (build scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "firmware" / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(spec.origin and Path(spec.origin).parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.pop(0)
+    return module
+
+
+class Twin(Controller):
+    """Steps the Python controller and the C core on the same sample; drives with Python's
+    command. ``invalid_steps``: step indices whose sample is replaced by one with NaN."""
+
+    def __init__(self, python: Controller, c_core: Controller, invalid_steps: frozenset[int] = frozenset()):
+        self.python, self.c_core, self.invalid = python, c_core, invalid_steps
+        self.name = python.name
+        self.pairs: list[tuple[Command, StepDebug, Command, StepDebug]] = []
+
+    def set_path(self, path: ReferencePath) -> None:
+        self.python.set_path(path)
+        self.c_core.set_path(path)
+
+    def reset(self) -> None:
+        self.python.reset()
+        self.c_core.reset()
+
+    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
+        if len(self.pairs) in self.invalid:
+            values = sample.measurement_values()
+            values["vy"] = math.nan
+            sample = VehicleSample(**values, target_speed=sample.target_speed)
+        command, debug = self.python.step(sample)
+        c_command, c_debug = self.c_core.step(sample)
+        self.pairs.append((command, debug, c_command, c_debug))
+        return command, debug
+
+
+@pytest.mark.parametrize("name", ["eso-dkmpc", "dkmpc", "lmpc"])
+def test_step_equals_python_in_closed_loop(native, name: str) -> None:
+    """On dlc_smoke (160 steps, 3 of them with a NaN sample): the same commands to 1e-9 rad
+    and 1e-6 N m, the same status, fallback, observer restart and QP iterations."""
+    from hil.scenario import load_scenario
+    from studies.closed_loop import run_closed_loop
+
+    twin = Twin(create_controller(name), native.NativeController(name), frozenset({40, 41, 90}))
+    result = run_closed_loop(load_scenario("dlc_smoke"), twin)
+    assert result.completed
+    assert len(twin.pairs) >= 150
+    steer_error = max(abs(p.steer_angle - c.steer_angle) for p, _, c, _ in twin.pairs)
+    torque_error = max(abs(p.drive_torque - c.drive_torque) for p, _, c, _ in twin.pairs)
+    print(f"{name}: {len(twin.pairs)} steps, max |steer difference| {steer_error:.2e} rad, "
+          f"torque {torque_error:.2e} N m")
+    assert steer_error < 1e-9 and torque_error < 1e-6
+    for i, (_, debug, _, c_debug) in enumerate(twin.pairs):
+        assert (c_debug.status, c_debug.fallback, c_debug.observer_reset, c_debug.iterations) == \
+            (debug.status, debug.fallback, debug.observer_reset, debug.iterations), f"step {i}"
+        assert c_debug.predicted_state.shape == debug.predicted_state.shape
+        if debug.predicted_state.size:
+            assert np.allclose(c_debug.predicted_state, debug.predicted_state, atol=1e-7)
+            assert np.allclose(c_debug.predicted_pose, debug.predicted_pose, atol=1e-7)
+            assert c_debug.cost == pytest.approx(debug.cost, rel=1e-7, abs=1e-9)
+    statuses = [d.status for _, d, _, _ in twin.pairs]
+    assert statuses[40] == SolverStatus.NOT_RUN and twin.pairs[40][3].fallback
+    if name == "eso-dkmpc":  # the observer restarts on the first valid sample after NaN
+        assert twin.pairs[42][3].observer_reset and twin.pairs[0][3].observer_reset
+
+
+def test_invalid_input_gives_safe_commands(native) -> None:
+    """No path, NaN or absurd samples: a finite command within the limits, never a crash."""
+    core = native.NativeController("eso-dkmpc")
+    sample = VehicleSample(10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0)
+    command, debug = core.step(sample)
+    assert debug.status == SolverStatus.NOT_RUN and debug.fallback and command.steer_angle == 0.0
+    core.set_path(ReferencePath.double_lane_change())
+    for values in ([math.inf] * 9, [1e300] * 9, [-1e300, 1e300, -1e300, 1e6, -1e6, 1e3, 5.0, -1e9, 1e9]):
+        command, _ = core.step(VehicleSample(*values))
+        assert math.isfinite(command.steer_angle) and abs(command.steer_angle) <= 0.3
+        assert -3000.0 <= command.drive_torque <= 2000.0
+
+
+def test_version_names_the_generator_inputs(native) -> None:
+    """ecu_version() lists each generator input with its current SHA-256."""
+    lines = native.version().strip().splitlines()
+    assert lines[0].startswith("osqp ")
+    listed = dict(reversed(line.split("  ", 1)) for line in lines[1:])
+    for path in ("controller/tuning.toml", "models/artifacts/dk_d5.npz", "models/artifacts/dk_d5.json",
+                 "controller/steering_qp.py", "firmware/tools/ecu_data.py", "firmware/tools/generate.py"):
+        assert listed[path] == hashlib.sha256((ROOT / path).read_bytes()).hexdigest(), path
+
+
+def test_data_of_another_shape_is_refused(native, tmp_path: Path) -> None:
+    """A model or tuning of another shape than the build's: refused, both shapes named."""
+    ecu_data = _tool("ecu_data")
+    records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
+    n_knots, n_z = records["koopman.A"].shape[:2]
+    bigger = dict(records, **{"koopman.A": np.zeros((n_knots, n_z + 2, n_z + 2))})
+    ecu_data.write_data(bigger, tmp_path / "bigger.bin")
+    with pytest.raises(ConfigError) as error:
+        native.NativeController("dkmpc", tmp_path / "bigger.bin")
+    message = str(error.value)
+    assert "koopman.A" in message
+    assert f"({n_knots},{n_z + 2},{n_z + 2})" in message and f"({n_knots},{n_z},{n_z})" in message
+    tuning = records["tuning.lmpc"].copy()
+    tuning[0] = 20.0
+    ecu_data.write_data(dict(records, **{"tuning.lmpc": tuning}), tmp_path / "horizon.bin")
+    with pytest.raises(ConfigError, match=r"\[lmpc\] horizons \(Np 20, Nc 8\) differ from this build's \(Np 30"):
+        native.NativeController("lmpc", tmp_path / "horizon.bin")
+    with pytest.raises(ConfigError, match="not an ECU data file"):
+        (tmp_path / "junk.bin").write_bytes(b"nonsense")
+        native.NativeController("lmpc", tmp_path / "junk.bin")
+    with pytest.raises(ConfigError, match="not in the C core"):
+        native.NativeController("nmpc")
+
+
+def test_cli_native_refuses_unbuilt_controllers(native) -> None:
+    """--native with a controller the C core lacks: one error line before the bus, exit 2."""
+    path = ROOT / "hil" / "paths" / "dlc.csv"
+    result = subprocess.run([sys.executable, "-m", "firmware_sim", "--interface", "virtual", "--channel",
+                             "native-cli-test", "--controller", "nmpc", "--path", f"1={path}", "--lockstep",
+                             "--native"], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1] == ("error: --native: controller 'nmpc' is not in the C core "
+                                                      "(it has eso-dkmpc, dkmpc, lmpc)")
