@@ -16,7 +16,9 @@ bus, write the timing record and exit 0.
 ``--model PATH`` builds the controller on another model file (a Koopman artefact for
 eso-dkmpc / dkmpc, a fitted bicycle for lmpc / lmpc-eso); ``--excite PROGRAM`` adds an
 identification excitation while ACTIVE (``firmware_sim/excitation.py``,
-docs/identification.md). Both are checked before the bus is opened.
+docs/identification.md). Both are checked before the bus is opened. ``--native`` runs the
+control step in the C core (``firmware_sim/native.py``, docs/firmware.md), loaded and
+checked before the bus is opened too.
 """
 from __future__ import annotations
 
@@ -184,6 +186,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="another model file: a Koopman artefact (PATH.npz + PATH.json) for "
                              "eso-dkmpc / dkmpc, a fitted bicycle (JSON) for lmpc / lmpc-eso "
                              "(docs/identification.md)")
+    parser.add_argument("--native", action="store_true",
+                        help="run the control step in the C core build/firmware/libecu.so "
+                             "(make firmware; eso-dkmpc, dkmpc, lmpc; docs/firmware.md)")
     parser.add_argument("--excite", default=None, metavar="PROGRAM",
                         help="superimpose an identification excitation while ACTIVE: chirp, prbs, "
                              "steps, prbs-torque, or a .toml / .csv program file "
@@ -219,6 +224,9 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
         prepare_codec(args.dbc)
         excitation = load_excitation(args.excite)
         controller_factory = model_controller_factory(args.controller, args.model)
+        if args.native:  # the C core's step in place of the Python one (loaded here)
+            from firmware_sim.native import native_controller_factory
+            controller_factory = native_controller_factory(args.controller, args.model)
         bus = open_bus(args.interface, args.channel, args.bitrate)
     except EcuError as error:
         if args.debug:
