@@ -23,8 +23,9 @@ diverged plant, an exception in ``controller.step``) counts as not completed; on
 controller or plant cannot even be built is recorded with its ``error``. The grid goes on
 either way.
 
-The runs go to ``--workers`` processes (default 2, ``multiprocessing`` spawn: each worker
-imports numpy afresh with ``OPENBLAS_NUM_THREADS=1``). Each run's result is cached as
+The runs are Ray tasks on the campaigns' executors (``studies.campaign.executors``): a
+local Ray with ``--workers`` CPUs (default 2, one BLAS thread each), or the cluster at
+``--address``; ``--workers 1`` runs them in this process. Each run's result is cached as
 JSON in ``--cache`` (default ``build/robustness/``) under a hash of the cell, the
 controller, the run's settings, the plant's parameters and the digests of the tuning
 file, the model artefacts, the path files and the source of the controller and the runner
@@ -45,7 +46,7 @@ Writes to ``--out`` (default ``results/``):
   change and slalom at nominal mass and lag.
 
 Usage: ``python -m studies.robustness_grid [--controllers ...] [--manoeuvres ...]
-[--workers N] [--out DIR] [--cache DIR] [--no-cache] [--quick] [--no-progress] [--debug]``.
+[--workers N] [--address ADDR] [--out DIR] [--cache DIR] [--no-cache] [--quick] [--no-progress] [--debug]``.
 ``--quick`` runs :data:`QUICK_CONTROLLERS` on :data:`QUICK_CELLS` (2 x 2 runs) into
 ``build/robustness-smoke/`` unless ``--out`` says otherwise. Exit status: 0 when the grid
 ran (whatever each run's outcome), 1 when it could not (bad inputs, unwritable output),
@@ -68,12 +69,11 @@ import hashlib  # noqa: E402
 import itertools  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import multiprocessing  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
-from collections.abc import Callable, Mapping, Sequence  # noqa: E402
+from collections.abc import Callable, Iterator, Mapping, Sequence  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
@@ -450,15 +450,17 @@ def _task_order(task: RunTask) -> tuple[float, str]:
 
 
 def run_grid(cells: Sequence[Cell], controllers: Sequence[str], *, cache_dir: Path = DEFAULT_CACHE,
-             workers: int = 2, use_cache: bool = True, show_progress: bool = True,
-             factory: ControllerFactory | None = None) -> list[RunRecord]:
+             workers: int = 2, address: str | None = None, use_cache: bool = True,
+             show_progress: bool = True, factory: ControllerFactory | None = None) -> list[RunRecord]:
     """Every controller on every cell, from the cache where it holds the run.
 
     Args:
         cells: the cells (:func:`grid_cells`).
         controllers: registry names.
         cache_dir: the cache folder (one JSON per run under ``runs/``).
-        workers: processes; 1 runs in this process.
+        workers: Ray workers (a local Ray with this many CPUs); 1 without ``address`` runs
+            in this process.
+        address: a Ray cluster to run on (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``).
         use_cache: False recomputes every run (and overwrites its cache entry).
         show_progress: a tqdm bar over the runs to compute (failed count, time left).
         factory: builds the controllers (tests); default the registry with a copy of the
@@ -502,8 +504,9 @@ def run_grid(cells: Sequence[Cell], controllers: Sequence[str], *, cache_dir: Pa
                dynamic_ncols=True)
     bar.set_postfix(failed=failed)
     with bar:
-        for record in _execute(pending, workers):
-            store(cache_dir, record)
+        for record, keep in _execute(pending, workers, address):
+            if keep:
+                store(cache_dir, record)
             records[(record.cell, record.controller)] = record
             failed += not record.completed
             bar.set_postfix(failed=failed, last=f"{record.controller} {record.cell.name}",
@@ -522,17 +525,28 @@ def run_grid(cells: Sequence[Cell], controllers: Sequence[str], *, cache_dir: Pa
     return [records[(cell, name)] for cell in cells for name in controllers]
 
 
-def _execute(tasks: Sequence[RunTask], workers: int) -> Any:
-    """Records of ``tasks`` as they finish: in this process, or on a spawned pool."""
-    if workers <= 1 or len(tasks) <= 1:
-        yield from map(_run_task, tasks)
+def _execute(tasks: Sequence[RunTask], workers: int, address: str | None) -> Iterator[tuple[RunRecord, bool]]:
+    """(record, cache it?) of ``tasks`` as they finish: in this process (one worker, no
+    address), else as Ray tasks (``studies.campaign.executors``: a local Ray with
+    ``workers`` CPUs, or the cluster at ``address``). A task whose worker died becomes a
+    not-run record that is not cached, so the next call retries it."""
+    from studies.campaign.executors import open_executor
+
+    if not tasks:
         return
-    # Spawn, not fork: each worker imports numpy (and CasADi) itself with one BLAS thread,
-    # and inherits no solver or thread state of this process.
-    os.environ["OPENBLAS_NUM_THREADS"] = "1"
-    os.environ["OMP_NUM_THREADS"] = "1"
-    with multiprocessing.get_context("spawn").Pool(min(workers, len(tasks))) as pool:
-        yield from pool.imap_unordered(_run_task, tasks, chunksize=1)
+    executor = open_executor(_run_task, address=address, workers=workers,
+                             serial=workers <= 1 and address is None)
+    try:
+        for task, record, worker_error in executor.run(tasks):
+            if worker_error is None:
+                yield record, True
+            else:
+                nan = float("nan")
+                yield RunRecord(task.controller, **task.cell.as_dict(), completed=False, e_y_rmse=nan,
+                                e_y_max=nan, heading_rmse=nan, error=f"worker died: {worker_error}",
+                                key=task.key), False
+    finally:
+        executor.close()
 
 
 # ---------------------------------------------------------------------------- summary
@@ -870,7 +884,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="manoeuvres (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",
                         help="the smoke subset: 2 controllers x 2 cells, into build/robustness-smoke/")
-    parser.add_argument("--workers", type=int, default=2, help="worker processes (default: 2)")
+    parser.add_argument("--workers", type=int, default=2,
+                        help="Ray workers (default: 2; 1 runs in this process); on a cluster the "
+                             "most runs at once")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster to use: auto, HOST:PORT or ray://HOST:PORT "
+                             "(default: a local Ray on 127.0.0.1)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: results/)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
                         help="cache folder (default: build/robustness/)")
@@ -887,7 +906,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cells = list(QUICK_CELLS) if args.quick else grid_cells(args.manoeuvres)
         records = run_grid(cells, controllers, cache_dir=args.cache, workers=args.workers,
-                           use_cache=not args.no_cache, show_progress=not args.no_progress)
+                           address=args.address, use_cache=not args.no_cache, show_progress=not args.no_progress)
         summary = write_outputs(records, controllers, out, command=command, workers=args.workers)
     except (HilError, OSError) as e:
         if args.debug:

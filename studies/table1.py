@@ -14,10 +14,13 @@ Writes ``results/table1.md``, ``results/table1.json``, ``results/fig6_prediction
 (seed 0's one-step errors along a test run, as the paper's Fig. 6) and
 ``results/prediction_horizon_rmse.png`` (RMSE against the prediction step, mean over seeds).
 Trained models are cached in ``build/table1/`` (keyed by data hash, settings and states);
-the default row's seed 0 reuses the committed artefact when it matches. Training all rows
-takes about an hour on 2 cores; the table can be built in several sittings (the cache
-keeps what is done; ``--rows`` / ``--seeds`` select).
-CLI: ``python -m studies.table1 [--data data/wide] [--rows 0,4] [--seeds 0,1,2,3,4]``.
+the default row's seed 0 reuses the committed artefact when it matches. The missing models
+are trained first, each training a task of the campaigns' executors (a local Ray with one
+worker per core by default, ``--address`` for a cluster, ``--serial`` in this process);
+training all rows takes about an hour on 2 cores; the table can be built in several
+sittings (the cache keeps what is done; ``--rows`` / ``--seeds`` select).
+CLI: ``python -m studies.table1 [--data data/wide] [--rows 0,4] [--seeds 0,1,2,3,4]
+[--address ADDR] [--workers N] [--serial]``.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from hil.errors import HilError
 from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanError, KoopmanModel
 from models.koopman_baselines import DMDc, EDMDc
@@ -77,27 +81,95 @@ def _slug(label: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", label.lower()).strip("_")
 
 
-def trained_model(row: Row, seed: int, runs: list[Trajectory], data_dir: Path, data_hash: str,
-                  models_dir: Path) -> KoopmanModel:
-    """The row's model for ``seed``: a matching cached (or the committed) artefact, else trained now."""
+def cached_model_path(row: Row, seed: int, models_dir: Path) -> Path:
+    """Where Table I caches ``row``'s model of ``seed`` (``.npz``, its ``.json`` beside it)."""
+    return models_dir / f"{_slug(row.label)}_s{seed}.npz"
+
+
+def cached_model(row: Row, seed: int, data_hash: str, models_dir: Path) -> KoopmanModel | None:
+    """The row's model for ``seed`` when a matching cached (or the committed) artefact
+    exists: same data hash, training settings and states; else None."""
     from models import koopman_train  # torch is needed here only
 
-    settings = koopman_train.TrainingSettings(**{**row.overrides, "seed": seed})
-    wanted = koopman_train.settings_json(settings)
-    path = models_dir / f"{_slug(row.label)}_s{seed}.npz"
-    for candidate in (DEFAULT_ARTIFACT, path):
+    wanted = koopman_train.settings_json(koopman_train.TrainingSettings(**{**row.overrides, "seed": seed}))
+    for candidate in (DEFAULT_ARTIFACT, cached_model_path(row, seed, models_dir)):
         json_path = candidate.with_suffix(".json")
         if candidate.is_file() and json_path.is_file():
             meta = json.loads(json_path.read_text())
             if (meta.get("data_hash") == data_hash and meta.get("settings") == wanted
                     and tuple(meta.get("state_names", ())) == row.states):
                 return KoopmanModel.load(candidate)
-    own = [Trajectory(r.name, r.states[:, : len(row.states)], r.inputs, row.states, r.input_names) for r in runs]
-    result = koopman_train.train(own, TS, settings, metadata={"data_dir": str(data_dir), "data_hash": data_hash,
-                                                              "n_runs": len(runs)})
-    koopman_train.write_artifact(result, path.with_suffix(""))
-    print(f"{row.label} seed {seed}: trained in {result.seconds:.0f} s -> {path}", flush=True)
-    return result.model
+    return None
+
+
+@dataclass(frozen=True)
+class TrainingTask:
+    """One training of Table I for a worker (picklable): ``row`` with ``seed`` on the data
+    set in ``data_dir`` (whose hash is ``data_hash``), written into ``models_dir``."""
+
+    key: str
+    row: Row
+    seed: int
+    data_dir: Path
+    data_hash: str
+    models_dir: Path
+
+
+def train_task(task: TrainingTask) -> dict[str, Any]:
+    """Train and cache one model (a Ray task or in this process); never raises.
+
+    Returns {path, seconds} or {error}. The worker reads the data set itself, so on a
+    cluster every node needs it at the same path (docs/campaign.md).
+    """
+    from models import koopman_train  # torch is needed here only
+
+    try:
+        runs = koopman_train.load_trajectories(task.data_dir, states=WHEEL_STATES)
+        if koopman_train.dataset_hash(task.data_dir) != task.data_hash:
+            return {"error": f"{task.data_dir} differs from the data set the table was started on"}
+        row = task.row
+        own = [Trajectory(r.name, r.states[:, : len(row.states)], r.inputs, row.states, r.input_names)
+               for r in runs]
+        settings = koopman_train.TrainingSettings(**{**row.overrides, "seed": task.seed})
+        result = koopman_train.train(own, TS, settings, metadata={
+            "data_dir": str(task.data_dir), "data_hash": task.data_hash, "n_runs": len(runs)}, progress=False)
+        path = cached_model_path(row, task.seed, task.models_dir)
+        koopman_train.write_artifact(result, path.with_suffix(""))
+    except Exception as e:  # noqa: BLE001 - reported as this training's failure
+        return {"error": f"{type(e).__name__}: {e}"}
+    return {"path": str(path), "seconds": result.seconds}
+
+
+def train_missing(rows: Sequence[Row], seeds: Sequence[int], data_dir: Path, data_hash: str,
+                  models_dir: Path, executor_options: dict[str, Any] | None = None) -> None:
+    """Train every (row, seed) without a cached model, as tasks of the campaigns' executors
+    (``studies.campaign.executors``: a local Ray by default, a cluster by address, or this
+    process with ``serial``). Raises KoopmanError naming every training that failed."""
+    from tqdm import tqdm
+
+    from studies.campaign.executors import open_executor
+
+    tasks = [TrainingTask(f"{row.label} seed {seed}", row, seed, data_dir, data_hash, models_dir)
+             for seed in seeds for row in rows if cached_model(row, seed, data_hash, models_dir) is None]
+    if not tasks:
+        return
+    print(f"training {len(tasks)} models of Table I", file=sys.stderr, flush=True)
+    executor = open_executor(train_task, **(executor_options or {}))
+    failures = []
+    try:
+        with tqdm(total=len(tasks), desc="Table I trainings", unit="model", dynamic_ncols=True) as bar:
+            for task, outcome, worker_error in executor.run(tasks):
+                error = worker_error or (outcome or {}).get("error")
+                if error:
+                    failures.append(f"{task.key}: {error}")
+                else:
+                    print(f"{task.key}: trained in {outcome['seconds']:.0f} s -> {outcome['path']}",
+                          file=sys.stderr, flush=True)
+                bar.update(1)
+    finally:
+        executor.close()
+    if failures:
+        raise KoopmanError("trainings failed (the others are cached): " + "; ".join(failures))
 
 
 def evaluate(predictor: Predictor, test_runs: Sequence[Trajectory]) -> dict[str, dict[str, float]]:
@@ -208,14 +280,16 @@ def plot_figures(out_dir: Path, traces: dict[str, np.ndarray], horizons: dict[st
 
 
 def build_table(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], models_dir: Path,
-                out_dir: Path) -> list[dict]:
-    """Train / load every model, evaluate per seed, write the results. Returns the table rows."""
+                out_dir: Path, executor_options: dict[str, Any] | None = None) -> list[dict]:
+    """Train the missing models (:func:`train_missing`), then evaluate every model per seed
+    and write the results. Returns the table rows."""
     from models.koopman_train import TrainingSettings, dataset_hash, load_trajectories, split_runs
 
     runs = load_trajectories(data_dir, states=WHEEL_STATES)
     data_hash = dataset_hash(data_dir)
     models_dir.mkdir(parents=True, exist_ok=True)
     out_dir.mkdir(parents=True, exist_ok=True)
+    train_missing(rows, seeds, data_dir, data_hash, models_dir, executor_options)
     table: dict[str, dict] = {}
     curves: dict[str, list[np.ndarray]] = {}
     traces: dict[str, np.ndarray] = {}
@@ -226,7 +300,9 @@ def build_table(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], model
             trace_run = test_runs[0]
         predictors: dict[str, tuple[Predictor, float | None, str, str | None]] = {}
         for row in rows:
-            model = trained_model(row, seed, runs, data_dir, data_hash, models_dir)
+            model = cached_model(row, seed, data_hash, models_dir)
+            if model is None:
+                raise KoopmanError(f"{row.label} seed {seed}: no model after training; delete {models_dir}")
             if model.metadata["split"]["test"] != [r.name for r in test_runs]:
                 raise KoopmanError(f"{row.label} seed {seed}: the model's test runs differ from the split; "
                                    f"delete {models_dir}")
@@ -265,6 +341,8 @@ def _indices(text: str) -> tuple[int, ...]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from studies.campaign.executors import add_executor_arguments
+
     parser = argparse.ArgumentParser(prog="python -m studies.table1", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data/wide"))
     parser.add_argument("--rows", type=_indices, default=tuple(range(len(ROWS))),
@@ -274,6 +352,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
     parser.add_argument("--out", type=Path, default=Path("results"))
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    add_executor_arguments(parser)
     args = parser.parse_args(argv)
     try:
         if not args.data.is_dir():
@@ -281,8 +360,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         bad = [i for i in args.rows if not 0 <= i < len(ROWS)]
         if bad or not args.seeds:
             raise KoopmanError(f"--rows must be indices 0..{len(ROWS) - 1} (got {bad}) and --seeds non-empty")
-        build_table(args.data, [ROWS[i] for i in args.rows], args.seeds, args.models_dir, args.out)
-    except (ModelError, OSError, ValueError) as e:
+        build_table(args.data, [ROWS[i] for i in args.rows], args.seeds, args.models_dir, args.out,
+                    dict(address=args.address, workers=args.workers, serial=args.serial))
+    except (ModelError, HilError, OSError, ValueError) as e:
         if args.debug:
             raise
         print(f"error: {e}", file=sys.stderr)
@@ -292,4 +372,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run the imported module's main: Ray workers import train_task from studies.table1.
+    from studies.table1 import main as _main
+
+    sys.exit(_main())

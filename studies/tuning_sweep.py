@@ -33,7 +33,7 @@ and ``tuning_sweep.png``; and, unless ``--no-write``, the chosen values into
 re-read right before writing; every other line is kept).
 
 Usage: ``python -m studies.tuning_sweep [--controllers ...] [--scenarios ...] [--workers N]
-[--out DIR] [--tuning FILE] [--no-write] [--no-progress]``; ``--report-from JSON`` only
+[--address ADDR] [--out DIR] [--tuning FILE] [--no-write] [--no-progress]``; ``--report-from JSON`` only
 rewrites the report and figure from a stored ``tuning_sweep.json``.
 """
 from __future__ import annotations
@@ -44,7 +44,6 @@ import hashlib
 import importlib
 import itertools
 import json
-import multiprocessing
 import os
 import re
 import sys
@@ -280,51 +279,55 @@ def run_one(name: str, setting: Setting, scenario: Scenario, tuning: Any,
                       result.failure, time.perf_counter() - started)
 
 
-# Worker state (set once per worker process by _init_worker; a forked worker inherits it).
-_WORKER: dict[str, Any] = {}
+@dataclass(frozen=True)
+class SweepTask:
+    """One run of the sweep for a worker (picklable): evaluation ``index``'s controller and
+    setting on scenario ``scenario_index`` of the tuning set."""
+
+    key: str
+    index: int
+    controller: str
+    setting: Setting
+    scenario_index: int
+    scenario: Scenario
+    tuning: Any
+    runner: Runner
 
 
-def _init_worker(scenarios: Sequence[Scenario], tuning: Any, runner: Runner) -> None:
-    _WORKER.update(scenarios=list(scenarios), tuning=tuning, runner=runner)
-
-
-def _run_task(task: tuple[int, str, Setting, int]) -> tuple[int, int, RunOutcome]:
-    index, name, setting, scenario_index = task
-    outcome = run_one(name, setting, _WORKER["scenarios"][scenario_index], _WORKER["tuning"],
-                      _WORKER["runner"])
-    return index, scenario_index, outcome
+def _run_task(task: SweepTask) -> RunOutcome:
+    return run_one(task.controller, task.setting, task.scenario, task.tuning, task.runner)
 
 
 class _Executor:
-    """Runs (controller, setting) x scenario tasks in-process or on a forked pool."""
+    """Runs (controller, setting) x scenario tasks on the campaigns' executors
+    (``studies.campaign.executors``): in this process (one worker, no address), else as
+    Ray tasks on a local Ray with ``workers`` CPUs or on the cluster at ``address``."""
 
     def __init__(self, scenarios: Sequence[Scenario], tuning: Any, runner: Runner, workers: int,
-                 progress: tqdm) -> None:
+                 progress: tqdm, address: str | None = None) -> None:
+        from studies.campaign.executors import open_executor
+
         self.scenarios = list(scenarios)
+        self.tuning = tuning
+        self.runner = runner
         self.progress = progress
-        _init_worker(self.scenarios, tuning, runner)
-        self.pool = None
-        if workers > 1:
-            # fork: the workers inherit the scenarios and the runner (no pickling of them).
-            context = multiprocessing.get_context("fork")
-            self.pool = context.Pool(workers, initializer=_init_worker,
-                                     initargs=(self.scenarios, tuning, runner))
+        self.executor = open_executor(_run_task, address=address, workers=workers,
+                                      serial=workers <= 1 and address is None)
 
     def close(self) -> None:
-        if self.pool is not None:
-            self.pool.close()
-            self.pool.join()
+        self.executor.close()
 
     def evaluate(self, jobs: Sequence[tuple[str, str, Setting]]) -> list[Evaluation]:
         """Evaluate (controller, stage, setting) jobs on every scenario, in job order."""
-        tasks = [(i, name, setting, k) for i, (name, _, setting) in enumerate(jobs)
-                 for k in range(len(self.scenarios))]
+        tasks = [SweepTask(f"{name} {setting} on {scenario.name}", i, name, setting, k, scenario,
+                           self.tuning, self.runner)
+                 for i, (name, _, setting) in enumerate(jobs) for k, scenario in enumerate(self.scenarios)]
         outcomes: dict[int, dict[int, RunOutcome]] = {i: {} for i in range(len(jobs))}
-        results = (map(_run_task, tasks) if self.pool is None
-                   else self.pool.imap_unordered(_run_task, tasks, chunksize=1))
-        for index, scenario_index, outcome in results:
-            outcomes[index][scenario_index] = outcome
-            self.progress.set_postfix_str(jobs[index][0], refresh=False)
+        for task, outcome, worker_error in self.executor.run(tasks):
+            if worker_error is not None:
+                outcome = RunOutcome(float("nan"), float("nan"), False, f"worker died: {worker_error}", 0.0)
+            outcomes[task.index][task.scenario_index] = outcome
+            self.progress.set_postfix_str(task.controller, refresh=False)
             self.progress.update(1)
         evaluations = []
         for i, (name, stage, setting) in enumerate(jobs):
@@ -369,7 +372,7 @@ def current_setting(tuning: Any, name: str) -> Setting:
 def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *,
               weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
               observer_start: Setting = OBSERVER_START, workers: int = 1,
-              runner: Runner = run_closed_loop, show_progress: bool = True,
+              address: str | None = None, runner: Runner = run_closed_loop, show_progress: bool = True,
               evaluate_before: bool = False) -> list[ControllerSweep]:
     """The procedure of the module docstring for every controller of ``controllers``.
 
@@ -379,7 +382,8 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
             tuning set).
         tuning: the ``ControllerTuning`` whose non-swept fields every build keeps.
         weight_grid, observer_grid, observer_start: the procedure's grids (tests shrink them).
-        workers: processes (1: in this process).
+        workers: Ray workers of a local Ray (1 without ``address``: in this process).
+        address: a Ray cluster to run on (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``).
         runner: the closed-loop runner (tests pass a stand-in).
         evaluate_before: also evaluate each controller's setting in ``tuning`` (for the
             report; not a candidate, so values chosen elsewhere cannot be re-chosen here).
@@ -406,7 +410,7 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
     before: dict[str, Evaluation] = {}
     with tqdm(total=total, desc="make tune", unit="run", disable=not show_progress,
               dynamic_ncols=True) as progress:
-        executor = _Executor(scenarios, tuning, runner, workers, progress)
+        executor = _Executor(scenarios, tuning, runner, workers, progress, address)
         try:
             # Round robin over the controllers: the slow ones' runs spread over the queue, so
             # no worker is left alone with a slow controller's runs at the end.
@@ -726,7 +730,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", nargs="+", default=None,
                         help=f"tuning scenario names (default: all {len(TUNING_SET)})")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
-                        help="worker processes (default: 2, or 1 on a one-core machine)")
+                        help="Ray workers (default: 2, or 1 on a one-core machine; 1 runs in this "
+                             "process); on a cluster the most runs at once")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster to use: auto, HOST:PORT or ray://HOST:PORT "
+                             "(default: a local Ray on 127.0.0.1)")
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
     parser.add_argument("--tuning", type=Path, default=DEFAULT_TUNING_PATH,
                         help="tuning file read and (unless --no-write) updated")
@@ -752,7 +760,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenarios = tuning_scenarios(args.scenarios)
         tuning = load_tuning(args.tuning)
-        sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers,
+        sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers, address=args.address,
                            show_progress=not args.no_progress, evaluate_before=True)
     except (HilError, ControllerError, ModelError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -787,4 +795,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run the imported module's main, not this __main__ copy: Ray workers import the task
+    # function and the outcome classes from studies.tuning_sweep by name.
+    from studies.tuning_sweep import main as _main
+
+    sys.exit(_main())

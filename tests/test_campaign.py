@@ -16,7 +16,8 @@ import pytest
 
 from studies.campaign.cell import CellJob, run_cell
 from studies.campaign.grid import GridError, load_grid, to_toml
-from studies.campaign.runner import SerialExecutor, cell_job, cell_key, run_campaign
+from studies.campaign.executors import SerialExecutor
+from studies.campaign.runner import cell_job, cell_key, run_campaign
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -21,19 +21,14 @@ from pathlib import Path  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from studies.campaign.executors import add_executor_arguments
+
     parser = argparse.ArgumentParser(prog="python -m studies.campaign",
                                      description="Run a campaign grid of HIL runs on Ray.")
     parser.add_argument("grid", help="grid TOML file, or a shipped grid's name (smoke, robustness)")
     parser.add_argument("--out", type=Path, required=True,
                         help="output folder: cells.csv, summary.md, heatmap_*.png, cache/")
-    parser.add_argument("--address", default=None,
-                        help="Ray cluster to use: auto, HOST:PORT or ray://HOST:PORT "
-                             "(default: start a local Ray on 127.0.0.1)")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="local Ray: its workers (default: one per core); cluster: the most "
-                             "cells at once (default: its CPUs)")
-    parser.add_argument("--serial", action="store_true",
-                        help="no Ray: run the cells one by one in this process")
+    add_executor_arguments(parser)
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                         help="tqdm progress bar: cells done, failed, time left (default on)")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
@@ -63,8 +58,9 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     from studies.campaign.grid import load_grid
     from studies.campaign.report import (CsvAppender, summary_markdown, write_cells_csv,
                                          write_heatmaps)
-    from studies.campaign.runner import (CampaignError, Cache, RayExecutor, SerialExecutor,
-                                         cell_job, code_version, run_campaign)
+    from studies.campaign.cell import run_cell
+    from studies.campaign.executors import open_executor
+    from studies.campaign.runner import CampaignError, Cache, cell_job, code_version, run_campaign
     from studies.machine import machine_description
 
     grid = load_grid(args.grid)  # every error before any cell runs
@@ -77,7 +73,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     cache = Cache(out)
     already = [row for row in (cache.get(cell_job(grid, c, version).key) for c in grid.cells) if row]
     appender = CsvAppender(out / "cells.csv", already)
-    executor = SerialExecutor() if args.serial else RayExecutor(args.address, args.workers)
+    executor = open_executor(run_cell, address=args.address, workers=args.workers, serial=args.serial)
     try:
         result = run_campaign(grid, out, executor, progress=args.progress, on_row=appender)
     finally:

@@ -11,11 +11,9 @@ A cell whose run raised is cached with its error (the same inputs fail the same 
 cell whose worker died (Ray) is recorded in the rows but not cached, so the next run
 retries it.
 
-Ray: by default a local Ray on this machine (one worker per core, bound to 127.0.0.1, no
-dashboard, a small object store, usage statistics off); ``address`` (``auto``,
-``HOST:PORT``, ``ray://HOST:PORT``) joins an existing cluster instead. Workers get
-``OPENBLAS_NUM_THREADS=1``, ``OMP_NUM_THREADS=1``, ``MKL_NUM_THREADS=1`` through the
-runtime environment. Ctrl-C cancels the cells in flight and keeps every finished one.
+The cells run on ``studies.campaign.executors`` (Ray, local or a cluster, or this process),
+which the other long studies share. Ctrl-C cancels the cells in flight and keeps every
+finished one.
 """
 from __future__ import annotations
 
@@ -23,21 +21,18 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError
-from studies.campaign.cell import ROOT, CellJob, run_cell
+from studies.campaign.cell import ROOT, CellJob
+from studies.campaign.executors import Executor
 from studies.campaign.grid import Cell, Grid, effective_values, model_file, to_toml
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
-#: Environment of every worker: one BLAS / OpenMP thread (tiny matrices, cores are busy).
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-#: Object store of the local Ray (bytes): the cells pass a few kB each.
-LOCAL_OBJECT_STORE_BYTES = 128 * 1024 * 1024
 #: Data files every cell reads (besides its scenario, path and model).
 DATA_FILES = ("controller/tuning.toml", "models/vehicle.toml", "can_defs/vehicle.dbc",
               "models/artifacts/dk_d5.npz", "models/artifacts/dk_d5.json",
@@ -120,98 +115,6 @@ class Cache:
         os.replace(temporary, path)
 
 
-# ---------------------------------------------------------------------------- executors
-
-#: A finished job: (job, row, cache it?).
-Finished = tuple[CellJob, dict[str, Any], bool]
-
-
-class SerialExecutor:
-    """Runs the cells one by one in this process (``--serial``; tests, debugging)."""
-
-    workers = 1
-    description = "this process, one cell at a time"
-
-    def __init__(self, cell_function: Callable[[CellJob], dict[str, Any]] = run_cell) -> None:
-        self.cell_function = cell_function
-
-    def run(self, jobs: Sequence[CellJob]) -> Iterator[Finished]:
-        for job in jobs:
-            yield job, self.cell_function(job), True
-
-    def close(self) -> None:
-        pass
-
-
-def _ray():
-    try:
-        import ray
-    except ImportError as e:
-        raise CampaignError("Ray is not installed: `make setup` installs it (the campaign "
-                            "extra of pyproject.toml), or use --serial") from e
-    return ray
-
-
-class RayExecutor:
-    """Cells as Ray tasks (one CPU each), at most ``2 x workers`` in flight.
-
-    Args:
-        address: None starts a local Ray; ``auto``, ``HOST:PORT`` or ``ray://HOST:PORT``
-            joins that cluster.
-        workers: local Ray's CPUs (default: this machine's cores); on a cluster the
-            limit of cells running at once (default: the cluster's CPUs).
-    """
-
-    def __init__(self, address: str | None = None, workers: int | None = None,
-                 cell_function: Callable[[CellJob], dict[str, Any]] = run_cell) -> None:
-        ray = _ray()
-        self.ray = ray
-        # No usage statistics (they would leave the machine); keep 127.0.0.1 as given.
-        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-        runtime_env = {"env_vars": dict(WORKER_ENV)}
-        try:
-            if address is None:
-                cpus = workers or os.cpu_count() or 1
-                ray.init(num_cpus=cpus, include_dashboard=False, _node_ip_address="127.0.0.1",
-                         object_store_memory=LOCAL_OBJECT_STORE_BYTES, runtime_env=runtime_env,
-                         log_to_driver=False, configure_logging=False)
-                self.description = f"local Ray on 127.0.0.1, {cpus} workers"
-            else:
-                ray.init(address=address, runtime_env=runtime_env, log_to_driver=False,
-                         configure_logging=False)
-                cpus = int(ray.cluster_resources().get("CPU", 1))
-                self.description = f"Ray cluster at {address}, {cpus} CPUs"
-        except Exception as e:  # noqa: BLE001 - Ray raises many kinds: one message
-            raise CampaignError(f"cannot start or reach Ray ({address or 'local'}): {e}") from e
-        self.workers = max(1, workers or cpus)
-        self.remote = ray.remote(num_cpus=1, max_retries=0)(cell_function)
-
-    def run(self, jobs: Sequence[CellJob]) -> Iterator[Finished]:
-        ray = self.ray
-        pending = list(jobs)[::-1]
-        in_flight: dict[Any, CellJob] = {}
-        try:
-            while pending or in_flight:
-                while pending and len(in_flight) < 2 * self.workers:
-                    job = pending.pop()
-                    in_flight[self.remote.remote(job)] = job
-                done, _ = ray.wait(list(in_flight), num_returns=1)
-                for ref in done:
-                    job = in_flight.pop(ref)
-                    try:
-                        yield job, ray.get(ref), True
-                    except ray.exceptions.RayError as e:  # the worker died, not the run
-                        yield job, {"key": job.key, "completed": 0, "end_reason": "error",
-                                    "error": f"{type(e).__name__}: {str(e).splitlines()[0]}"}, False
-        finally:
-            for ref in in_flight:
-                ray.cancel(ref, force=True)
-
-    def close(self) -> None:
-        self.ray.shutdown()
-
-
 # ---------------------------------------------------------------------------- the campaign
 
 @dataclass
@@ -229,7 +132,7 @@ class CampaignResult:
     notes: list[str] = field(default_factory=list)
 
 
-def run_campaign(grid: Grid, out_dir: Path, executor: Any, *, progress: bool = True,
+def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: bool = True,
                  on_row: Callable[[dict[str, Any]], None] | None = None) -> CampaignResult:
     """Run every cell of ``grid`` not yet cached in ``out_dir``; a KeyboardInterrupt stops
     the campaign and returns what finished (``interrupted`` True)."""
@@ -256,9 +159,11 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Any, *, progress: bool = T
     bar.set_postfix(failed=failed, cached=cached_count)
     stream = executor.run(todo)
     try:
-        for job, row, keep in stream:
+        for job, row, worker_error in stream:
+            if worker_error is not None:  # recorded, not cached: the next run retries it
+                row = {"key": job.key, "completed": 0, "end_reason": "error", "error": worker_error}
             row = {**axes[job.key], **row}
-            if keep:
+            if worker_error is None:
                 cache.put(job.key, row)
             results[job.key] = row
             computed += 1
