@@ -161,8 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--channel", default=None,
                         help="python-can channel (default: CAN_CHANNEL, then python-can's config)")
     parser.add_argument("--bitrate", type=int, default=None, help="bit rate, bit/s (interface dependent)")
-    parser.add_argument("--controller", required=True, choices=CONTROLLER_CHOICES,
-                        help="control law from the controller registry")
+    parser.add_argument("--controller", required=True, choices=CONTROLLER_CHOICES, type=str.lower,
+                        help="control law from the controller registry (any case)")
     parser.add_argument("--path", action="append", required=True, metavar="ID=FILE.csv",
                         help="reference path for PATH_ID (0..255), CSV header x,y,yaw; repeatable")
     mode = parser.add_mutually_exclusive_group(required=True)
@@ -344,3 +344,21 @@ def prepare_codec(dbc: Path | None) -> None:
         prepare(dbc)
     except CanDefsError as error:
         raise ConfigError(str(error)) from error
+
+
+def entry() -> None:
+    """The ``eso-ecu`` console command (pyproject ``[project.scripts]``): `main` with
+    single-threaded BLAS (as ``python -m firmware_sim``: set before numpy loads, which
+    happens only once `main` builds the ECU) and a quiet end when stdout's reader closed
+    the pipe (exit 141 = 128 + SIGPIPE, no BrokenPipeError traceback)."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    try:
+        status = main()
+        sys.stdout.flush()
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        status = 128 + signal.SIGPIPE
+    raise SystemExit(status)

@@ -1,4 +1,7 @@
-"""``python -m hil <subcommand> ...``: the HIL's command line.
+"""``eso-hil <subcommand> ...`` (``python -m hil``): the HIL's command line.
+
+``eso-hil`` is the console command ``pip install`` / ``make setup`` puts into the
+environment's ``bin`` folder (``[project.scripts]`` in pyproject.toml -> `entry`).
 
 Subcommands are modules under ``hil/commands/``, listed in :data:`SUBCOMMANDS`; each
 keeps its module-level imports light (argparse only) and imports its machinery in
@@ -8,7 +11,9 @@ line in the table.
 Errors of the project (``HilError`` and the other packages' bases) print ``error: ...``
 on stderr and exit 1; ``--debug`` shows the traceback instead. SIGINT, SIGTERM and SIGHUP
 all unwind the command the same way (ECU stopped, log flushed, sidecar written) and exit
-130, 143 and 129 (128 + the signal number).
+130, 143 and 129 (128 + the signal number). A reader that closes the pipe early
+(``eso-hil decode LOG | head``) ends the command quietly with 141 (128 + SIGPIPE), as a
+C tool killed by SIGPIPE, not with a BrokenPipeError traceback.
 """
 from __future__ import annotations
 
@@ -50,7 +55,7 @@ def _project_errors() -> tuple[type[BaseException], ...]:
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
     """The top-level parser with every registered subcommand."""
-    parser = argparse.ArgumentParser(prog="python -m hil",
+    parser = argparse.ArgumentParser(prog="eso-hil",
                                      description="Hardware-in-the-loop emulation over CAN.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="SUBCOMMAND")
@@ -87,10 +92,36 @@ def main(argv: list[str] | None = None) -> int:
         signum = getattr(e, "signum", signal.SIGINT)
         print(f"error: stopped by {signal.Signals(signum).name}", file=sys.stderr)
         return 128 + int(signum)
+    except BrokenPipeError:
+        return _closed_pipe()
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
 
 
+#: Exit status when the reader of stdout went away (128 + SIGPIPE).
+EXIT_CLOSED_PIPE = 128 + 13
+
+
+def _closed_pipe() -> int:
+    """stdout's reader is gone: point stdout at /dev/null so the interpreter's final
+    flush does not raise again, and exit as a SIGPIPE'd tool does."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return EXIT_CLOSED_PIPE
+
+
+def entry() -> None:
+    """The ``eso-hil`` console command: `main` plus a quiet end on a closed pipe (the
+    last buffered output is flushed here, where a closed pipe can still be caught)."""
+    status = main()
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        status = _closed_pipe()
+    sys.exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -8,6 +8,7 @@ their own), exactly like sockets on one SocketCAN ``vcan`` device.
 """
 from __future__ import annotations
 
+import errno
 import itertools
 import os
 from dataclasses import dataclass
@@ -46,12 +47,15 @@ class BusConfig:
 
 
 def resolve_bus_config(interface: str | None = None, channel: str | None = None) -> BusConfig:
-    """Interface and channel after python-can's precedence: arguments, then the
-    ``CAN_INTERFACE`` / ``CAN_CHANNEL`` environment, then the python-can config file,
-    then :data:`DEFAULT_INTERFACE` / :data:`DEFAULT_CHANNEL`.
+    """Interface and channel after python-can's precedence (`can.util.load_config`, whole:
+    arguments, ``can.rc``, the ``CAN_INTERFACE`` / ``CAN_CHANNEL`` environment, the config
+    files ``~/can.conf``, ``/etc/can.conf``, ``~/.can``, ``~/.canrc``); only what none of
+    them names falls back to :data:`DEFAULT_INTERFACE` / :data:`DEFAULT_CHANNEL`. So a
+    ``~/.canrc`` that names only ``channel = vcan1`` gives ``virtual:vcan1``.
 
     Raises:
-        BusOpenError: the python-can configuration cannot be read.
+        BusOpenError: the configuration names an interface python-can does not know, or
+            cannot be read.
     """
     given: dict[str, str] = {}
     if interface:
@@ -59,21 +63,31 @@ def resolve_bus_config(interface: str | None = None, channel: str | None = None)
     if channel:
         given["channel"] = channel
     try:
-        config = can.util.load_config(config=given)
-    except (can.CanError, ValueError, NotImplementedError) as e:
-        # load_config refuses a config without an interface; fall back to our default.
-        config = dict(given)
-        if "interface" not in config:
-            config["interface"] = os.environ.get("CAN_INTERFACE") or DEFAULT_INTERFACE
-        if "channel" not in config and not os.environ.get("CAN_CHANNEL"):
-            config["channel"] = DEFAULT_CHANNEL
-        if "interface" not in config:
-            raise BusOpenError(f"cannot resolve the CAN interface: {e}") from e
-    resolved_interface = str(config.get("interface") or DEFAULT_INTERFACE)
+        try:
+            config = can.util.load_config(config=given)
+        except can.CanInterfaceNotImplementedError:
+            if _named_interface(given) is not None:
+                raise  # a name python-can does not know: not ours to replace
+            # Nothing names an interface: the default, as the lowest-priority source
+            # (load_config's first source is the dict given; nothing else named one).
+            config = can.util.load_config(config={**given, "interface": DEFAULT_INTERFACE})
+    except (can.CanError, ValueError, TypeError, OSError) as e:
+        raise BusOpenError(f"cannot open CAN bus: {e} (from the options, $CAN_INTERFACE / "
+                           "$CAN_CHANNEL and python-can's config files)") from e
     resolved_channel = config.get("channel")
     if resolved_channel in (None, ""):
-        resolved_channel = os.environ.get("CAN_CHANNEL") or DEFAULT_CHANNEL
-    return BusConfig(resolved_interface, str(resolved_channel))
+        resolved_channel = DEFAULT_CHANNEL
+    return BusConfig(str(config["interface"]), str(resolved_channel))
+
+
+def _named_interface(given: dict[str, str]) -> str | None:
+    """The interface some python-can configuration source names, None when none does."""
+    sources = (given, can.rc, can.util.load_environment_config(), can.util.load_file_config())
+    for source in sources:
+        name = source.get("interface") or source.get("bustype")
+        if name:
+            return str(name)
+    return None
 
 
 def private_virtual_channel(prefix: str = "hil") -> str:
@@ -94,8 +108,26 @@ def open_bus(config: BusConfig, **kwargs: object) -> can.BusABC:
     try:
         return can.Bus(interface=config.interface, channel=config.channel, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as e:
-        hint = ""
-        if config.interface == "socketcan":
-            hint = (f" (does {config.channel} exist? create it with: sudo ip link add dev "
-                    f"{config.channel} type vcan && sudo ip link set up {config.channel})")
-        raise BusOpenError(f"cannot open CAN bus {config.describe()}: {e}{hint}") from e
+        raise BusOpenError(f"cannot open CAN bus {config.describe()}: {e}"
+                           f"{socketcan_hint(config, e)}") from e
+
+
+def socketcan_hint(config: BusConfig, error: BaseException | None = None) -> str:
+    """Why a SocketCAN channel may not open, telling "no CAN in this kernel" (the socket
+    family is refused, EAFNOSUPPORT, or there is no ``/proc/net/can``: a container or a
+    kernel without the modules; user-mode Linux gives one, docs/vcan.md) from "no such
+    device" (ENODEV: the kernel speaks CAN, the channel is missing: create it); empty for
+    other interfaces."""
+    if config.interface != "socketcan":
+        return ""
+    code = getattr(error, "errno", None) or getattr(getattr(error, "__cause__", None), "errno", None)
+    if code == errno.EAFNOSUPPORT or (code != errno.ENODEV and not os.path.exists("/proc/net/can")):
+        return (" (this kernel has no SocketCAN, no CAN socket family; load the modules with "
+                "`sudo modprobe vcan` on a host that has them, or run the HIL on a real vcan0 "
+                "inside user-mode Linux: make run-uml, docs/vcan.md; or use --interface "
+                "virtual)")
+    if code == errno.ENODEV or not os.path.exists(f"/sys/class/net/{config.channel}"):
+        return (f" (the kernel speaks CAN but there is no device {config.channel}: create it "
+                f"with: sudo ip link add dev {config.channel} type vcan && sudo ip link set up "
+                f"{config.channel})")
+    return f" (is {config.channel} up? sudo ip link set up {config.channel})"

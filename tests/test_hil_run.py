@@ -164,7 +164,9 @@ def test_plant_restart_degrades_then_recovers_through_standby():
 
 @pytest.mark.parametrize("argv, fragment", [
     (["run", "--scenario", "no_such_scenario", "--controller", "lmpc"], "unknown scenario 'no_such_scenario'"),
-    (["run", "--scenario", "dlc_smoke", "--controller", "pid"], "latched FAULT at start-up"),
+    (["run", "--scenario", "dlc_smoke", "--controller", "pid"], "unknown controller 'pid'"),
+    (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--log", "run.txt"],
+     "--log run.txt: unknown log format '.txt'"),
     (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ack-timeout", "0"], "--ack-timeout must be > 0"),
     (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--interface", "socketcan",
       "--channel", "nocan0", "--handshake-timeout", "1"], "cannot open CAN bus socketcan:nocan0"),

@@ -1,12 +1,16 @@
-"""``python -m hil run``: one scenario with one controller over CAN.
+"""``eso-hil run``: one scenario with one controller over CAN.
 
 On the ``virtual`` interface (the default) everything runs in this process; on any other
 interface (``--interface socketcan --channel vcan0``) the ECU is a separate process
-started through ``python -m firmware_sim``. Prints the tracking metrics; ``--out`` writes
+started through ``eso-ecu`` (``python -m firmware_sim``). Prints the tracking metrics as
+JSON, alone on stdout (``wrote`` lines and notes go to stderr); ``--out`` writes
 the time series (``plant.csv``, ``ecu.csv``) and ``summary.json``; ``--log`` records every
-frame (format by suffix: ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ...).
+frame (format by suffix: ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ``.db``, ``.trc``,
+optionally ``.gz``: the formats `hil.logio` reads back; any other suffix is refused before
+the run). A lockstep log is stamped with virtual time (`hil.recorder`).
 
-Every input and output is checked before anything runs or is written: the scenario and
+Every input and output is checked before anything runs or is written: the controller
+name (any case), the scenario and
 its path file (the contract's path checks), the DBC, and the outputs: ``--log`` and
 ``--out`` are never one of the run's inputs, their folders must exist, and an existing log
 or an ``--out`` folder holding another run's outputs is an error unless ``--replace`` is
@@ -17,7 +21,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+from hil.commands import controller_name
 
 HELP = "run one scenario with one controller over CAN (plant, planner, time master, ECU)"
 
@@ -28,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scenario TOML file, or the name of a shipped one (dlc_high_mu)")
     parser.add_argument("--controller", required=True,
                         help="controller of the ECU: eso-dkmpc, dkmpc, lmpc or nmpc, or an ablation "
-                             "(lmpc-eso, dmdc-eso)")
+                             "(lmpc-eso, dmdc-eso); any case")
     parser.add_argument("--interface", default=None,
                         help="python-can interface (default: $CAN_INTERFACE, else virtual)")
     parser.add_argument("--channel", default=None,
@@ -39,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mode.add_argument("--realtime", dest="lockstep", action="store_false",
                       help="every node on its own wall clock")
     parser.add_argument("--log", type=Path, default=None,
-                        help="record every frame to this file (.log candump, .asc, .blf, ...)")
+                        help="record every frame to this file (.log candump, .asc, .blf, .csv, "
+                             ".db, .trc; optionally .gz): the formats eso-hil reads back")
     parser.add_argument("--out", type=Path, default=None,
                         help="folder for plant.csv, ecu.csv and summary.json (its parent must "
                              "exist)")
@@ -74,6 +82,7 @@ def main(args: argparse.Namespace) -> int:
         value = getattr(args, name)
         if value is not None and not value > 0:
             raise HilError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
+    args.controller = controller_name(args.controller)
     scenario = load_scenario(args.scenario)
     check_run_paths(scenario, args.log, args.out, args.replace)
     if args.out is not None:
@@ -93,7 +102,7 @@ def main(args: argparse.Namespace) -> int:
     summary = result.summary()
     if args.out is not None:
         for path in result.write(args.out):
-            print(f"wrote {path}")
+            print(f"wrote {path}", file=sys.stderr)  # stdout: the JSON summary alone
     print(json.dumps(summary, indent=2))
     if summary["active_cycles"] == 0:
         raise HilError(f"the ECU never went ACTIVE in {summary['control_cycles']} control "
@@ -101,7 +110,8 @@ def main(args: argparse.Namespace) -> int:
     if not args.lockstep and summary["realtime_overruns"]:
         share = summary["realtime_overruns"] / max(summary["ticks"], 1)
         print(f"note: {summary['realtime_overruns']} of {summary['ticks']} plant ticks ended after "
-              f"their deadline ({share:.0%}): the plant ran slower than real time here")
+              f"their deadline ({share:.0%}): the plant ran slower than real time here",
+              file=sys.stderr)
     return 0
 
 
@@ -120,17 +130,22 @@ def check_run_paths(scenario: object, log: Path | None, out: Path | None, replac
     """
     from can_defs.codec import prepare
     from can_defs.dbc import DBC_PATH
-    from hil.logio import sidecar_path
-    from hil.output_paths import check_output_file, check_output_folder
+    from hil.errors import HilError, OutputPathError
+    from hil.logio import check_log_suffix, sidecar_path
+    from hil.output_paths import check_not_input, check_output_file, check_output_folder
 
     prepare()  # a DBC that does not load stops the run here, not in its first frame
     inputs = [Path(scenario.source), Path(scenario.path_file), DBC_PATH]  # type: ignore[attr-defined]
     if log is not None:
+        check_not_input(log, "--log", inputs)  # the worst case first: an input overwritten
+        try:
+            check_log_suffix(log)  # only formats the project's own readers read back
+        except HilError as error:  # its message starts with the path: say it once
+            raise OutputPathError(f"--log {log}: {str(error).removeprefix(f'{log}: ')}") from None
         check_output_file(log, "--log", replace=replace, inputs=inputs)
         check_output_file(sidecar_path(log), "--log (sidecar)", replace=replace, inputs=inputs)
     if out is not None:
         check_output_folder(out, "--out", OUT_FILES, replace=replace, inputs=inputs)
         if log is not None and any(Path(log).resolve() == (out / name).resolve()
                                    for name in OUT_FILES):
-            from hil.errors import OutputPathError
             raise OutputPathError(f"--log {log}: is one of the files --out writes")
