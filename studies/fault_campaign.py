@@ -500,6 +500,8 @@ def run_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
         changes["duration_s"] = duration_s
     scenario = dataclasses.replace(scenario, **changes)
     description = "; ".join(f.describe() for f in spec.bus) or case.note or "no fault"
+    if spec.bus and case.name != "cli":
+        description = f"{case.name}: {description}"
     if case.group == "vehicle" and case.note and case.table:
         description = f"{case.name} ({case.note})"
     elif case.group == "vehicle":
@@ -680,7 +682,7 @@ def run_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO
             extra={"ecu_frames_raw": monitor.raw})
     frames_hit = master_bus.record.actions if fault["kind"] == "time_jump" else 1
     verdict = evaluate(case, controller, result, error, counter.unexpected, counter.controller,
-                       case.note, reference_path(scenario), onset_ms=onset_ms,
+                       f"{case.name}: {case.note}", reference_path(scenario), onset_ms=onset_ms,
                        frames_hit=frames_hit)
     if fault["kind"] == "time_jump":
         tasks = sum(1 for tick, frame_id, _ in monitor.raw
@@ -727,8 +729,14 @@ def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
              f"<= {PATH_TOLERANCE_M} m; safe stop = SAFE_STOP and standstill at the end. "
              "Invalid = commands with CMD_VALID = 1 that broke a limit (decoded with cantools "
              "from the DBC, CRC recomputed; |steer| <= 0.3 rad, |torque| <= 3000 N m, mode "
-             "ACTIVE/DEGRADED/SAFE_STOP, no drive torque in SAFE_STOP).", ""]
-    for group, title in (("bus", "Bus faults (ESO-DKMPC)"),
+             "ACTIVE/DEGRADED/SAFE_STOP, no drive torque in SAFE_STOP).", "",
+             "Contract revision 2 cases: implausible plant values with a valid CRC, CAN FD / "
+             "extended-ID / remote / error look-alikes (\"no reaction\" = ACTIVE and none of "
+             "FAULTS bits 0, 1, 3 newly set for the bound), replays, a jump of virtual time "
+             "(HIL_SYNC 10 s ahead: the ECU's clock jumps, the plant's does not) and a lost "
+             "bus (the ECU's interface down for 2.5 s of wall clock; lockstep stops meanwhile, "
+             "so its bounds and figures are wall clock and vary from run to run).", ""]
+    for group, title in (("bus", "Bus, frame-kind and time-base faults (ESO-DKMPC)"),
                          ("vehicle", "Vehicle faults (ESO-DKMPC against DKMPC)")):
         rows = [v for v in verdicts if v.group == group]
         if not rows:
@@ -778,13 +786,14 @@ def figure(verdicts: Sequence[Verdict], path: Path, scenario_name: str = SCENARI
             if v.case == case and v.e_y:
                 ax.plot(v.time_s, v.e_y, label=f"{v.controller} (max |e_Y| {v.max_abs_ey_m:.2f} m)")
         ax.axhline(0.0, color="0.6", linewidth=0.6, label="reference path (e_Y = 0)")
-        ax.set_title(f"fault: {case}", fontsize=9)
+        ax.set_title("no fault (baseline)" if case == "none" else f"fault: {case}", fontsize=9)
         ax.set_ylabel("e_Y (m)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="best")
     axes[-1].set_xlabel("time (s)")
-    fig.suptitle(f"Vehicle faults in {scenario_name} (35 km/h, mu 0.85, lockstep HIL): lateral "
-                 "error e_Y of the true pose to the path, ESO-DKMPC against DKMPC", fontsize=10)
+    fig.suptitle(f"Vehicle faults in {scenario_name} (35 km/h, mu 0.85, lockstep HIL)\n"
+                 "lateral error e_Y of the true pose to the reference path: ESO-DKMPC "
+                 "against DKMPC", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

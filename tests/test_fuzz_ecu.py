@@ -209,6 +209,9 @@ class Driver:
                               is_error_frame=kind == "error", is_fd=kind == "fd")
         if kind == "data" and frame_id == FrameId.HIL_SYNC:
             self.acks.sync(bytes(data))
+        _STATS["kinds"][kind] = _STATS["kinds"].get(kind, 0) + 1
+        if kind != "data" and frame_id == FrameId.HIL_SYNC and bytes(data) == _HANDSHAKE:
+            _STATS["kinds"]["handshake look-alike"] = _STATS["kinds"].get("handshake look-alike", 0) + 1
         self.ecu.handle_message(message)
 
     def run(self, event: tuple) -> None:
@@ -276,7 +279,8 @@ def check_sent(sent: list[can.Message]) -> list[int]:
     return acks
 
 
-_STATS = {"examples": 0, "commands": 0, "valid_commands": 0, "modes": set()}
+_STATS: dict = {"examples": 0, "commands": 0, "valid_commands": 0, "modes": set(), "kinds": {}}
+_HANDSHAKE = encode(HilSync(HANDSHAKE_TICK))
 
 
 @pytest.mark.slow
@@ -312,9 +316,12 @@ def test_fuzz_reached_the_control_modes():
     if _STATS["examples"] == 0:
         pytest.skip("the fuzz test did not run (deselected)")
     print(f"\nfuzz: {_STATS['examples']} examples, {_STATS['commands']} commands, "
-          f"{_STATS['valid_commands']} with CMD_VALID = 1, modes {sorted(_STATS['modes'])}")
+          f"{_STATS['valid_commands']} with CMD_VALID = 1, modes {sorted(_STATS['modes'])}, "
+          f"frames by kind {_STATS['kinds']}")
     assert {"STANDBY", "ACTIVE", "DEGRADED", "SAFE_STOP"} <= _STATS["modes"]
     assert _STATS["valid_commands"] > 0
+    # contract rev. 2: the other frame kinds, and the handshake in them, were really sent
+    assert {"data", "fd", "extended", "remote", "error", "handshake look-alike"} <= set(_STATS["kinds"])
 
 
 def test_driver_reaches_active_and_checks_catch_a_bad_command():
