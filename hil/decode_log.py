@@ -249,19 +249,24 @@ def lateral_deviation(decoded: DecodedLog, path: Any) -> tuple[np.ndarray, np.nd
 
 
 def plot_log(decoded: DecodedLog, path: Any, out: str | Path, title: str = "") -> Path:
-    """Overview figure (module docstring) to ``out`` (PNG, or any matplotlib format).
+    """Overview figure (`overview_figure`) to ``out`` (PNG, or any matplotlib format).
 
     Args:
         decoded: the decoded log.
         path: reference path (`ReferencePath`) for the path panel and e_Y; None skips both.
         out: image file.
     """
+    return _save(overview_figure(decoded, path, title), out)
+
+
+def overview_figure(decoded: DecodedLog, path: Any, title: str = "") -> Any:
+    """The overview (module docstring) as a matplotlib figure: five titled panels with
+    units on both axes and a legend for every line."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out = Path(out)
     figure, axes = plt.subplots(5, 1, figsize=(9, 13), constrained_layout=True)
     speed, steer, yaw_rate, xy, lateral = axes
 
@@ -316,7 +321,7 @@ def plot_log(decoded: DecodedLog, path: Any, out: str | Path, title: str = "") -
         if axis.get_legend_handles_labels()[0]:
             axis.legend(loc="best", fontsize="small")
     figure.suptitle(title or "CAN log overview")
-    return _save(figure, out)
+    return figure
 
 
 #: At most this many panels (messages) in `plot_signals`; the most frequent are shown.
@@ -326,11 +331,20 @@ MAX_SIGNALS_PER_PANEL = 8
 
 
 def plot_signals(decoded: DecodedLog, out: str | Path, title: str) -> Path:
+    """`signals_figure` to ``out``.
+
+    Raises:
+        DecodeLogError: nothing to plot (`nothing_to_plot`) or the file cannot be written.
+    """
+    return _save(signals_figure(decoded, title), out)
+
+
+def signals_figure(decoded: DecodedLog, title: str) -> Any:
     """Figure of a log decoded with another DBC: one panel per message (the
     :data:`MAX_SIGNAL_PANELS` most frequent), a line per signal labelled with its unit.
 
     Raises:
-        DecodeLogError: nothing to plot (`nothing_to_plot`) or the file cannot be written.
+        DecodeLogError: nothing to plot (`nothing_to_plot`).
     """
     import matplotlib
 
@@ -366,7 +380,7 @@ def plot_signals(decoded: DecodedLog, out: str | Path, title: str) -> Path:
     left_out = len(ranked) - len(shown)
     figure.suptitle(title + (f"; {left_out} less frequent messages only in the CSV"
                              if left_out > 0 else ""))
-    return _save(figure, out)
+    return figure
 
 
 def _save(figure: Any, out: str | Path) -> Path:

@@ -152,6 +152,9 @@ def test_play_sends_the_messages_named_in_the_dbc(hil_cli, capsys, foreign_log, 
     finally:
         done.set()
         thread.join()
+        # frames still queued when the thread saw `done`
+        while (message := listener.recv(timeout=0.05)) is not None:
+            received.append(message)
         listener.shutdown()
     captured = capsys.readouterr()
     print(captured.out)

@@ -162,9 +162,21 @@ def goal_lines(figures: list[RunFigures]) -> list[str]:
 
 
 def plot_histograms(figures: list[RunFigures], condition: str, out: Path) -> Path:
-    """One PNG per load condition: histograms of the figures on log-spaced bins (so that
+    """`histogram_figure` of one load condition to the PNG ``out``."""
+    fig = histogram_figure(figures, condition)  # selects the Agg backend first
+    import matplotlib.pyplot as plt
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def histogram_figure(figures: list[RunFigures], condition: str) -> Any:
+    """The figure of one load condition: histograms of the figures on log-spaced bins (so that
     the QP controllers' ~2 ms and NMPC's ~25 ms both show), log counts, controllers
-    overlaid, the 25 ms period dashed."""
+    overlaid, the 25 ms period dashed; every panel titled, one legend for every line (the
+    dashed period included) in the sixth panel."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -173,6 +185,7 @@ def plot_histograms(figures: list[RunFigures], condition: str, out: Path) -> Pat
     runs = [f for f in figures if f.condition == condition]
     fig, axes = plt.subplots(2, 3, figsize=(13.0, 6.5))
     flat = axes.ravel()
+    legend: dict[str, Any] = {}  # label -> line, over all panels
     for ax, (name, label) in zip(flat, FIGURES):
         finite = [f.samples_ms[name][np.isfinite(f.samples_ms[name])] for f in runs]
         top = max((v.max() for v in finite if v.size), default=1.0)
@@ -183,18 +196,22 @@ def plot_histograms(figures: list[RunFigures], condition: str, out: Path) -> Pat
                         label=f.controller, log=True)
         ax.set_xscale("log")
         if top >= 0.5 * PERIOD_MS:
-            ax.axvline(PERIOD_MS, color="k", lw=0.8, ls="--")
-        ax.set_xlabel(f"{label} (ms, log scale)")
-        ax.set_ylabel("cycles")
-    flat[0].legend(fontsize=8)
+            ax.axvline(PERIOD_MS, color="k", lw=0.8, ls="--",
+                       label=f"control period {PERIOD_MS:g} ms (deadline)")
+        ax.set_title(label)
+        ax.set_xlabel(f"{label} [ms, log scale]")
+        ax.set_ylabel("control cycles [count, log scale]")
+        for handle, name in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(name, handle)
+    # One legend for all panels, in the sixth (empty) one: every line drawn, the dashed
+    # deadline included.
+    flat[-1].legend(list(legend.values()), list(legend.keys()), loc="center",
+                    title="lines (all panels)")
     flat[-1].axis("off")
     fig.suptitle(f"ECU timing per control cycle, {condition} (values below "
                  f"{HISTOGRAM_FLOOR_MS} ms in the first bin)")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return fig
 
 
 def as_json(figures: list[RunFigures]) -> list[dict[str, Any]]:
