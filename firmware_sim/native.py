@@ -52,6 +52,7 @@ class _Output(ctypes.Structure):
                 ("status", ctypes.c_int), ("iterations", ctypes.c_int), ("fallback", ctypes.c_int),
                 ("observer_reset", ctypes.c_int), ("n_pred", ctypes.c_int),
                 ("solve_time_s", ctypes.c_double), ("cost", ctypes.c_double), ("slack_max", ctypes.c_double),
+                ("step_time_s", ctypes.c_double),
                 ("predicted_pose", ctypes.c_double * 3 * MAX_HORIZON),
                 ("predicted_state", ctypes.c_double * 3 * MAX_HORIZON)]
 
@@ -138,6 +139,8 @@ class NativeController(Controller):
         self._sample = _Sample()
         self._output = _Output()
         self._path_arrays: tuple[np.ndarray, ...] = ()
+        #: The C core's own time of the last ``step`` (s), without the ctypes call.
+        self.last_step_time_s = 0.0
 
     def set_path(self, path: ReferencePath) -> None:
         """Hand the path's arrays (x, y, yaw unwrapped, s; each (n,)) to the core."""
@@ -159,6 +162,7 @@ class NativeController(Controller):
             setattr(raw, name, float(getattr(sample, name)))
         out = self._output
         self._lib.ecu_step(ctypes.byref(raw), ctypes.byref(out))
+        self.last_step_time_s = out.step_time_s
         n_pred = out.n_pred
         pose = np.ctypeslib.as_array(out.predicted_pose)[:n_pred].copy()
         state = np.ctypeslib.as_array(out.predicted_state)[:n_pred].copy()

@@ -4,14 +4,15 @@
 # data file the C core reads at start-up (tuning + Koopman model + bicycle).
 #   make firmware        - build/firmware/libecu.so, build/firmware/ecu_data.bin
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
+#   make firmware-equivalence - --native vs Python ECU on both full double lane changes
 #   make firmware-asan   - the same tests on an -fsanitize=address,undefined build
 #   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
-.PHONY: firmware firmware-deps firmware-test firmware-asan bench-native
+.PHONY: firmware firmware-deps firmware-test firmware-equivalence firmware-asan bench-native
 
 FW_DIR := build/firmware
 FW_GEN := $(FW_DIR)/gen
 FW_CC ?= gcc
-FW_CFLAGS := -std=c11 -O2 -Wall -Wextra -Werror -fPIC
+FW_CFLAGS := -std=c11 -O2 -Wall -Wextra -Werror -fPIC -fvisibility=hidden
 # Generated OSQP sources: the same flags, minus five warnings the generated code trips
 # (unused static helpers and parameters, missing initialisers, an empty if body, && within ||).
 FW_GEN_CFLAGS := $(FW_CFLAGS) -Wno-unused-function -Wno-missing-field-initializers \
@@ -60,6 +61,10 @@ $(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS)
 ## the C core's tests (libecu.so against the Python controllers)
 firmware-test: firmware
 	$(PY) -m pytest -q tests/test_firmware_c*.py
+
+## the Python ECU with and without --native on both full double lane changes (frames compared)
+firmware-equivalence: firmware
+	ECU_EQUIVALENCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_equivalence.py
 
 ## the C core's tests on a build with -fsanitize=address,undefined (build/firmware-asan)
 firmware-asan: firmware

@@ -50,6 +50,8 @@ static double z_hat[NZ], w_hat[NZ];
 static double local_A[NZ][NZ], local_B[NZ][ECU_NU], local_offset[NZ];
 static double lifted[NZ];
 
+static double seconds_between(const struct timespec *start, const struct timespec *stop);
+
 static double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
 const char *ecu_build_shapes(void) {
@@ -509,7 +511,7 @@ static void make_plan(const ecu_sample_t *sample, double torque, double referenc
   plan->status = solution.status;
   plan->iterations = solution.iterations;
   plan->cost = solution.cost;
-  plan->solve_time_s = (double)(stop.tv_sec - start.tv_sec) + 1e-9 * (double)(stop.tv_nsec - start.tv_nsec);
+  plan->solve_time_s = seconds_between(&start, &stop);
   plan->slack_max = fmax(fmax(solution.slack[0], solution.slack[1]), solution.slack[2]);
   for (int c = 0; c < n_ctrl; c++) plan->steer[c] = solution.steer[c];
   out->n_pred = n_pred;
@@ -565,7 +567,7 @@ static void fallback(int status, double torque, const plan_t *plan, int sample_v
   observer_reset = 0;
 }
 
-void ecu_step(const ecu_sample_t *sample, ecu_output_t *out) {
+static void step_body(const ecu_sample_t *sample, ecu_output_t *out) {
   static double reference[NP][3];
   const double *values = &sample->vx;
   int finite = 1;
@@ -606,4 +608,16 @@ void ecu_step(const ecu_sample_t *sample, ecu_output_t *out) {
   out->slack_max = plan.slack_max;
   out->fallback = 0;
   out->observer_reset = observer_reset;
+}
+
+static double seconds_between(const struct timespec *start, const struct timespec *stop) {
+  return (double)(stop->tv_sec - start->tv_sec) + 1e-9 * (double)(stop->tv_nsec - start->tv_nsec);
+}
+
+void ecu_step(const ecu_sample_t *sample, ecu_output_t *out) {
+  struct timespec start, stop;
+  timespec_get(&start, TIME_UTC);
+  step_body(sample, out);
+  timespec_get(&stop, TIME_UTC);
+  out->step_time_s = seconds_between(&start, &stop);
 }

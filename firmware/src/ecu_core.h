@@ -12,6 +12,11 @@
 
 #include <stddef.h>
 
+/* The library exports these functions only (built with -fvisibility=hidden): the OSQP
+ * sources inside keep their symbols to themselves, so a process that also loads the
+ * Python osqp extension never mixes the two. */
+#define ECU_API __attribute__((visibility("default")))
+
 /* Controller ids, in the order of firmware/tools/ecu_data.py QP_CONTROLLERS. */
 enum ecu_controller { ECU_ESO_DKMPC = 0, ECU_DKMPC = 1, ECU_LMPC = 2, ECU_N_CONTROLLERS = 3 };
 
@@ -32,11 +37,12 @@ typedef struct {
 } ecu_sample_t;
 
 /* controller.base.Command plus StepDebug. predicted_* rows 0..n_pred-1 are steps 1..Np
- * (n_pred = 0 when no plan was made). */
+ * (n_pred = 0 when no plan was made). step_time_s: the whole ecu_step, solve_time_s: the
+ * QP's update and solve (wall clock, for diagnostics only). */
 typedef struct {
   double steer_angle, drive_torque;
   int status, iterations, fallback, observer_reset, n_pred;
-  double solve_time_s, cost, slack_max;
+  double solve_time_s, cost, slack_max, step_time_s;
   double predicted_pose[ECU_MAX_HORIZON][3];
   double predicted_state[ECU_MAX_HORIZON][3];
 } ecu_output_t;
@@ -44,24 +50,24 @@ typedef struct {
 /* Start-up: read the data file (firmware/tools/ecu_data.py) and select controller
  * "eso-dkmpc", "dkmpc" or "lmpc". 0 on success; otherwise -1 and one line in err
  * (the file, the record, and for a shape mismatch the file's and the build's shapes). */
-int ecu_load(const char *data_path, const char *controller, char *err, size_t err_len);
+ECU_API int ecu_load(const char *data_path, const char *controller, char *err, size_t err_len);
 
 /* Set the path: n points x, y (m), yaw (rad, unwrapped) and s (m, arc length from 0), as
  * controller.reference.ReferencePath holds them. Resets the progress. 0 or -1 + err. */
-int ecu_set_path(const double *x, const double *y, const double *yaw, const double *s, int n,
+ECU_API int ecu_set_path(const double *x, const double *y, const double *yaw, const double *s, int n,
                  char *err, size_t err_len);
 
 /* Forget plans, the previous command, progress and the observer (Controller.reset). */
-void ecu_reset(void);
+ECU_API void ecu_reset(void);
 
 /* One control step (Controller.step): never fails; the command is finite and within
  * the limits whatever the sample. */
-void ecu_step(const ecu_sample_t *sample, ecu_output_t *out);
+ECU_API void ecu_step(const ecu_sample_t *sample, ecu_output_t *out);
 
 /* The generator inputs' hashes, one "sha256  path" line each (generated). */
-const char *ecu_version(void);
+ECU_API const char *ecu_version(void);
 
 /* The build's shapes, one line (generated header ecu_build.h). */
-const char *ecu_build_shapes(void);
+ECU_API const char *ecu_build_shapes(void);
 
 #endif
