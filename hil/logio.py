@@ -112,6 +112,21 @@ class LogContents:
         """Data frames with an 11-bit ID of the contract."""
         return sum(self.frames_by_id.values())
 
+    def counts_by_dbc(self, database: Any) -> tuple[Counter[str], Counter[int]]:
+        """Frames per message name of a cantools ``database`` (remote frames included)
+        and per ID outside it; error frames count in neither."""
+        per_name: Counter[str] = Counter()
+        outside: Counter[int] = Counter()
+        for message in self.messages:
+            if message.is_error_frame:
+                continue
+            found = dbc_message(database, message)
+            if found is not None:
+                per_name[found.name] += 1
+            else:
+                outside[message.arbitration_id] += 1
+        return per_name, outside
+
     def summary_lines(self, database: Any = None, dbc_name: str = "") -> list[str]:
         """Human-readable counts (one line each; the warnings are `warnings`, printed
         once on stderr by the commands); with ``database`` (a
@@ -126,16 +141,7 @@ class LogContents:
             outside = self.unknown_ids
             extended_label = "extended-ID frames (not in the DBC)"
         else:
-            per_name: Counter[str] = Counter()
-            outside = Counter()
-            for message in self.messages:
-                if message.is_error_frame:
-                    continue
-                found = dbc_message(database, message)
-                if found is not None:
-                    per_name[found.name] += 1
-                else:
-                    outside[message.arbitration_id] += 1
+            per_name, outside = self.counts_by_dbc(database)
             listed = ", ".join(f"{name} {n}" for name, n in per_name.most_common())
             lines.append(f"  frames of {dbc_name or 'the DBC'}: {sum(per_name.values())} "
                          f"({listed or 'none'})")

@@ -18,6 +18,8 @@ FW_CFLAGS := -std=c11 -O2 -Wall -Wextra -Werror -fPIC -fvisibility=hidden
 FW_GEN_CFLAGS := $(FW_CFLAGS) -Wno-unused-function -Wno-missing-field-initializers \
 	-Wno-empty-body -Wno-parentheses -Wno-unused-parameter
 FW_SAN_FLAGS := -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=all
+# Python itself is not instrumented: the sanitizer runtimes are preloaded into it.
+FW_SAN_PRELOAD = $(shell $(FW_CC) -print-file-name=libasan.so) $(shell $(FW_CC) -print-file-name=libubsan.so)
 FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public -I$(FW_GEN)/qp/inc/private
 FW_SOURCES := $(wildcard firmware/src/*.c)
 FW_HEADERS := $(wildcard firmware/src/*.h)
@@ -71,8 +73,7 @@ firmware-asan: firmware
 	$(MAKE) --no-print-directory FW_DIR=build/firmware-asan FW_EXTRA_CFLAGS="$(FW_SAN_FLAGS)" \
 		build/firmware-asan/libecu.so
 	cp $(FW_DIR)/ecu_data.bin build/firmware-asan/
-	ECU_LIB=build/firmware-asan/libecu.so LD_PRELOAD="$$($(FW_CC) -print-file-name=libasan.so) \
-		$$($(FW_CC) -print-file-name=libubsan.so)" ASAN_OPTIONS=detect_leaks=0 \
+	ECU_LIB=build/firmware-asan/libecu.so LD_PRELOAD="$(FW_SAN_PRELOAD)" ASAN_OPTIONS=detect_leaks=0 \
 		$(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py
 
 ## C control step vs the Python controller step on the same recorded inputs (last line JSON)

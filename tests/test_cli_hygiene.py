@@ -184,3 +184,14 @@ def test_progress_bars_only_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> No
     short = list(range(10))
     assert list(progress(short, len(short), "replay", False)) == short
     assert terminal.getvalue() == ""  # short logs: no bar
+
+
+def test_decode_json_alone_on_stdout(hil_cli, capsys, tmp_path) -> None:
+    status = hil_cli(["decode", str(LOGS / "faults_lmpc.asc"), "--json",
+                      "--csv", str(tmp_path / "d.csv")])
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)  # nothing else on stdout
+    print(captured.err)
+    assert status == 0 and "wrote" in captured.err
+    assert summary["e2e_verdicts"]["crc_error"] == 1 and summary["frames_per_message"]["VEH_DYN"] == 195
+    assert summary["frames"] == 1628 and summary["wrote"] == [str(tmp_path / "d.csv")]

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from controller.base import Command, Controller, SolverStatus, StepDebug, VehicleSample
 from controller.reference import ReferencePath
@@ -162,3 +164,29 @@ def test_cli_native_refuses_unbuilt_controllers(native) -> None:
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1] == ("error: --native: controller 'nmpc' is not in the C core "
                                                       "(it has eso-dkmpc, dkmpc, lmpc)")
+
+
+@pytest.fixture(scope="module")
+def core_on_path(native):
+    """ESO-DKMPC's C core following the double lane change (shared by the fuzz examples)."""
+    core = native.NativeController("eso-dkmpc")
+    core.set_path(ReferencePath.double_lane_change())
+    return core
+
+
+_ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True, width=64)
+_NEAR_PATH = st.tuples(st.floats(0.0, 40.0), st.floats(-3.0, 3.0), st.floats(-1.5, 1.5), st.floats(-30.0, 200.0),
+                       st.floats(-10.0, 10.0), st.floats(-4.0, 4.0), st.floats(-0.4, 0.4),
+                       st.floats(-3000.0, 2000.0), st.floats(0.0, 40.0))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.one_of(st.tuples(*[_ANY_FLOAT] * 9), _NEAR_PATH), min_size=1, max_size=6))
+def test_fuzz_any_samples_give_commands_within_limits(core_on_path, samples) -> None:
+    """Any sequence of samples (NaN, inf, huge, or plausible): finite commands within the
+    limits, a status of the contract, no crash (under make firmware-asan: no finding)."""
+    for values in samples:
+        command, debug = core_on_path.step(VehicleSample(*values))
+        assert math.isfinite(command.steer_angle) and abs(command.steer_angle) <= 0.3
+        assert math.isfinite(command.drive_torque) and -3000.0 <= command.drive_torque <= 2000.0
+        assert debug.status in set(SolverStatus)

@@ -11,7 +11,10 @@ figure. Output files are checked before anything is read: an existing file needs
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 from pathlib import Path
+from typing import Any
 
 from hil.commands import add_dbc_option, display_database, warn
 
@@ -32,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_dbc_option(parser, "decode the log with")
     parser.add_argument("--replace", action="store_true",
                         help="overwrite existing --csv / --plot files")
+    parser.add_argument("--json", action="store_true",
+                        help="print what the log holds as JSON, alone on stdout (the 'wrote' "
+                        "lines go to stderr)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -53,28 +59,59 @@ def main(args: argparse.Namespace) -> int:
         raise OutputPathError(f"--csv and --plot are the same file {args.csv}")
     database, dbc_name = display_database(args.dbc)
     contents = read_log(args.log)
-    for line in contents.summary_lines(database, dbc_name):
-        print(line)
     for warning in contents.warnings:
         warn(f"{args.log}: {warning}")
     decoded = decode_log(contents) if database is None else decode_with_dbc(contents, database)
-    print(f"  time base: {decoded.time_base}")
-    if decoded.e2e_counts:
-        print("  E2E verdicts: " + ", ".join(f"{k} {v}"
-                                             for k, v in sorted(decoded.e2e_counts.items())))
-    if decoded.undecodable:
-        print(f"  frames that did not decode: {decoded.undecodable}")
+    report = sys.stderr if args.json else sys.stdout  # --json: stdout holds the JSON alone
+    if not args.json:
+        for line in contents.summary_lines(database, dbc_name):
+            print(line)
+        print(f"  time base: {decoded.time_base}")
+        if decoded.e2e_counts:
+            print("  E2E verdicts: " + ", ".join(f"{k} {v}"
+                                                 for k, v in sorted(decoded.e2e_counts.items())))
+        if decoded.undecodable:
+            print(f"  frames that did not decode: {decoded.undecodable}")
+    written: list[str] = []
     if args.csv is not None:
         write_csv(decoded, args.csv)
-        print(f"wrote {args.csv} ({len(decoded.rows)} rows)")
+        written.append(str(args.csv))
+        print(f"wrote {args.csv} ({len(decoded.rows)} rows)", file=report)
     if args.plot is not None:
         problem = nothing_to_plot(decoded)
         if problem is not None:
             warn(f"{args.log}: nothing to plot, {args.plot} not written: {problem}")
         else:
             _plot(args, decoded, database, dbc_name, paths)
-            print(f"wrote {args.plot}")
+            written.append(str(args.plot))
+            print(f"wrote {args.plot}", file=report)
+    if args.json:
+        print(json.dumps(_summary(contents, decoded, database, dbc_name, written), indent=2))
     return 0
+
+
+def _summary(contents: Any, decoded: Any, database: Any, dbc_name: str,
+             written: list[str]) -> dict[str, Any]:
+    """What ``--json`` prints: the counts of the text summary, as numbers."""
+    from can_defs.frames import FrameId
+
+    if database is None:
+        per_message = {FrameId(fid).name: n for fid, n in sorted(contents.frames_by_id.items())}
+        outside = dict(contents.unknown_ids)
+    else:
+        counted, outside = contents.counts_by_dbc(database)
+        per_message = dict(counted.most_common())
+    return {
+        "log": str(contents.path), "dbc": dbc_name or "can_defs/vehicle.dbc",
+        "frames": len(contents.messages), "complete": contents.complete,
+        "frames_per_message": per_message,
+        "ids_outside_dbc": {f"0x{fid:03X}": n for fid, n in sorted(outside.items())},
+        "error_frames": contents.error_frames, "remote_frames": contents.remote_frames,
+        "extended_frames": contents.extended_frames, "skipped_lines": contents.skipped_lines,
+        "time_base": decoded.time_base, "e2e_verdicts": dict(sorted(decoded.e2e_counts.items())),
+        "undecodable": decoded.undecodable, "warnings": list(contents.warnings),
+        "wrote": written,
+    }
 
 
 def _plot(args: argparse.Namespace, decoded: object, database: object, dbc_name: str,
