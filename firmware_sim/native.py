@@ -57,6 +57,16 @@ class _Output(ctypes.Structure):
                 ("predicted_state", ctypes.c_double * 3 * MAX_HORIZON)]
 
 
+class _E2EResult(ctypes.Structure):
+    """ecu_e2e_result_t."""
+
+    _fields_ = [("status", ctypes.c_int), ("lost", ctypes.c_int), ("accepted", ctypes.c_int)]
+
+
+#: ecu_rx.h's ecu_e2e_status values, by the names of can_defs.e2e.E2EStatus.
+E2E_STATUS_NAMES = ("OK", "CRC_ERROR", "REPEATED", "LOST", "SEQUENCE_ERROR", "WRONG_LENGTH", "UNKNOWN_ID",
+                    "BAD_TICK")
+
 _library: ctypes.CDLL | None = None
 
 
@@ -86,6 +96,15 @@ def load_library(path: str | Path | None = None) -> ctypes.CDLL:
     library.ecu_reset.restype = None
     library.ecu_step.argtypes = [ctypes.POINTER(_Sample), ctypes.POINTER(_Output)]
     library.ecu_step.restype = None
+    byte_p = ctypes.POINTER(ctypes.c_uint8)
+    library.ecu_e2e_crc.argtypes = [ctypes.c_uint32, byte_p]
+    library.ecu_e2e_crc.restype = ctypes.c_uint8
+    library.ecu_e2e_check.argtypes = [ctypes.c_uint32, byte_p, ctypes.c_int]
+    library.ecu_e2e_check.restype = _E2EResult
+    library.ecu_e2e_reset.argtypes = []
+    library.ecu_e2e_reset.restype = None
+    library.ecu_decode.argtypes = [ctypes.c_uint32, byte_p, ctypes.POINTER(ctypes.c_double)]
+    library.ecu_decode.restype = ctypes.c_int
     library.ecu_version.restype = ctypes.c_char_p
     library.ecu_build_shapes.restype = ctypes.c_char_p
     _library = library
@@ -171,6 +190,44 @@ class NativeController(Controller):
                           predicted_pose=pose, predicted_state=state, fallback=bool(out.fallback),
                           slack_max=out.slack_max, observer_reset=bool(out.observer_reset))
         return Command(steer_angle=out.steer_angle, drive_torque=out.drive_torque), debug
+
+
+def _bytes_pointer(data: bytes) -> ctypes.Array:
+    """A C copy of ``data`` (at least 8 bytes, zero-padded: the C side reads ``length``)."""
+    return (ctypes.c_uint8 * max(len(data), 8)).from_buffer_copy(bytes(data).ljust(8, b"\0"))
+
+
+class NativeE2EMonitor:
+    """The C core's E2E receive (``ecu_e2e_check``): one receiver per contract frame ID.
+
+    Shares the library's one state per process, as ``NativeController`` does.
+    """
+
+    def __init__(self) -> None:
+        self._lib = load_library()
+        self._lib.ecu_e2e_reset()
+
+    def check(self, frame_id: int, data: bytes) -> tuple[str, int, bool]:
+        """(status name of can_defs.e2e.E2EStatus, frames lost, accepted) of one frame."""
+        result = self._lib.ecu_e2e_check(frame_id, _bytes_pointer(data), len(data))
+        return E2E_STATUS_NAMES[result.status], result.lost, bool(result.accepted)
+
+    def reset(self) -> None:
+        """Forget every counter reference."""
+        self._lib.ecu_e2e_reset()
+
+
+def e2e_crc(frame_id: int, data: bytes) -> int:
+    """The C core's CRC-8 of an 8-byte payload (byte 0 not included)."""
+    return int(load_library().ecu_e2e_crc(frame_id, _bytes_pointer(data)))
+
+
+def decode_values(frame_id: int, data: bytes) -> tuple[float, ...] | None:
+    """Physical values of a received frame by the generated C codecs (``ecu_decode``), in
+    can_defs.frames' field order; None for a frame ID the ECU does not receive."""
+    values = (ctypes.c_double * 3)()
+    count = load_library().ecu_decode(frame_id, _bytes_pointer(data), values)
+    return None if count < 0 else tuple(values[:count])
 
 
 def native_controller_factory(controller: str, model: Path | None = None):  # noqa: ANN201 (ECU factory)

@@ -1,7 +1,8 @@
 # The ECU as C firmware (issue 18, docs/firmware.md): the control core libecu.so, built
 # from firmware/src and the sources the generators write at build time (OSQP code
-# generation of the three steering QPs, the build's shapes, the inputs' hashes) plus the
-# data file the C core reads at start-up (tuning + Koopman model + bicycle).
+# generation of the three steering QPs, cantools' C frame codecs, the build's shapes, the
+# inputs' hashes) plus the data file the C core reads at start-up (tuning + Koopman model
+# + bicycle).
 #   make firmware        - build/firmware/libecu.so, build/firmware/ecu_data.bin
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
 #   make firmware-equivalence - --native vs Python ECU on both full double lane changes
@@ -20,12 +21,12 @@ FW_GEN_CFLAGS := $(FW_CFLAGS) -Wno-unused-function -Wno-missing-field-initialize
 FW_SAN_FLAGS := -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=all
 # Python itself is not instrumented: the sanitizer runtimes are preloaded into it.
 FW_SAN_PRELOAD = $(shell $(FW_CC) -print-file-name=libasan.so) $(shell $(FW_CC) -print-file-name=libubsan.so)
-FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public -I$(FW_GEN)/qp/inc/private
+FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/can -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public -I$(FW_GEN)/qp/inc/private
 FW_SOURCES := $(wildcard firmware/src/*.c)
 FW_HEADERS := $(wildcard firmware/src/*.h)
 FW_TOOLS := $(wildcard firmware/tools/*.py)
 # Generator inputs: a change of any regenerates (their hashes are in ecu_version()).
-FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py models/vehicle.toml \
+FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py models/vehicle.toml can_defs/vehicle.dbc \
 	models/artifacts/dk_d5.npz models/artifacts/dk_d5.json
 FW_PACKAGES := gcc cmake
 
@@ -58,6 +59,7 @@ $(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS)
 		$(FW_CC) $(FW_GEN_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -c $$f -o $(FW_DIR)/obj/$$(basename $$f .c).o || exit 1; \
 	done
 	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -shared -o $@ $(FW_SOURCES) $(FW_GEN)/ecu_version.c \
+		$(FW_GEN)/can/vehicle.c \
 		$(FW_DIR)/obj/*.o -lm
 
 ## the C core's tests (libecu.so against the Python controllers)
@@ -68,13 +70,12 @@ firmware-test: firmware
 firmware-equivalence: firmware
 	ECU_EQUIVALENCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_equivalence.py
 
-## the C core's tests on a build with -fsanitize=address,undefined (build/firmware-asan)
+## the C core's tests and fuzz (step, E2E, decode) on a -fsanitize=address,undefined build
 firmware-asan: firmware
 	$(MAKE) --no-print-directory FW_DIR=build/firmware-asan FW_EXTRA_CFLAGS="$(FW_SAN_FLAGS)" \
 		build/firmware-asan/libecu.so
-	cp $(FW_DIR)/ecu_data.bin build/firmware-asan/
 	ECU_LIB=build/firmware-asan/libecu.so LD_PRELOAD="$(FW_SAN_PRELOAD)" ASAN_OPTIONS=detect_leaks=0 \
-		$(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py
+		$(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py tests/test_firmware_c_rx.py
 
 ## C control step vs the Python controller step on the same recorded inputs (last line JSON)
 bench-native: firmware

@@ -7,6 +7,8 @@ Writes under ``--out`` (build/firmware/gen):
   Python controllers' own ``controller.steering_qp.SteeringQp`` for that controller's
   tuning, so the sparsity pattern and the solver settings are those of the Python ECU.
   One copy of the OSQP sources, one workspace per controller (prefixes ``qp_<name>_``).
+- ``can/vehicle.{c,h}``: the frame codecs through cantools' C source generation from
+  ``can_defs/vehicle.dbc`` (pack / unpack, raw <-> physical per signal).
 - ``ecu_build.h``: the shapes the build is for (horizons, model dimensions); a data file
   of another shape is refused at start-up with both shapes named.
 - ``ecu_version.c``: the SHA-256 of every generator input, printed by ``--version`` and
@@ -20,7 +22,9 @@ import shutil
 import sys
 from pathlib import Path
 
+import cantools
 import osqp
+from cantools.database.can.c_source import generate as generate_c_source
 
 from controller.steering_qp import SteeringQp
 from controller.tuning import load_tuning
@@ -50,6 +54,15 @@ def generate_qps(tuning_path: Path | None, out: Path) -> None:
     # The generated Makefile and example main are for a stand-alone demo; mk/firmware.mk builds.
     for extra in ("Makefile", "emosqp.c"):
         (out / extra).unlink(missing_ok=True)
+
+
+def generate_codecs(dbc: Path, out: Path) -> None:
+    """cantools' C codecs of ``dbc`` as ``out/vehicle.{h,c}`` (the fuzzer sources are not kept)."""
+    out.mkdir(parents=True, exist_ok=True)
+    database = cantools.database.load_file(str(dbc))
+    header, source, _, _ = generate_c_source(database, "vehicle", "vehicle.h", "vehicle.c", "vehicle_fuzzer.c")
+    (out / "vehicle.h").write_text(header)
+    (out / "vehicle.c").write_text(source)
 
 
 def build_header(tuning_path: Path | None, model_path: Path) -> str:
@@ -84,7 +97,7 @@ def sha256(path: Path) -> str:
 
 def version_source(inputs: list[Path]) -> str:
     """ecu_version.c: one line per generator input, ``sha256  path``."""
-    text = [f"osqp {osqp.__version__} codegen (embedded mode 2)"]
+    text = [f"osqp {osqp.__version__} codegen (embedded mode 2), cantools {cantools.__version__} C source"]
     for path in inputs:
         shown = path.resolve().relative_to(ROOT) if path.resolve().is_relative_to(ROOT) else path
         text.append(f"{sha256(path)}  {shown}")
@@ -99,13 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="folder of the generated sources")
     parser.add_argument("--tuning", type=Path, default=ROOT / "controller" / "tuning.toml")
     parser.add_argument("--model", type=Path, default=DEFAULT_ARTIFACT)
+    parser.add_argument("--dbc", type=Path, default=ROOT / "can_defs" / "vehicle.dbc")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     generate_qps(args.tuning, args.out / "qp")
+    generate_codecs(args.dbc, args.out / "can")
     (args.out / "ecu_build.h").write_text(build_header(args.tuning, args.model))
     tools = sorted(Path(__file__).resolve().parent.glob("*.py"))
     inputs = [args.tuning, args.model.with_suffix(".npz"), args.model.with_suffix(".json"),
-              ROOT / "controller" / "steering_qp.py", ROOT / "models" / "vehicle.toml", *tools]
+              ROOT / "controller" / "steering_qp.py", ROOT / "models" / "vehicle.toml", args.dbc, *tools]
     (args.out / "ecu_version.c").write_text(version_source(inputs))
     return 0
 
