@@ -519,6 +519,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=defaults.device)
     p.add_argument("--compare-with", type=Path, default=None,
                    help="artefact JSON whose test errors this run must reproduce within 10%% (exit 3 if not)")
+    p.add_argument("--logs", type=Path, nargs="+", default=None, metavar="LOG",
+                   help="train from CAN logs of the contract's bus (or named-column CSVs with "
+                        "--mapping); --out is then a folder (docs/identification.md)")
+    p.add_argument("--log-inputs", choices=("command", "measured"), default="command",
+                   help="--logs: inputs from STEER_TORQUE_CMD (CMD_VALID = 1) or the measured "
+                        "STEER_ANGLE / DRIVE_TORQUE")
+    p.add_argument("--mapping", type=Path, default=None, help="--logs: TOML mapping of named-column CSVs")
+    p.add_argument("--vehicle", type=Path, default=None,
+                   help="--logs: vehicle file of the bicycle's mass and geometry (default models/vehicle.toml)")
+    p.add_argument("--dbc", type=Path, default=None, help="--logs: DBC to decode with (default the contract's)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     return p
@@ -536,17 +546,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )
-        data_dir = Path(args.data)
-        if not data_dir.is_dir():
-            raise KoopmanError(f"data directory not found: {data_dir}")
-        if tuple(args.states)[:3] != DICTIONARY_STATES and args.dictionary == defaults.dictionary:
-            # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
-            print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
-            settings = dataclasses.replace(settings, dictionary=())
-        runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
-        meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
-        result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta)
-        npz_path, json_path = write_artifact(result, args.out)
+        if args.logs:  # issue 20: the data come from CAN logs; --out is a folder
+            from models.log_identification import load_log_runs, write_log_products
+            out_folder = _log_out_folder(args.out)
+            runs, meta, warnings, ts = load_log_runs(args.logs, args.ts, args.log_inputs, args.mapping, args.dbc)
+            result = train(runs, ts, settings, progress=not args.no_progress, metadata=meta)
+            npz_path, json_path = write_artifact(result, out_folder / "koopman")
+            for path in write_log_products(out_folder, result.model, runs, result.test_runs, ts,
+                                           args.vehicle, meta, warnings):
+                print(f"wrote {path}")
+        else:
+            data_dir = Path(args.data)
+            if not data_dir.is_dir():
+                raise KoopmanError(f"data directory not found: {data_dir}")
+            if tuple(args.states)[:3] != DICTIONARY_STATES and args.dictionary == defaults.dictionary:
+                # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
+                print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
+                settings = dataclasses.replace(settings, dictionary=())
+            runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
+            meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
+            result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta)
+            npz_path, json_path = write_artifact(result, args.out)
     except Exception as e:  # noqa: BLE001 - CLI boundary: one line unless --debug
         if args.debug or not _is_input_error(e):
             raise
@@ -562,6 +582,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.compare_with is not None:
         return 0 if compare_test_errors(meta["test_errors"], args.compare_with) else 3
     return 0
+
+
+def _log_out_folder(out: str | Path) -> Path:
+    """``--out`` of ``--logs``: a folder (created; its parent must exist), never the
+    committed artefact's default path."""
+    folder = Path(out)
+    if folder.resolve() == Path("models/artifacts/dk_d5").resolve():
+        raise KoopmanError("--logs needs --out DIR (a folder for koopman.npz/.json, bicycle.json, "
+                           "report.md); the default would overwrite the committed artefact")
+    if not folder.parent.is_dir():
+        raise KoopmanError(f"--out {folder}: folder {folder.parent} does not exist")
+    folder.mkdir(exist_ok=True)
+    return folder
 
 
 def compare_test_errors(test_errors: dict, reference_json: Path, tolerance: float = 0.10) -> bool:
