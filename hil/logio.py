@@ -16,7 +16,7 @@
   timestamps relative to the first frame. The recorder stamps lockstep logs with the
   same rule (wall-clock start + virtual time), so every tool sees the drive's true speed.
 - Sidecar ``<log>.json`` (`LogMetadata`): which controller and reference paths produced
-  a log, so `python -m hil replay` needs no flags for logs written by ``make run``.
+  a log, so `eso-hil replay` needs no flags for logs written by ``make run``.
 """
 from __future__ import annotations
 

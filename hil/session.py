@@ -6,7 +6,7 @@ Where the ECU runs depends on the bus:
 - python-can's ``virtual`` interface exists only inside one process, so the ECU runs
   in-process: its own bus object and ``firmware_sim.ecu.Ecu`` in a thread;
 - any other interface (SocketCAN ``vcan0``, a real adapter) gets the ECU as a separate
-  process through its CLI (``python -m firmware_sim ...``), stopped with SIGTERM at the
+  process through its CLI (``eso-ecu``: ``python -m firmware_sim ...``), stopped with SIGTERM at the
   end. Only CAN frames pass between the two, as on a vehicle.
 
 Results: the plant's true time series (5 ms ticks), the ECU's frames per control cycle,
@@ -324,7 +324,7 @@ def run_hil(scenario: Scenario, options: RunOptions,
                 # for a longer quiet spell so the log keeps it
                 # (and on an interrupted run the recorder may still be catching up)
                 recorder.stop(settle_s=0.1 if options.bus.is_virtual else 0.3, max_wait_s=5.0)
-                # Sidecar so `python -m hil replay LOG` needs no flags.
+                # Sidecar so `eso-hil replay LOG` needs no flags.
                 write_sidecar(options.log_path, LogMetadata(
                     controller=options.controller,
                     mode="lockstep" if options.lockstep else "realtime",

@@ -40,7 +40,7 @@ EXIT_DIFFERENT = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``python -m hil replay``."""
+    """Options of ``eso-hil replay``."""
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
                         ".trc; optionally .gz)")
     parser.add_argument("--controller", default=None,

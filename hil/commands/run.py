@@ -30,7 +30,7 @@ HELP = "run one scenario with one controller over CAN (plant, planner, time mast
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``python -m hil run``."""
+    """Options of ``eso-hil run``."""
     parser.add_argument("--scenario", required=True,
                         help="scenario TOML file, or the name of a shipped one (dlc_high_mu)")
     parser.add_argument("--controller", required=True,
