@@ -41,6 +41,10 @@ EXIT_DIFFERENT = 3
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``eso-hil replay``."""
+    parser.epilog = ("exit status (every mode): 0 MATCH, 3 DIFFERENT (or the ECU stopped "
+                     "answering), 1 error, 2 bad option; with --write-ref: 0 written, 1 not "
+                     "written. Give --json after LOG (eso-hil replay LOG --json): before it, "
+                     "--json takes LOG as its FILE.")
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
                         ".trc; optionally .gz)")
     parser.add_argument("--controller", default=None,
