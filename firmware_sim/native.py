@@ -33,6 +33,8 @@ DEFAULT_LIBRARY = ROOT / "build" / "firmware" / "libecu.so"
 DEFAULT_DATA = ROOT / "build" / "firmware" / "ecu_data.bin"
 #: The controllers the C core implements (NMPC and the ablations stay Python).
 NATIVE_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
+#: ecu_core.h ECU_MAX_PATH_POINTS: the contract's largest path.
+MAX_PATH_POINTS = 100_000
 #: ecu_core.h ECU_MAX_HORIZON: rows of the predicted arrays.
 MAX_HORIZON = 200
 _ERROR_BYTES = 512
@@ -92,6 +94,10 @@ def load_library(path: str | Path | None = None) -> ctypes.CDLL:
     library.ecu_set_path.argtypes = [double_p, double_p, double_p, double_p, ctypes.c_int, ctypes.c_char_p,
                                      ctypes.c_size_t]
     library.ecu_set_path.restype = ctypes.c_int
+    library.ecu_load_path_csv.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_size_t]
+    library.ecu_load_path_csv.restype = ctypes.c_int
+    library.ecu_path_copy.argtypes = [double_p, double_p, double_p, double_p, ctypes.c_int]
+    library.ecu_path_copy.restype = ctypes.c_int
     library.ecu_reset.argtypes = []
     library.ecu_reset.restype = None
     library.ecu_step.argtypes = [ctypes.POINTER(_Sample), ctypes.POINTER(_Output)]
@@ -169,6 +175,23 @@ class NativeController(Controller):
         if self._lib.ecu_set_path(*pointers, len(arrays[0]), error, _ERROR_BYTES) != 0:
             raise ConfigError(f"{path.name or 'path'}: {error.value.decode(errors='replace')}")
         self._path_arrays = arrays  # the core copied them; kept only for inspection
+
+    def load_path_file(self, file: str | Path) -> None:
+        """Read and check a path CSV in C (``ecu_load_path_csv``, as the executable does).
+
+        Raises:
+            ConfigError: the C reader's message (file, line, check), as PathError's.
+        """
+        error = ctypes.create_string_buffer(_ERROR_BYTES)
+        if self._lib.ecu_load_path_csv(str(file).encode(), error, _ERROR_BYTES) != 0:
+            raise ConfigError(error.value.decode(errors="replace"))
+
+    def path_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The core's path: x, y, yaw (unwrapped), s, each (n,)."""
+        arrays = [np.empty(MAX_PATH_POINTS) for _ in range(4)]
+        pointers = [a.ctypes.data_as(ctypes.POINTER(ctypes.c_double)) for a in arrays]
+        n = self._lib.ecu_path_copy(*pointers, MAX_PATH_POINTS)
+        return tuple(a[:n].copy() for a in arrays)
 
     def reset(self) -> None:
         """Forget plans, progress and the observer (``ecu_reset``)."""

@@ -22,7 +22,8 @@ FW_SAN_FLAGS := -fsanitize=address,undefined -fno-omit-frame-pointer -fno-saniti
 # Python itself is not instrumented: the sanitizer runtimes are preloaded into it.
 FW_SAN_PRELOAD = $(shell $(FW_CC) -print-file-name=libasan.so) $(shell $(FW_CC) -print-file-name=libubsan.so)
 FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/can -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public -I$(FW_GEN)/qp/inc/private
-FW_SOURCES := $(wildcard firmware/src/*.c)
+# The library: every source but the executable's main.
+FW_SOURCES := $(filter-out firmware/src/ecu_main.c,$(wildcard firmware/src/*.c))
 FW_HEADERS := $(wildcard firmware/src/*.h)
 FW_TOOLS := $(wildcard firmware/tools/*.py)
 # Generator inputs: a change of any regenerates (their hashes are in ecu_version()).
@@ -30,8 +31,8 @@ FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py mo
 	models/artifacts/dk_d5.npz models/artifacts/dk_d5.json
 FW_PACKAGES := gcc cmake
 
-## build the C control core build/firmware/libecu.so and its data file (generated QPs)
-firmware: firmware-deps $(FW_DIR)/libecu.so $(FW_DIR)/ecu_data.bin
+## build the C control core build/firmware/libecu.so, the executable ecu and the data file
+firmware: firmware-deps $(FW_DIR)/libecu.so $(FW_DIR)/ecu $(FW_DIR)/ecu_data.bin
 
 # make test builds the firmware first (its tests load libecu.so).
 test: firmware
@@ -61,6 +62,14 @@ $(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS)
 	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -shared -o $@ $(FW_SOURCES) $(FW_GEN)/ecu_version.c \
 		$(FW_GEN)/can/vehicle.c \
 		$(FW_DIR)/obj/*.o -lm
+
+# The executable: the same sources linked statically into one program (no libecu.so
+# needed at run time); -fstack-usage writes each function's stack use (obj-ecu/*.su).
+$(FW_DIR)/ecu: $(FW_DIR)/libecu.so firmware/src/ecu_main.c
+	@mkdir -p $(FW_DIR)/obj-ecu
+	cd $(FW_DIR)/obj-ecu && $(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) -fstack-usage $(addprefix -I$(CURDIR)/,$(subst -I,,$(FW_INCLUDES))) \
+		-c $(addprefix $(CURDIR)/,$(FW_SOURCES) firmware/src/ecu_main.c $(FW_GEN)/ecu_version.c $(FW_GEN)/can/vehicle.c)
+	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) -o $@ $(FW_DIR)/obj-ecu/*.o $(FW_DIR)/obj/*.o -lm
 
 ## the C core's tests (libecu.so against the Python controllers)
 firmware-test: firmware

@@ -12,9 +12,9 @@
 #include <math.h>
 #include <stdio.h>
 #include <string.h>
-#include <time.h>
 
 #include "ecu_internal.h"
+#include "os.h"
 
 #define NP ECU_NP_MAX
 #define NC ECU_NC_MAX
@@ -49,8 +49,6 @@ static int observer_running, observer_reset;
 static double z_hat[NZ], w_hat[NZ];
 static double local_A[NZ][NZ], local_B[NZ][ECU_NU], local_offset[NZ];
 static double lifted[NZ];
-
-static double seconds_between(const struct timespec *start, const struct timespec *stop);
 
 static double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -114,6 +112,15 @@ int ecu_set_path(const double *x, const double *y, const double *yaw, const doub
   path_n = n;
   has_progress = 0;
   return 0;
+}
+
+int ecu_path_copy(double *x, double *y, double *yaw, double *s, int max) {
+  int n = path_n < max ? path_n : max;
+  memcpy(x, path_x, (size_t)n * sizeof(double));
+  memcpy(y, path_y, (size_t)n * sizeof(double));
+  memcpy(yaw, path_yaw, (size_t)n * sizeof(double));
+  memcpy(s, path_s, (size_t)n * sizeof(double));
+  return path_n;
 }
 
 void ecu_reset(void) {
@@ -503,15 +510,13 @@ static void make_plan(const ecu_sample_t *sample, double torque, double referenc
       pose_offset[i][x] = poses[i][x] - s - reference[i][x];
     }
   /* The QP's arrays are (Np * 3, Nc) row-major: jac, and gain / free of steps 1..Np. */
-  struct timespec start, stop;
-  timespec_get(&start, TIME_UTC);
+  int64_t start = os_monotonic_ns();
   ecu_qp_solve(&jac[0][0][0], &pose_offset[0][0], previous_steer(sample), &gain[1][0][0], &free[1][0], nominal,
                &solution);
-  timespec_get(&stop, TIME_UTC);
+  plan->solve_time_s = 1e-9 * (double)(os_monotonic_ns() - start);
   plan->status = solution.status;
   plan->iterations = solution.iterations;
   plan->cost = solution.cost;
-  plan->solve_time_s = seconds_between(&start, &stop);
   plan->slack_max = fmax(fmax(solution.slack[0], solution.slack[1]), solution.slack[2]);
   for (int c = 0; c < n_ctrl; c++) plan->steer[c] = solution.steer[c];
   out->n_pred = n_pred;
@@ -610,14 +615,8 @@ static void step_body(const ecu_sample_t *sample, ecu_output_t *out) {
   out->observer_reset = observer_reset;
 }
 
-static double seconds_between(const struct timespec *start, const struct timespec *stop) {
-  return (double)(stop->tv_sec - start->tv_sec) + 1e-9 * (double)(stop->tv_nsec - start->tv_nsec);
-}
-
 void ecu_step(const ecu_sample_t *sample, ecu_output_t *out) {
-  struct timespec start, stop;
-  timespec_get(&start, TIME_UTC);
+  int64_t start = os_monotonic_ns();
   step_body(sample, out);
-  timespec_get(&stop, TIME_UTC);
-  out->step_time_s = seconds_between(&start, &stop);
+  out->step_time_s = 1e-9 * (double)(os_monotonic_ns() - start);
 }

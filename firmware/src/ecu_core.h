@@ -57,6 +57,13 @@ ECU_API int ecu_load(const char *data_path, const char *controller, char *err, s
 ECU_API int ecu_set_path(const double *x, const double *y, const double *yaw, const double *s, int n,
                  char *err, size_t err_len);
 
+/* Read and check a path CSV as controller.reference.ReferencePath.from_csv does (the
+ * contract's checks, the same messages), then ecu_set_path. 0 or -1 + err. */
+ECU_API int ecu_load_path_csv(const char *file, char *err, size_t err_len);
+
+/* Copy the current path (at most max points) out; returns its number of points. */
+ECU_API int ecu_path_copy(double *x, double *y, double *yaw, double *s, int max);
+
 /* Forget plans, the previous command, progress and the observer (Controller.reset). */
 ECU_API void ecu_reset(void);
 

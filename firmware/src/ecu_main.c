@@ -1,0 +1,170 @@
+/*
+ * build/firmware/ecu: the ECU executable, first part. What it does today:
+ *
+ *   ecu --version
+ *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
+ *       --replay SAMPLES.csv [--realtime]
+ *
+ * --replay steps the control core on recorded samples (CSV header
+ * vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed) and writes one CSV row per
+ * step to stdout; --realtime paces the steps on absolute 25 ms deadlines and counts
+ * overruns on stderr. Everything is loaded and checked at start-up (data file, every path
+ * file); bad input is one "error: ..." line on stderr and exit status 2. The bus loop
+ * (SocketCAN, lockstep, modes, E2E on received frames) is not in the executable yet.
+ */
+#include <errno.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "ecu_core.h"
+#include "os.h"
+
+#define EXIT_USAGE 2
+#define MAX_PATHS 256
+#define PERIOD_NS 25000000 /* Ts = 25 ms */
+#define N_SAMPLE_FIELDS 9
+
+static const char *const SAMPLE_HEADER = "vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed";
+static const char *const USAGE =
+  "usage: ecu --version\n"
+  "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
+  "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
+
+static volatile sig_atomic_t stop_requested;
+
+static int fail(const char *message) {
+  fprintf(stderr, "error: %s\n", message);
+  return EXIT_USAGE;
+}
+
+/* "ID=FILE" -> id 0..255 and the file; 0 or -1. */
+static int parse_path_argument(const char *text, int *id, const char **file) {
+  char *end;
+  const char *equals = strchr(text, '=');
+  if (!equals || equals == text || equals[1] == '\0') return -1;
+  long value = strtol(text, &end, 10);
+  if (end != equals || value < 0 || value > 255) return -1;
+  *id = (int)value;
+  *file = equals + 1;
+  return 0;
+}
+
+static int replay(FILE *samples, const char *name, int realtime) {
+  static char line[4096];
+  char message[600];
+  int row = 1, overruns = 0;
+  ecu_output_t out;
+  if (!fgets(line, sizeof line, samples)) return fail("--replay: empty samples file");
+  line[strcspn(line, "\r\n")] = '\0';
+  if (strcmp(line, SAMPLE_HEADER) != 0) {
+    snprintf(message, sizeof message, "--replay %s: line 1: header must be '%s'", name, SAMPLE_HEADER);
+    return fail(message);
+  }
+  printf("steer_angle,drive_torque,status,iterations,fallback,observer_reset,step_time_us\n");
+  int64_t deadline = os_monotonic_ns();
+  while (!stop_requested && fgets(line, sizeof line, samples)) {
+    double values[N_SAMPLE_FIELDS];
+    char *cursor = line, *end;
+    row++;
+    for (int i = 0; i < N_SAMPLE_FIELDS; i++) {
+      errno = 0;
+      values[i] = strtod(cursor, &end);
+      if (end == cursor || (i + 1 < N_SAMPLE_FIELDS ? *end != ',' : (*end != '\0' && *end != '\n' && *end != '\r'))) {
+        snprintf(message, sizeof message, "--replay %s: line %d: expected %d numbers", name, row, N_SAMPLE_FIELDS);
+        return fail(message);
+      }
+      cursor = end + 1;
+    }
+    if (realtime) {
+      deadline += PERIOD_NS;
+      if (os_monotonic_ns() > deadline) overruns++;
+      os_sleep_until_ns(deadline);
+    }
+    ecu_sample_t sample = {values[0], values[1], values[2], values[3], values[4],
+                           values[5], values[6], values[7], values[8]};
+    ecu_step(&sample, &out);
+    printf("%.17g,%.17g,%d,%d,%d,%d,%.3f\n", out.steer_angle, out.drive_torque, out.status, out.iterations,
+           out.fallback, out.observer_reset, out.step_time_s * 1e6);
+  }
+  if (realtime) fprintf(stderr, "replay: %d steps, %d overruns of the 25 ms deadline\n", row - 1, overruns);
+  return 0;
+}
+
+int main(int argc, char **argv) {
+  const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
+  const char *path_files[MAX_PATHS];
+  int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0;
+  char err[600], message[800];
+  for (int i = 1; i < argc; i++) {
+    const char *arg = argv[i], *value = i + 1 < argc ? argv[i + 1] : NULL;
+    if (strcmp(arg, "--version") == 0) {
+      printf("ecu (ESO-DKMPC firmware), build shapes: %s\n%s", ecu_build_shapes(), ecu_version());
+      return 0;
+    } else if (strcmp(arg, "--realtime") == 0) {
+      realtime = 1;
+    } else if (!value && (strcmp(arg, "--controller") == 0 || strcmp(arg, "--path") == 0 ||
+                          strcmp(arg, "--data") == 0 || strcmp(arg, "--replay") == 0 ||
+                          strcmp(arg, "--path-id") == 0)) {
+      snprintf(message, sizeof message, "%s needs a value", arg);
+      fputs(USAGE, stderr);
+      return fail(message);
+    } else if (strcmp(arg, "--controller") == 0) {
+      controller = argv[++i];
+    } else if (strcmp(arg, "--data") == 0) {
+      data = argv[++i];
+    } else if (strcmp(arg, "--replay") == 0) {
+      samples_file = argv[++i];
+    } else if (strcmp(arg, "--path-id") == 0) {
+      char *end;
+      long id = strtol(argv[++i], &end, 10);
+      if (*end != '\0' || id < 0 || id > 255) return fail("--path-id: expected an integer in 0..255");
+      selected = (int)id;
+    } else if (strcmp(arg, "--path") == 0) {
+      int id;
+      const char *file;
+      if (parse_path_argument(argv[++i], &id, &file) != 0) {
+        snprintf(message, sizeof message, "--path '%s': expected ID=FILE.csv with ID in 0..255", argv[i]);
+        return fail(message);
+      }
+      for (int k = 0; k < n_paths; k++)
+        if (path_ids[k] == id) {
+          snprintf(message, sizeof message, "--path '%s': PATH_ID %d given twice (already %s)", argv[i], id,
+                   path_files[k]);
+          return fail(message);
+        }
+      if (n_paths < MAX_PATHS) {
+        path_ids[n_paths] = id;
+        path_files[n_paths++] = file;
+      }
+    } else {
+      snprintf(message, sizeof message, "unknown argument %s", arg);
+      fputs(USAGE, stderr);
+      return fail(message);
+    }
+  }
+  if (!controller || n_paths == 0) {
+    fputs(USAGE, stderr);
+    return fail("--controller and at least one --path are required");
+  }
+  if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);
+  /* Every path file is checked at start-up; the selected one is loaded last. */
+  int chosen = 0;
+  for (int k = 0; k < n_paths; k++) {
+    if (path_ids[k] == selected) chosen = k;
+    if (ecu_load_path_csv(path_files[k], err, sizeof err) != 0) return fail(err);
+  }
+  if (selected >= 0 && path_ids[chosen] != selected) return fail("--path-id: no --path with that ID");
+  if (ecu_load_path_csv(path_files[chosen], err, sizeof err) != 0) return fail(err);
+  if (!samples_file) return fail("the bus loop is not in the C ECU yet: give --replay SAMPLES.csv (docs/firmware.md)");
+  FILE *samples = fopen(samples_file, "r");
+  if (!samples) {
+    snprintf(message, sizeof message, "--replay %s: cannot read: %s", samples_file, strerror(errno));
+    return fail(message);
+  }
+  os_install_stop_handler(&stop_requested);
+  int status = replay(samples, samples_file, realtime);
+  fclose(samples);
+  return status;
+}
