@@ -155,6 +155,20 @@ def test_data_of_another_shape_is_refused(native, tmp_path: Path) -> None:
         native.NativeController("nmpc")
 
 
+def test_cli_native_refuses_a_model_of_another_shape(native) -> None:
+    """--native --model with an artefact of another shape: both shapes named, exit 2."""
+    path = ROOT / "hil" / "paths" / "dlc.csv"
+    model = ROOT / "models" / "artifacts" / "dk_paper_nominal"
+    result = subprocess.run([sys.executable, "-m", "firmware_sim", "--interface", "virtual", "--channel",
+                             "native-cli-test", "--controller", "eso-dkmpc", "--path", f"1={path}", "--lockstep",
+                             "--native", "--model", str(model)], cwd=ROOT, capture_output=True, text=True,
+                            timeout=60, check=False)
+    assert result.returncode == 2
+    line = result.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: ") and ("the model's shape (form linear, 1 knots, n_z 8) differs from this "
+                                           "build's (form scheduled, 7 knots, n_z 9)") in line
+
+
 def test_cli_native_refuses_unbuilt_controllers(native) -> None:
     """--native with a controller the C core lacks: one error line before the bus, exit 2."""
     path = ROOT / "hil" / "paths" / "dlc.csv"

@@ -34,8 +34,7 @@ static int check_shape(const char *path, uint32_t rank, const uint32_t *dims, ch
   if (rec_rank != rank || memcmp(rec_dims, dims, rank * sizeof(uint32_t)) != 0) {
     format_shape(got, sizeof got, rec_rank, rec_dims);
     format_shape(want, sizeof want, rank, dims);
-    snprintf(err, err_len, "%s: record %s has shape %s, this build needs %s (rebuild with make firmware "
-             "for this model or tuning)", path, rec_name, got, want);
+    snprintf(err, err_len, "%s: record %s has shape %s, this build needs %s", path, rec_name, got, want);
     return -1;
   }
   return 0;
@@ -113,7 +112,7 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
     if (check_shape(path, 1, one, err, err_len)) return -1;
     cfg->form = (int)rec_values[0];
     if (cfg->form != ECU_FORM) {
-      snprintf(err, err_len, "%s: model form %d, this build is for form %d (0 linear, 2 scheduled)",
+      snprintf(err, err_len, "%s: record koopman.form is %d, this build needs %d (0 linear, 2 scheduled)",
                path, cfg->form, ECU_FORM);
       return -1;
     }
@@ -181,12 +180,16 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
   return 0;
 }
 
+static const char *form_name(int form) { return form == 0 ? "linear" : (form == 2 ? "scheduled" : "unknown"); }
+
 int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len) {
   static const int WIDTHS[] = ECU_LAYER_WIDTHS;
   char magic[8];
   uint32_t count = 0;
   unsigned long seen = 0, wanted = (1ul << (13 + 2 * ECU_N_LAYERS)) - 1ul;
   int weight_at = 0, bias_at = 0;
+  int model_mismatch = 0, file_form = -1, file_knots = 0, file_nz = 0;
+  char detail[200] = "";
   memset(cfg, 0, sizeof *cfg);
   for (int i = 0; i < ECU_N_LAYERS; i++) {
     cfg->layer_in[i] = i == 0 ? ECU_NX : WIDTHS[i - 1];
@@ -225,6 +228,11 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
       rec_dims[i] = head[1 + i];
       if (i < (int)rec_rank) n *= rec_dims[i];
     }
+    int is_model = strncmp(rec_name, "koopman.", 8) == 0;
+    if (strcmp(rec_name, "koopman.A") == 0 && rec_rank == 3) {
+      file_knots = (int)rec_dims[0];
+      file_nz = (int)rec_dims[1];
+    }
     if (n > MAX_RECORD_VALUES) {
       /* Larger than anything this build stores: its shape cannot be the build's. */
       if (fseek(file, (long)(n * sizeof(double)), SEEK_CUR) != 0) {
@@ -233,7 +241,10 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
         break;
       }
       rec_values[0] = NAN;
-      if (strncmp(rec_name, "koopman.", 8) == 0 || strncmp(rec_name, "tuning.", 7) == 0) {
+      if (is_model && !model_mismatch) {
+        snprintf(detail, sizeof detail, "record %s holds %zu values", rec_name, n);
+        model_mismatch = 1;
+      } else if (strncmp(rec_name, "tuning.", 7) == 0) {
         snprintf(err, err_len, "%s: record %s holds %zu values, more than any shape of this build", path,
                  rec_name, n);
         status = -1;
@@ -245,9 +256,26 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
       status = -1;
       break;
     }
-    status = store_record(path, cfg, &seen, err, err_len);
+    if (strcmp(rec_name, "koopman.form") == 0 && n == 1) file_form = (int)rec_values[0];
+    if (is_model) {
+      /* A model of another shape: read on, then name both shapes (below). */
+      char record_err[300];
+      if (store_record(path, cfg, &seen, record_err, sizeof record_err) != 0 && !model_mismatch) {
+        const char *what = strstr(record_err, "record ");
+        snprintf(detail, sizeof detail, "%s", what ? what : "model form");
+        model_mismatch = 1;
+      }
+    } else {
+      status = store_record(path, cfg, &seen, err, err_len);
+    }
   }
   fclose(file);
+  if (status == 0 && model_mismatch) {
+    snprintf(err, err_len, "%s: the model's shape (form %s, %d knots, n_z %d) differs from this build's "
+             "(form %s, %d knots, n_z %d): %.150s; rebuild with make firmware for this model", path,
+             form_name(file_form), file_knots, file_nz, form_name(ECU_FORM), ECU_NK, ECU_NZ, detail);
+    status = -1;
+  }
   if (status == 0 && (seen & wanted) != wanted) {
     static const char *const NAMES[13] = {"ts", "longitudinal", "bicycle", "tuning.eso-dkmpc", "tuning.dkmpc",
                                           "tuning.lmpc", "koopman.form", "koopman.knots", "koopman.A",
