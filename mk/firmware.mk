@@ -6,7 +6,7 @@
 #   make firmware        - build/firmware/libecu.so, build/firmware/ecu_data.bin
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
 #   make firmware-equivalence - --native vs Python ECU on both full double lane changes
-#   make firmware-asan   - the same tests on an -fsanitize=address,undefined build
+#   make firmware-asan   - the same tests on an -fsanitize=address,undefined build (build/firmware-asan)
 #   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
 .PHONY: firmware firmware-deps firmware-test firmware-equivalence firmware-asan bench-native
 
@@ -79,12 +79,13 @@ firmware-test: firmware
 firmware-equivalence: firmware
 	ECU_EQUIVALENCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_equivalence.py
 
-## the C core's tests and fuzz (step, E2E, decode) on a -fsanitize=address,undefined build
+## the C tests and fuzz (step, E2E, decode, executable) on a -fsanitize=address,undefined build
 firmware-asan: firmware
 	$(MAKE) --no-print-directory FW_DIR=build/firmware-asan FW_EXTRA_CFLAGS="$(FW_SAN_FLAGS)" \
-		build/firmware-asan/libecu.so
-	ECU_LIB=build/firmware-asan/libecu.so LD_PRELOAD="$(FW_SAN_PRELOAD)" ASAN_OPTIONS=detect_leaks=0 \
-		$(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py tests/test_firmware_c_rx.py
+		build/firmware-asan/libecu.so build/firmware-asan/ecu
+	ECU_LIB=build/firmware-asan/libecu.so ECU_EXE=build/firmware-asan/ecu LD_PRELOAD="$(FW_SAN_PRELOAD)" \
+		ASAN_OPTIONS=detect_leaks=0 $(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py \
+		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py
 
 ## C control step vs the Python controller step on the same recorded inputs (last line JSON)
 bench-native: firmware

@@ -2,6 +2,7 @@
 and the C path-file reader, against the Python ECU's behaviour."""
 from __future__ import annotations
 
+import os
 import subprocess
 from pathlib import Path
 
@@ -15,7 +16,8 @@ from firmware_sim.errors import ConfigError
 from test_firmware_c_core import native  # noqa: F401 (the fixture: the firmware built, libecu.so loaded)
 
 ROOT = Path(__file__).resolve().parent.parent
-ECU = ROOT / "build" / "firmware" / "ecu"
+#: The executable under test (``make firmware-asan`` points ECU_EXE at the sanitized build).
+ECU = ROOT / os.environ.get("ECU_EXE", "build/firmware/ecu")
 SAMPLE_FIELDS = ("vx", "vy", "yaw_rate", "x", "y", "yaw", "steer_angle", "drive_torque", "target_speed")
 
 
