@@ -7,8 +7,9 @@
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
 #   make firmware-equivalence - --native vs Python ECU on both full double lane changes
 #   make firmware-asan   - the same tests on an -fsanitize=address,undefined build (build/firmware-asan)
+#   make firmware-cross  - the aarch64 cross build, replayed under qemu against the host build
 #   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
-.PHONY: firmware firmware-deps firmware-test firmware-equivalence firmware-asan bench-native
+.PHONY: firmware firmware-deps firmware-test firmware-equivalence firmware-asan firmware-cross bench-native
 
 FW_DIR := build/firmware
 FW_GEN := $(FW_DIR)/gen
@@ -86,6 +87,10 @@ firmware-asan: firmware
 	ECU_LIB=build/firmware-asan/libecu.so ECU_EXE=build/firmware-asan/ecu LD_PRELOAD="$(FW_SAN_PRELOAD)" \
 		ASAN_OPTIONS=detect_leaks=0 $(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py \
 		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py
+
+## cross-compile for aarch64 Linux and check its replay under qemu equals the host build's
+firmware-cross: firmware
+	ECU_CROSS=1 $(PY) -m pytest -q -s tests/test_firmware_c_cross.py
 
 ## C control step vs the Python controller step on the same recorded inputs (last line JSON)
 bench-native: firmware
