@@ -217,9 +217,15 @@ def ecu_command(scenario: Scenario, options: RunOptions) -> list[str]:
             "--controller", options.controller,
             "--path", f"{scenario.path_id}={scenario.path_file}",
             "--lockstep" if options.lockstep else "--realtime",
-            *(["--model", str(options.model)] if options.model is not None else []),
-            *(["--excite", options.excite] if options.excite is not None else []),
+            # the ECU process runs in the checkout: files named relative to here, absolute
+            *(["--model", str(Path(options.model).resolve())] if options.model is not None else []),
+            *(["--excite", _program_argument(options.excite)] if options.excite is not None else []),
             *options.ecu_extra_args]
+
+
+def _program_argument(excite: str) -> str:
+    """``--excite``: a shipped program's name as it is, a program file made absolute."""
+    return str(Path(excite).resolve()) if Path(excite).suffix.lower() in (".toml", ".csv") else excite
 
 
 class EcuProcess(_EcuRunner):

@@ -26,8 +26,9 @@ into equally spaced trajectories for ``models.koopman_train`` and ``models.bicyc
 5. Resampling to the control period Ts (25 ms): the state linearly interpolated between
    the two samples around t_k (at most 20 ms apart), the input the newest command at or
    before t_k if at most 30 ms old (zero-order hold: u_k acts over [t_k, t_k+1), as the
-   plant applies it). Where either is missing the data split into segments; segments are
-   cut into pieces of ``piece_s`` (30 s) so that training can hold out whole pieces.
+   plant applies it). Where either is missing, or the vehicle is slower than 1 m/s, the
+   data split into segments; segments are cut into pieces of ``piece_s`` (30 s; shorter
+   when there is little data) so that training can hold out whole pieces.
 
 Unusable input is a `LogDataError` naming the file and what is missing: no plant frames,
 no E2E-valid ones (another DBC or CRC), no command frames, only CMD_VALID = 0, less than a
@@ -68,6 +69,9 @@ MAX_SAMPLE_GAP_S = 0.0201
 #: Oldest command still taken as the input at a grid instant.
 MAX_COMMAND_AGE_S = 0.030
 MIN_DATA_S = 60.0
+#: Samples slower than this are left out: a standing vehicle shows no lateral dynamics,
+#: and the models' 1/vx terms are singular there.
+MIN_SPEED_MPS = 1.0
 MIN_SEGMENT_S = 2.0
 PIECE_S = 30.0
 MIN_PIECE_S = 5.0
@@ -379,6 +383,7 @@ def _segments(stretch: _Streams, ts: float, input_source: str, counts: LogCounts
     exact = np.isclose(sample_time[lower], grid, atol=1e-6) | np.isclose(sample_time[upper], grid, atol=1e-6)
     usable = (gap <= MAX_SAMPLE_GAP_S) | exact
     values = samples[lower] + share[:, None] * (samples[upper] - samples[lower])
+    usable &= values[:, 0] >= MIN_SPEED_MPS
     if input_source == "measured":
         states = values[:, :3]
         inputs = values[:, [4, 3]]  # measured torque, measured wheel angle

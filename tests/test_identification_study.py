@@ -1,0 +1,43 @@
+"""The identification study's changed plant and its report (studies/identification.py);
+the study itself is `make identify` (10-25 min), its results in results/identification/."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from hil.scenario import load_scenario
+from models.bicycle import nominal_model_params
+from studies.identification import (CHANGED_LAG_FACTOR, CHANGED_MASS_OFFSET_KG, bicycle_comparison,
+                                    changed_params, tables_markdown)
+
+
+def test_changed_plant_is_heavier_and_its_steering_lags_three_times():
+    nominal = load_scenario("dlc_low_mu").vehicle_params()
+    changed = changed_params(nominal)
+    assert changed.mass == pytest.approx(nominal.mass + CHANGED_MASS_OFFSET_KG)
+    assert changed.steer_time_constant == pytest.approx(CHANGED_LAG_FACTOR * nominal.steer_time_constant)
+    assert (changed.mu, changed.yaw_inertia, changed.cornering_stiffness_factor) == (
+        nominal.mu, nominal.yaw_inertia, nominal.cornering_stiffness_factor)
+
+
+def test_report_compares_the_fitted_bicycle_and_lists_every_run(tmp_path):
+    nominal = nominal_model_params()
+    (tmp_path / "bicycle.json").write_text(json.dumps({
+        "kind": "linear_bicycle", "cornering_stiffness_front": 0.9 * nominal.cornering_stiffness_front,
+        "cornering_stiffness_rear": nominal.cornering_stiffness_rear, "yaw_inertia": 1.1 * nominal.yaw_inertia}))
+    bicycle = bicycle_comparison(tmp_path)
+    assert bicycle["cornering_stiffness_front"]["change_percent"] == pytest.approx(-10.0)
+    assert bicycle["yaw_inertia"]["change_percent"] == pytest.approx(10.0)
+    tracking = {"lateral_error_m": {"max_abs": 0.1, "mean_abs": 0.02, "rmse": 0.03},
+                "heading_error_rad": {"max_abs": 0.01, "mean_abs": 0.002, "rmse": 0.003}}
+    runs = [{"scenario": s, "controller": "LMPC, fitted bicycle, changed plant", "completed": True,
+             "failure": None, "error": None, "tracking": tracking} for s in ("dlc_high_mu", "dlc_low_mu")]
+    summary = {"bicycle": bicycle, "drive": {"controller": "dmdc-eso", "excitation": "prbs-torque",
+                                             "frames_logged": 123},
+               "seconds": {"drive": 100.0, "training": 500.0, "tables": 60.0}, "machine": "test"}
+    text = tables_markdown(runs, summary)
+    print(text)
+    assert "| cornering_stiffness_front |" in text and "-10.0 %" in text
+    assert text.count("| LMPC, fitted bicycle, changed plant | yes | 0.100 / 0.020 / 0.030 |") == 2
+    assert "total 660 s" in text and "not applied" in text
