@@ -695,19 +695,59 @@ def run_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO
     return verdict
 
 
+@dataclass(frozen=True)
+class FaultTask:
+    """One (case, controller) run for a worker (picklable); ``index`` keeps the report's order."""
+
+    key: str
+    index: int
+    case: FaultCase
+    controller: str
+    duration_s: float | None
+
+
+def run_fault_task(task: FaultTask) -> Verdict:
+    """The executors' task: :func:`run_case` (a harness error propagates as the task's error)."""
+    return run_case(task.case, task.controller, duration_s=task.duration_s)
+
+
 def run_campaign(cases: Sequence[FaultCase], controllers: Sequence[str] | None = None,
-                 duration_s: float | None = None) -> list[Verdict]:
-    """Every (case, controller) run in order, with a tqdm progress bar."""
+                 duration_s: float | None = None,
+                 executor_options: dict[str, Any] | None = None) -> list[Verdict]:
+    """Every (case, controller) run, verdicts in case order, with a tqdm progress bar.
+
+    The runs are tasks of the campaigns' executors (``studies.campaign.executors``; default
+    this process, ``executor_options`` e.g. ``{"workers": 2}`` for a local Ray or
+    ``{"address": ...}`` for a cluster). The cases that measure the ECU's own wall-clock
+    behaviour (:func:`ecu_cases`: a jump of virtual time, a lost bus) always run here,
+    alone, after the others, so that no other run competes with them for the cores.
+    """
     from tqdm import tqdm
 
-    jobs = [(case, c) for case in cases for c in case.controllers
-            if controllers is None or c in controllers]
-    verdicts = []
-    with tqdm(jobs, desc="make faults", unit="run") as progress:
-        for case, controller in progress:
-            progress.set_postfix_str(f"{case.name} / {controller}")
-            verdicts.append(run_case(case, controller, duration_s=duration_s))
-    return verdicts
+    from studies.campaign.executors import open_executor
+
+    jobs = [FaultTask(f"{case.name} / {c}", i, case, c, duration_s)
+            for i, (case, c) in enumerate((case, c) for case in cases for c in case.controllers
+                                          if controllers is None or c in controllers)]
+    parallel = [job for job in jobs if job.case.ecu_fault is None]
+    alone = [job for job in jobs if job.case.ecu_fault is not None]
+    options = dict(executor_options or {"serial": True})
+    verdicts: dict[int, Verdict] = {}
+    with tqdm(total=len(jobs), desc="make faults", unit="run") as progress:
+        for group, executor_kwargs in ((parallel, options), (alone, {"serial": True})):
+            if not group:
+                continue
+            executor = open_executor(run_fault_task, **executor_kwargs)
+            try:
+                for job, verdict, worker_error in executor.run(group):
+                    if worker_error is not None:
+                        raise HilError(f"fault case {job.key}: the run failed in the harness: {worker_error}")
+                    verdicts[job.index] = verdict
+                    progress.set_postfix_str(job.key)
+                    progress.update(1)
+            finally:
+                executor.close()
+    return [verdicts[job.index] for job in jobs]
 
 
 # --- report ------------------------------------------------------------------------------
@@ -853,7 +893,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of the campaign (shared with ``python -m hil faults --campaign``)."""
+    """Options of the campaign (``python -m hil faults --campaign`` has the same ones)."""
+    from studies.campaign.executors import add_executor_arguments
+
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder")
     parser.add_argument("--replace", action="store_true",
                         help="overwrite the results of an earlier campaign in --out")
@@ -863,6 +905,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="restrict to these controllers")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="shorten the scenario (s); default the full 13.5 s")
+    add_executor_arguments(parser, default_workers="none: without --workers or --address the runs "
+                                                   "go to this process")
+
+
+def executor_options(args: argparse.Namespace) -> dict[str, Any]:
+    """Where the runs go: ``--serial`` or neither ``--workers`` nor ``--address``: this
+    process; else Ray (local with ``--workers`` CPUs, or the cluster at ``--address``)."""
+    address, workers = getattr(args, "address", None), getattr(args, "workers", None)
+    if getattr(args, "serial", False) or (address is None and workers is None):
+        if address is not None:
+            raise HilError("--serial and --address exclude each other")
+        return {"serial": True}
+    return {"address": address, "workers": workers}
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -878,7 +933,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         raise HilError(f"--duration must be > 0 s, got {args.duration}")
     check_paths(args.out, args.replace)
     started = time.monotonic()
-    verdicts = run_campaign(cases, args.controllers, args.duration)
+    verdicts = run_campaign(cases, args.controllers, args.duration, executor_options(args))
     wall = time.monotonic() - started
     command = "make faults" if not (args.only or args.controllers or args.duration) \
         else "python -m hil faults --campaign " + " ".join(

@@ -298,7 +298,7 @@ def _run_task(task: SweepTask) -> RunOutcome:
     return run_one(task.controller, task.setting, task.scenario, task.tuning, task.runner)
 
 
-class _Executor:
+class SweepExecutor:
     """Runs (controller, setting) x scenario tasks on the campaigns' executors
     (``studies.campaign.executors``): in this process (one worker, no address), else as
     Ray tasks on a local Ray with ``workers`` CPUs or on the cluster at ``address``."""
@@ -410,7 +410,7 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
     before: dict[str, Evaluation] = {}
     with tqdm(total=total, desc="make tune", unit="run", disable=not show_progress,
               dynamic_ncols=True) as progress:
-        executor = _Executor(scenarios, tuning, runner, workers, progress, address)
+        executor = SweepExecutor(scenarios, tuning, runner, workers, progress, address)
         try:
             # Round robin over the controllers: the slow ones' runs spread over the queue, so
             # no worker is left alone with a slow controller's runs at the end.

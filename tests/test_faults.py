@@ -500,3 +500,32 @@ def test_vehicle_figure_has_a_title_units_and_a_legend_per_line(tmp_path):
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert len(labels) == len(ax.get_lines()) == 3
     assert (tmp_path / "f.png").stat().st_size > 0
+
+
+# --- the campaign on the executors (issue 16) ----------------------------------------------
+
+def test_campaign_runs_go_to_this_process_unless_workers_or_an_address_is_given():
+    from studies.fault_campaign import executor_options
+
+    def options(**given):
+        return executor_options(argparse.Namespace(**{"workers": None, "address": None, "serial": False, **given}))
+
+    assert options() == {"serial": True}
+    assert options(workers=2) == {"address": None, "workers": 2}
+    assert options(address="127.0.0.1:6379") == {"address": "127.0.0.1:6379", "workers": None}
+    with pytest.raises(Exception, match="exclude each other"):
+        options(serial=True, address="auto")
+
+
+@pytest.mark.slow
+def test_campaign_on_a_local_ray_gives_the_verdicts_of_a_serial_one():
+    pytest.importorskip("ray")
+    from studies.fault_campaign import all_cases, run_campaign
+
+    cases = [c for c in all_cases() if c.name in ("drop 5 %", "mass +200 kg")]
+    serial = run_campaign(cases, duration_s=2.0)
+    parallel = run_campaign(cases, duration_s=2.0, executor_options={"workers": 2})
+    assert [(v.case, v.controller) for v in parallel] == [(v.case, v.controller) for v in serial]
+    for one, two in zip(serial, parallel):
+        assert (one.mode_sequence, one.outcome, one.commands_checked, one.e_y) == \
+            (two.mode_sequence, two.outcome, two.commands_checked, two.e_y)

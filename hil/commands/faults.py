@@ -29,7 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the whole campaign (make faults) instead of one run")
     parser.add_argument("--scenario", default="dlc_high_mu",
                         help="scenario TOML file or shipped name (default dlc_high_mu)")
-    parser.add_argument("--controller", default="eso-dkmpc", help="controller of the ECU")
+    parser.add_argument("--controller", default="eso-dkmpc", type=str.lower,
+                        help="controller of the ECU (any case)")
     parser.add_argument("--bus", action="append", default=[], metavar="K=V,...",
                         help="one bus fault, e.g. kind=drop,rate=0.1,start_s=3 (repeatable)")
     parser.add_argument("--mu-step", default=None, metavar="T:MU",
@@ -49,8 +50,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="campaign: overwrite the results of an earlier campaign in --out")
     parser.add_argument("--only", nargs="+", default=None, metavar="NAME",
                         help="campaign: only these cases")
-    parser.add_argument("--controllers", nargs="+", default=None,
-                        help="campaign: only these controllers")
+    parser.add_argument("--controllers", nargs="+", default=None, type=str.lower,
+                        help="campaign: only these controllers (any case)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="campaign: run on a local Ray with this many workers (default: "
+                             "in this process); the wall-clock cases still run alone")
+    parser.add_argument("--address", default=None,
+                        help="campaign: run on the Ray cluster at auto, HOST:PORT or ray://HOST:PORT")
+    parser.add_argument("--serial", action="store_true", help="campaign: in this process (the default)")
 
 
 def _value(text: str) -> object:
