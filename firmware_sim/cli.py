@@ -153,7 +153,7 @@ class _ArgumentParser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     """Argument parser of ``python -m firmware_sim``."""
     parser = _ArgumentParser(
-        prog="python -m firmware_sim",
+        prog="eso-ecu",
         description="ESO-DKMPC controller ECU on a CAN bus. The bus contract (frames, timing, "
                     "modes, fault reaction) is docs/can-contract.md in the repository.")
     parser.add_argument("--interface", default=None,
