@@ -5,7 +5,7 @@
 # + bicycle).
 #   make firmware        - build/firmware/libecu.so, build/firmware/ecu_data.bin
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
-#   make firmware-equivalence - --native vs Python ECU on both full double lane changes
+#   make firmware-equivalence - --native and the C executable vs the Python ECU, full lane changes
 #   make firmware-asan   - the same tests on an -fsanitize=address,undefined build (build/firmware-asan)
 #   make firmware-cross  - the aarch64 cross build, replayed under qemu against the host build
 #   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
@@ -76,9 +76,9 @@ $(FW_DIR)/ecu: $(FW_DIR)/libecu.so firmware/src/ecu_main.c
 firmware-test: firmware
 	$(PY) -m pytest -q tests/test_firmware_c*.py
 
-## the Python ECU with and without --native on both full double lane changes (frames compared)
+## --native and the C executable (on the socketcand hub) vs the Python ECU on both full lane changes
 firmware-equivalence: firmware
-	ECU_EQUIVALENCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_equivalence.py
+	ECU_EQUIVALENCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_equivalence.py tests/test_firmware_c_bus.py
 
 ## the C tests and fuzz (step, E2E, decode, executable) on a -fsanitize=address,undefined build
 firmware-asan: firmware
@@ -86,7 +86,7 @@ firmware-asan: firmware
 		build/firmware-asan/libecu.so build/firmware-asan/ecu
 	ECU_LIB=build/firmware-asan/libecu.so ECU_EXE=build/firmware-asan/ecu LD_PRELOAD="$(FW_SAN_PRELOAD)" \
 		ASAN_OPTIONS=detect_leaks=0 $(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py \
-		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py
+		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py tests/test_firmware_c_bus.py
 
 ## cross-compile for aarch64 Linux and check its replay under qemu equals the host build's
 firmware-cross: firmware

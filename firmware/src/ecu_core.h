@@ -61,6 +61,13 @@ ECU_API int ecu_set_path(const double *x, const double *y, const double *yaw, co
  * contract's checks, the same messages), then ecu_set_path. 0 or -1 + err. */
 ECU_API int ecu_load_path_csv(const char *file, char *err, size_t err_len);
 
+/* The ECU's paths by PATH_ID (all together at most ECU_MAX_PATH_POINTS points): forget
+ * them, read and check one more, whether one is loaded, make one the core's path. */
+void ecu_path_pool_reset(void);
+int ecu_path_pool_add(int path_id, const char *file, char *err, size_t err_len);
+int ecu_path_pool_has(int path_id);
+int ecu_path_pool_select(int path_id, char *err, size_t err_len);
+
 /* Copy the current path (at most max points) out; returns its number of points. */
 ECU_API int ecu_path_copy(double *x, double *y, double *yaw, double *s, int max);
 

@@ -1,16 +1,20 @@
 /*
- * build/firmware/ecu: the ECU executable, first part. What it does today:
+ * build/firmware/ecu: the ECU executable.
  *
  *   ecu --version
+ *   ecu --interface socketcan|socketcand --channel C [--host H --port P] --controller NAME
+ *       --path ID=FILE.csv [--path ...] [--data FILE] --lockstep
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
  *       --replay SAMPLES.csv [--realtime]
  *
+ * On the bus (lockstep; ecu_node.c) it is the Python ECU's node: a model or path file that
+ * does not load latches FAULT; SIGINT / SIGTERM / SIGHUP send one last STEER_TORQUE_CMD
+ * with CMD_VALID = 0 and exit 0; a lost bus is reopened every second.
  * --replay steps the control core on recorded samples (CSV header
  * vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed) and writes one CSV row per
  * step to stdout; --realtime paces the steps on absolute 25 ms deadlines and counts
- * overruns on stderr. Everything is loaded and checked at start-up (data file, every path
- * file); bad input is one "error: ..." line on stderr and exit status 2. The bus loop
- * (SocketCAN, lockstep, modes, E2E on received frames) is not in the executable yet.
+ * overruns on stderr. Bad arguments are one "error: ..." line on stderr and exit status 2
+ * (1: the bus cannot be opened). Real time on the bus is not in the C ECU yet.
  */
 #include <errno.h>
 #include <math.h>
@@ -19,9 +23,13 @@
 #include <string.h>
 
 #include "ecu_core.h"
+#include "ecu_node.h"
 #include "os.h"
 
 #define EXIT_USAGE 2
+#define EXIT_BUS 1
+#define RECV_TIMEOUT_NS 50000000LL /* bounds the reaction to a stop signal */
+#define REOPEN_INTERVAL_NS 1000000000LL
 #define MAX_PATHS 256
 #define PERIOD_NS 25000000 /* Ts = 25 ms */
 #define N_SAMPLE_FIELDS 9
@@ -29,6 +37,8 @@
 static const char *const SAMPLE_HEADER = "vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed";
 static const char *const USAGE =
   "usage: ecu --version\n"
+  "       ecu --interface socketcan|socketcand --channel C [--host H] [--port P] --controller NAME\n"
+  "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] --lockstep\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -92,8 +102,55 @@ static int replay(FILE *samples, const char *name, int realtime) {
   return 0;
 }
 
+static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os_can_send(id, data, length); }
+
+/* The node on the bus until a stop signal; the bus is reopened every second while lost. */
+static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error) {
+  char err[300];
+  os_can_frame_t frame;
+  if (os_can_open(interface, channel, host, port, err, sizeof err) != 0) {
+    fprintf(stderr, "error: %s\n", err);
+    return EXIT_BUS;
+  }
+  ecu_node_init(send_on_bus, load_error);
+  os_install_stop_handler(&stop_requested);
+  int lost = 0;
+  int64_t next_reopen = 0;
+  while (!stop_requested) {
+    if (lost) {
+      int64_t now = os_monotonic_ns();
+      if (now >= next_reopen) {
+        next_reopen = now + REOPEN_INTERVAL_NS;
+        if (os_can_open(interface, channel, host, port, err, sizeof err) == 0) {
+          fprintf(stderr, "warning: bus reopened after it was lost\n");
+          lost = 0;
+          continue;
+        }
+        fprintf(stderr, "error: bus still lost; reopening failed: %s\n", err);
+      }
+      os_sleep_until_ns(now + RECV_TIMEOUT_NS < next_reopen ? now + RECV_TIMEOUT_NS : next_reopen);
+      continue;
+    }
+    int status = os_can_recv(&frame, RECV_TIMEOUT_NS);
+    if (status == 1) {
+      ecu_node_receive(frame.id, frame.data, frame.length, frame.contract_kind);
+    } else if (status < 0) {
+      fprintf(stderr, "error: bus lost (end of the interface's stream or a socket error); reopening it every "
+              "second\n");
+      os_can_close();
+      lost = 1;
+      next_reopen = os_monotonic_ns() + REOPEN_INTERVAL_NS;
+    }
+  }
+  if (!lost) ecu_node_close();
+  os_can_close();
+  return 0;
+}
+
 int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
+  const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
+  int port = 29536, lockstep = 0;
   const char *path_files[MAX_PATHS];
   int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0;
   char err[600], message[800];
@@ -104,14 +161,29 @@ int main(int argc, char **argv) {
       return 0;
     } else if (strcmp(arg, "--realtime") == 0) {
       realtime = 1;
+    } else if (strcmp(arg, "--lockstep") == 0) {
+      lockstep = 1;
     } else if (!value && (strcmp(arg, "--controller") == 0 || strcmp(arg, "--path") == 0 ||
                           strcmp(arg, "--data") == 0 || strcmp(arg, "--replay") == 0 ||
-                          strcmp(arg, "--path-id") == 0)) {
+                          strcmp(arg, "--path-id") == 0 || strcmp(arg, "--interface") == 0 ||
+                          strcmp(arg, "--channel") == 0 || strcmp(arg, "--host") == 0 ||
+                          strcmp(arg, "--port") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
     } else if (strcmp(arg, "--controller") == 0) {
       controller = argv[++i];
+    } else if (strcmp(arg, "--interface") == 0) {
+      interface = argv[++i];
+    } else if (strcmp(arg, "--channel") == 0) {
+      channel = argv[++i];
+    } else if (strcmp(arg, "--host") == 0) {
+      host = argv[++i];
+    } else if (strcmp(arg, "--port") == 0) {
+      char *end;
+      long value = strtol(argv[++i], &end, 10);
+      if (*end != '\0' || value < 1 || value > 65535) return fail("--port: expected an integer in 1..65535");
+      port = (int)value;
     } else if (strcmp(arg, "--data") == 0) {
       data = argv[++i];
     } else if (strcmp(arg, "--replay") == 0) {
@@ -148,16 +220,48 @@ int main(int argc, char **argv) {
     fputs(USAGE, stderr);
     return fail("--controller and at least one --path are required");
   }
+  if (interface || channel || lockstep) {
+    static char load_error[700];
+    if (!interface || !channel) return fail("--interface and --channel are required on the bus");
+    if (samples_file) return fail("--replay runs without a bus: give no --interface / --channel");
+    if (realtime) return fail("--realtime on the bus is not in the C ECU yet: use --lockstep");
+    if (!lockstep) return fail("one of --lockstep or --realtime is required");
+    for (int k = 0; k < n_paths; k++) {
+      FILE *probe = fopen(path_files[k], "r");
+      if (!probe) {
+        snprintf(message, sizeof message, "--path '%d=%s': cannot read %s: %s", path_ids[k], path_files[k],
+                 path_files[k], strerror(errno));
+        return fail(message);
+      }
+      fclose(probe);
+    }
+    /* As the Python ECU: a model or path that does not load latches FAULT on the bus. */
+    const char *failure = NULL;
+    if (ecu_load(data, controller, err, sizeof err) != 0) {
+      snprintf(load_error, sizeof load_error, "controller '%s' failed to load: %s", controller, err);
+      failure = load_error;
+    }
+    ecu_path_pool_reset();
+    for (int k = 0; k < n_paths && !failure; k++) {
+      if (ecu_path_pool_add(path_ids[k], path_files[k], err, sizeof err) != 0) {
+        snprintf(load_error, sizeof load_error, "PATH_ID %d file %s: %s", path_ids[k], path_files[k], err);
+        failure = load_error;
+      }
+    }
+    if (failure) fprintf(stderr, "error: FAULT latched: %s\n", failure);
+    return run_bus(interface, channel, host, port, failure);
+  }
   if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);
   /* Every path file is checked at start-up; the selected one is loaded last. */
   int chosen = 0;
-  for (int k = 0; k < n_paths; k++) {
+  for (int k = 0; k < n_paths; k++)
     if (path_ids[k] == selected) chosen = k;
-    if (ecu_load_path_csv(path_files[k], err, sizeof err) != 0) return fail(err);
-  }
   if (selected >= 0 && path_ids[chosen] != selected) return fail("--path-id: no --path with that ID");
-  if (ecu_load_path_csv(path_files[chosen], err, sizeof err) != 0) return fail(err);
-  if (!samples_file) return fail("the bus loop is not in the C ECU yet: give --replay SAMPLES.csv (docs/firmware.md)");
+  ecu_path_pool_reset();
+  for (int k = 0; k < n_paths; k++)
+    if (ecu_path_pool_add(path_ids[k], path_files[k], err, sizeof err) != 0) return fail(err);
+  if (ecu_path_pool_select(path_ids[chosen], err, sizeof err) != 0) return fail(err);
+  if (!samples_file) return fail("give --interface / --channel / --lockstep (the bus) or --replay SAMPLES.csv");
   FILE *samples = fopen(samples_file, "r");
   if (!samples) {
     snprintf(message, sizeof message, "--replay %s: cannot read: %s", samples_file, strerror(errno));

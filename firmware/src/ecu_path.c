@@ -24,9 +24,17 @@
 #define LINE_BYTES 4096
 
 static const char *const HEADER[3] = {"x", "y", "yaw"};
-static double px[ECU_MAX_PATH_POINTS], py[ECU_MAX_PATH_POINTS], pyaw[ECU_MAX_PATH_POINTS];
-static double ps[ECU_MAX_PATH_POINTS];
-static int line_of[ECU_MAX_PATH_POINTS];
+/* The pool of every loaded path, one after the other (ECU_MAX_PATH_POINTS in all). The
+ * file being read goes to the free end; px .. line_of point there while it is checked. */
+static double pool_x[ECU_MAX_PATH_POINTS], pool_y[ECU_MAX_PATH_POINTS], pool_yaw[ECU_MAX_PATH_POINTS];
+static double pool_s[ECU_MAX_PATH_POINTS];
+static int pool_lines[ECU_MAX_PATH_POINTS];
+static int pool_used;
+static double *px, *py, *pyaw, *ps;
+static int *line_of;
+#define MAX_POOL_PATHS 256
+static struct { int id, first, n; } slices[MAX_POOL_PATHS];
+static int n_slices;
 
 /* Python's a % b for b > 0 (the result takes b's sign). */
 static double py_mod(double a, double b) {
@@ -142,8 +150,15 @@ static void path_arrays(int n) {
   }
 }
 
-int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
+/* Read, check and convert one file into the free end of the pool; its point count in *n. */
+static int read_path_file(const char *file, int *n_out, char *err, size_t err_len) {
   static char line[LINE_BYTES];
+  int capacity = ECU_MAX_PATH_POINTS - pool_used;
+  px = pool_x + pool_used;
+  py = pool_y + pool_used;
+  pyaw = pool_yaw + pool_used;
+  ps = pool_s + pool_used;
+  line_of = pool_lines + pool_used;
   FILE *stream = fopen(file, "r");
   int n = 0, line_number = 0, header_seen = 0, status = 0;
   if (!stream) {
@@ -184,6 +199,12 @@ int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
       status = -1;
       break;
     }
+    if (n == capacity) {
+      snprintf(err, err_len, "%s: line %d: the paths together exceed the ECU's %d points", file, line_number,
+               ECU_MAX_PATH_POINTS);
+      status = -1;
+      break;
+    }
     if (count != 3) {
       snprintf(err, err_len, "%s: line %d has %d columns, expected 3", file, line_number, count);
       status = -1;
@@ -210,5 +231,49 @@ int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
   }
   if (check_points(file, n, err, err_len) != 0) return -1;
   path_arrays(n);
-  return ecu_set_path(px, py, pyaw, ps, n, err, err_len);
+  *n_out = n;
+  return 0;
+}
+
+void ecu_path_pool_reset(void) {
+  pool_used = 0;
+  n_slices = 0;
+}
+
+int ecu_path_pool_add(int path_id, const char *file, char *err, size_t err_len) {
+  int n = 0;
+  if (n_slices == MAX_POOL_PATHS) {
+    snprintf(err, err_len, "%s: more than %d paths", file, MAX_POOL_PATHS);
+    return -1;
+  }
+  if (read_path_file(file, &n, err, err_len) != 0) return -1;
+  slices[n_slices].id = path_id;
+  slices[n_slices].first = pool_used;
+  slices[n_slices++].n = n;
+  pool_used += n;
+  return 0;
+}
+
+int ecu_path_pool_has(int path_id) {
+  for (int k = 0; k < n_slices; k++)
+    if (slices[k].id == path_id) return 1;
+  return 0;
+}
+
+int ecu_path_pool_select(int path_id, char *err, size_t err_len) {
+  for (int k = n_slices - 1; k >= 0; k--) {
+    if (slices[k].id == path_id) {
+      int first = slices[k].first;
+      return ecu_set_path(pool_x + first, pool_y + first, pool_yaw + first, pool_s + first, slices[k].n, err,
+                          err_len);
+    }
+  }
+  snprintf(err, err_len, "PATH_ID %d is not loaded", path_id);
+  return -1;
+}
+
+int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
+  ecu_path_pool_reset();
+  if (ecu_path_pool_add(0, file, err, err_len) != 0) return -1;
+  return ecu_path_pool_select(0, err, err_len);
 }

@@ -18,4 +18,28 @@ int os_sleep_until_ns(int64_t deadline_ns);
 /* SIGINT, SIGTERM and SIGHUP set *stop to 1 (the loops poll it). */
 void os_install_stop_handler(volatile sig_atomic_t *stop);
 
+/* One CAN frame as the firmware sees it: ID, up to 8 bytes, and whether it is a classic
+ * data frame with an 11-bit ID (the only kind the contract uses; others are ignored). */
+typedef struct {
+  uint32_t id;
+  uint8_t data[8];
+  int length;
+  int contract_kind;
+} os_can_frame_t;
+
+/* Open the one bus: interface "socketcan" (a kernel CAN device such as vcan0 or can0,
+ * raw socket) or "socketcand" (the daemon's TCP protocol on host:port, the transport of
+ * the timing tests' hub). 0, or -1 with one line in err. */
+int os_can_open(const char *interface, const char *channel, const char *host, int port, char *err,
+                size_t err_len);
+
+/* Send one classic frame; 0, or -1 when the bus refused it. */
+int os_can_send(uint32_t id, const uint8_t *data, int length);
+
+/* Wait up to timeout_ns for a frame: 1 (frame filled), 0 (none yet), -1 (bus lost: the
+ * stream ended or the socket failed). */
+int os_can_recv(os_can_frame_t *frame, int64_t timeout_ns);
+
+void os_can_close(void);
+
 #endif

@@ -1,13 +1,26 @@
 /*
- * The OS layer on Linux (POSIX clocks and signals). The only file with OS calls; the
- * rest of the firmware is C11 with libc's stdio and libm.
+ * The OS layer on Linux: POSIX clocks and signals, SocketCAN raw sockets and the
+ * socketcand TCP protocol. The only file with OS calls; the rest of the firmware is C11
+ * with libc's stdio and libm.
  */
-#define _POSIX_C_SOURCE 200809L
+#define _DEFAULT_SOURCE
 
+#include <arpa/inet.h>
 #include <errno.h>
+#include <linux/can.h>
+#include <linux/can/raw.h>
+#include <net/if.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <poll.h>
 #include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
+#include <sys/ioctl.h>
+#include <sys/socket.h>
 #include <time.h>
+#include <unistd.h>
 
 #include "os.h"
 
@@ -39,4 +52,174 @@ void os_install_stop_handler(volatile sig_atomic_t *stop) {
   sigaction(SIGINT, &action, NULL);
   sigaction(SIGTERM, &action, NULL);
   sigaction(SIGHUP, &action, NULL);
+}
+
+/* ------------------------------------------------------------------ CAN */
+static int can_fd = -1;
+static int can_socketcand; /* 1: socketcand's text protocol on a TCP stream */
+static char stream_buffer[8192];
+static size_t stream_used;
+
+static int wait_readable(int64_t timeout_ns) {
+  struct pollfd pfd = {can_fd, POLLIN, 0};
+  int ms = timeout_ns <= 0 ? 0 : (int)((timeout_ns + 999999) / 1000000);
+  int ready = poll(&pfd, 1, ms);
+  if (ready < 0) return errno == EINTR ? 0 : -1;
+  return ready;
+}
+
+/* The next "< ... >" message of the socketcand stream into msg; 1, 0 (incomplete), -1 (lost). */
+static int next_message(char *msg, size_t len, int64_t timeout_ns) {
+  for (;;) {
+    char *start = memchr(stream_buffer, '<', stream_used);
+    char *end = start ? memchr(start, '>', stream_used - (size_t)(start - stream_buffer)) : NULL;
+    if (start && end) {
+      size_t n = (size_t)(end - start) + 1;
+      snprintf(msg, len, "%.*s", (int)n, start);
+      size_t consumed = (size_t)(end - stream_buffer) + 1;
+      memmove(stream_buffer, stream_buffer + consumed, stream_used - consumed);
+      stream_used -= consumed;
+      return 1;
+    }
+    if (!start) stream_used = 0; /* nothing of a message: drop the noise */
+    if (stream_used == sizeof stream_buffer) return -1; /* not socketcand */
+    int ready = wait_readable(timeout_ns);
+    if (ready <= 0) return ready;
+    ssize_t got = recv(can_fd, stream_buffer + stream_used, sizeof stream_buffer - stream_used, 0);
+    if (got <= 0) return -1; /* the server closed the stream, or the socket failed */
+    stream_used += (size_t)got;
+    timeout_ns = 0;
+  }
+}
+
+static int socketcand_command(const char *command, const char *expect, char *err, size_t err_len) {
+  char reply[256];
+  if (command && send(can_fd, command, strlen(command), MSG_NOSIGNAL) < 0) {
+    snprintf(err, err_len, "socketcand: cannot send %s: %s", command, strerror(errno));
+    return -1;
+  }
+  if (next_message(reply, sizeof reply, 5000000000LL) != 1 || strcmp(reply, expect) != 0) {
+    snprintf(err, err_len, "socketcand: expected '%s' after '%s'", expect, command ? command : "connecting");
+    return -1;
+  }
+  return 0;
+}
+
+int os_can_open(const char *interface, const char *channel, const char *host, int port, char *err,
+                size_t err_len) {
+  os_can_close();
+  stream_used = 0;
+  if (strcmp(interface, "socketcand") == 0) {
+    struct sockaddr_in address;
+    char command[128];
+    int one = 1;
+    memset(&address, 0, sizeof address);
+    address.sin_family = AF_INET;
+    address.sin_port = htons((uint16_t)port);
+    if (inet_pton(AF_INET, host, &address.sin_addr) != 1) {
+      snprintf(err, err_len, "socketcand: host %s is not an IPv4 address", host);
+      return -1;
+    }
+    can_fd = socket(AF_INET, SOCK_STREAM, 0);
+    if (can_fd < 0 || connect(can_fd, (struct sockaddr *)&address, sizeof address) != 0) {
+      snprintf(err, err_len, "cannot open CAN bus (interface=socketcand, channel=%s): %s:%d: %s", channel, host,
+               port, strerror(errno));
+      os_can_close();
+      return -1;
+    }
+    setsockopt(can_fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    can_socketcand = 1;
+    snprintf(command, sizeof command, "< open %s >", channel);
+    if (socketcand_command(NULL, "< hi >", err, err_len) || socketcand_command(command, "< ok >", err, err_len) ||
+        socketcand_command("< rawmode >", "< ok >", err, err_len)) {
+      os_can_close();
+      return -1;
+    }
+    return 0;
+  }
+  if (strcmp(interface, "socketcan") == 0) {
+    struct ifreq request;
+    struct sockaddr_can address;
+    can_fd = socket(PF_CAN, SOCK_RAW, CAN_RAW);
+    if (can_fd < 0) {
+      snprintf(err, err_len, "cannot open CAN bus (interface=socketcan, channel=%s): %s", channel, strerror(errno));
+      return -1;
+    }
+    memset(&request, 0, sizeof request);
+    snprintf(request.ifr_name, sizeof request.ifr_name, "%s", channel);
+    if (ioctl(can_fd, SIOCGIFINDEX, &request) != 0) {
+      snprintf(err, err_len, "cannot open CAN bus (interface=socketcan, channel=%s): %s", channel, strerror(errno));
+      os_can_close();
+      return -1;
+    }
+    memset(&address, 0, sizeof address);
+    address.can_family = AF_CAN;
+    address.can_ifindex = request.ifr_ifindex;
+    if (bind(can_fd, (struct sockaddr *)&address, sizeof address) != 0) {
+      snprintf(err, err_len, "cannot open CAN bus (interface=socketcan, channel=%s): %s", channel, strerror(errno));
+      os_can_close();
+      return -1;
+    }
+    can_socketcand = 0;
+    return 0;
+  }
+  snprintf(err, err_len, "interface %s: the C ECU has socketcan and socketcand", interface);
+  return -1;
+}
+
+int os_can_send(uint32_t id, const uint8_t *data, int length) {
+  if (can_fd < 0 || length < 0 || length > 8) return -1;
+  if (can_socketcand) {
+    char command[64];
+    int used = snprintf(command, sizeof command, "< send %03X %X", (unsigned)id, (unsigned)length);
+    for (int i = 0; i < length; i++) used += snprintf(command + used, sizeof command - (size_t)used, " %02X", data[i]);
+    used += snprintf(command + used, sizeof command - (size_t)used, " >");
+    return send(can_fd, command, (size_t)used, MSG_NOSIGNAL) == used ? 0 : -1;
+  }
+  struct can_frame frame;
+  memset(&frame, 0, sizeof frame);
+  frame.can_id = id & CAN_SFF_MASK;
+  frame.can_dlc = (uint8_t)length;
+  memcpy(frame.data, data, (size_t)length);
+  return write(can_fd, &frame, sizeof frame) == (ssize_t)sizeof frame ? 0 : -1;
+}
+
+int os_can_recv(os_can_frame_t *out, int64_t timeout_ns) {
+  if (can_fd < 0) return -1;
+  if (can_socketcand) {
+    char msg[256], id_text[16], hex[64];
+    double seconds;
+    for (;;) {
+      int status = next_message(msg, sizeof msg, timeout_ns);
+      if (status != 1) return status;
+      timeout_ns = 0;
+      hex[0] = '\0';
+      if (sscanf(msg, "< frame %15s %lf %63[0-9a-fA-F] >", id_text, &seconds, hex) < 2) continue;
+      size_t digits = strlen(id_text), n_hex = strlen(hex);
+      if (n_hex % 2 || n_hex > 16) continue;
+      out->id = (uint32_t)strtoul(id_text, NULL, 16);
+      out->length = (int)(n_hex / 2);
+      for (int i = 0; i < out->length; i++) {
+        char byte[3] = {hex[2 * i], hex[2 * i + 1], '\0'};
+        out->data[i] = (uint8_t)strtoul(byte, NULL, 16);
+      }
+      out->contract_kind = digits <= 3; /* 8 digits: an extended ID */
+      return 1;
+    }
+  }
+  int ready = wait_readable(timeout_ns);
+  if (ready <= 0) return ready;
+  struct can_frame frame;
+  ssize_t got = read(can_fd, &frame, sizeof frame);
+  if (got != (ssize_t)sizeof frame) return -1; /* a CAN FD frame is larger: not enabled here */
+  out->contract_kind = !(frame.can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG));
+  out->id = frame.can_id & (frame.can_id & CAN_EFF_FLAG ? CAN_EFF_MASK : CAN_SFF_MASK);
+  out->length = frame.can_dlc > 8 ? 8 : frame.can_dlc;
+  memcpy(out->data, frame.data, (size_t)out->length);
+  return 1;
+}
+
+void os_can_close(void) {
+  if (can_fd >= 0) close(can_fd);
+  can_fd = -1;
 }
