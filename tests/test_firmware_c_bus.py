@@ -10,9 +10,11 @@ contract says those are the only fields not repeatable) and the CRC that covers 
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -29,9 +31,24 @@ CHANNEL = "vcan0"
 FULL = os.environ.get("ECU_EQUIVALENCE_FULL") == "1"
 
 
-def run_c_ecu(scenario_name: str, controller: str, log: Path, path_file: Path | None = None):
-    """The scenario with the C ECU on the hub (``path_file`` in place of the scenario's):
-    (the monitor's raw frames, tracking, exit status, the ECU's output)."""
+def ecu_command(which: str, controller: str, path: Path, port: int) -> tuple[list[str], dict[str, str]]:
+    """Command line and environment of the C ECU (``which`` "c") or the Python ECU ("python")
+    as a process on the hub at ``port``."""
+    if which == "c":
+        return ([str(ECU), "--interface", "socketcand", "--channel", CHANNEL, "--port", str(port), "--controller",
+                 controller, "--path", f"1={path}", "--lockstep"], dict(os.environ))
+    environment = dict(os.environ, CAN_CONFIG=json.dumps({"host": "127.0.0.1", "port": port, "tcp_tune": True}))
+    return ([sys.executable, "-m", "firmware_sim", "--interface", "socketcand", "--channel", CHANNEL,
+             "--controller", controller, "--path", f"1={path}", "--lockstep"], environment)
+
+
+def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_file: Path | None = None,
+               faults: dict | None = None, jump: tuple[int, int] | None = None):
+    """The scenario with one ECU process on the hub; this process runs plant, planner and
+    time master (``hil``), the bus faults of ``faults`` (a ``[faults]`` table) injected
+    as ``hil run --faults`` does, ``jump`` = (from TICK ms, ahead ms) a jump of virtual
+    time. Returns (the monitor's raw frames, tracking, exit status, the ECU's output)."""
+    from hil.faults import FaultInjector, FaultSpec, TimeShiftingBus
     from hil.planner_node import PlannerNode
     from hil.plant_node import PlantNode
     from hil.recorder import EcuFrameMonitor
@@ -41,23 +58,26 @@ def run_c_ecu(scenario_name: str, controller: str, log: Path, path_file: Path | 
     from hil.timing.hub import LoopbackCanHub
 
     scenario = load_scenario(scenario_name)
+    injector = FaultInjector(FaultSpec.from_mapping(faults)) if faults else None
     hub = LoopbackCanHub(port=0).start()
+    command, environment = ecu_command(which, controller, path_file or scenario.path_file, hub.port)
     with log.open("w") as output:
-        ecu = subprocess.Popen([str(ECU), "--interface", "socketcand", "--channel", CHANNEL, "--port", str(hub.port),
-                                "--controller", controller, "--path", f"{scenario.path_id}={path_file or scenario.path_file}",
-                                "--lockstep"], cwd=ROOT, stdout=output, stderr=subprocess.STDOUT)
+        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
         bus = None
         try:
             bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=hub.port, tcp_tune=True)
+            master_bus = bus if jump is None else TimeShiftingBus(bus, *jump)
             time.sleep(0.2)  # the hub delivers to a new client after its READY_DELAY_S
-            plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
-            master = LockstepMaster(bus, [plant, planner, monitor], handshake_timeout_s=30.0, ack_timeout_s=10.0,
+            plant = PlantNode(scenario, vehicle=injector.vehicle(scenario) if injector else None)
+            planner, monitor = PlannerNode(scenario), EcuFrameMonitor()
+            master = LockstepMaster(master_bus, [plant, planner, monitor], handshake_timeout_s=60.0,
+                                    ack_timeout_s=10.0, send_hook=injector.outgoing if injector else None,
                                     peer_alive=lambda: None if ecu.poll() is None else f"ECU exited {ecu.returncode}")
             master.run(scenario.duration_s)
             time.sleep(0.1)
         finally:
             ecu.send_signal(signal.SIGTERM)
-            status = ecu.wait(timeout=10)
+            status = ecu.wait(timeout=20)
             if bus is not None:
                 bus.shutdown()
             hub.close()
@@ -65,10 +85,21 @@ def run_c_ecu(scenario_name: str, controller: str, log: Path, path_file: Path | 
     return monitor.raw, tracking, status, log.read_text()
 
 
+def run_c_ecu(scenario_name: str, controller: str, log: Path, path_file: Path | None = None):
+    """The scenario with the C ECU on the hub (see `run_on_hub`)."""
+    return run_on_hub("c", scenario_name, controller, log, path_file)
+
+
 def diag_fields(data: bytes) -> tuple:
     """CTRL_DIAG without its wall-clock fields (SOLVE_TIME_US, CYCLE_TIME_US, OVERRUNS)."""
     frame = decode(FrameId.CTRL_DIAG, data).frame
     return data[1] & 0x0F, int(frame.qp_status), frame.qp_iter, frame.faults
+
+
+def commands_and_diags(raw) -> tuple[list, list]:
+    """(tick, STEER_TORQUE_CMD payload) and (tick, CTRL_DIAG without wall-clock fields)."""
+    return ([(t, d) for t, i, d in raw if i == FrameId.STEER_TORQUE_CMD],
+            [(t, diag_fields(d)) for t, i, d in raw if i == FrameId.CTRL_DIAG])
 
 
 def check_equivalent(scenario_name: str, controller: str, tmp_path: Path) -> dict:
@@ -78,16 +109,14 @@ def check_equivalent(scenario_name: str, controller: str, tmp_path: Path) -> dic
     python_run = run_hil(load_scenario(scenario_name), default_options(controller))
     c_raw, c_tracking, status, output = run_c_ecu(scenario_name, controller, tmp_path / "ecu.log")
     assert status == 0, output
-    python_raw = python_run.extra["ecu_frames_raw"]
-    commands = lambda raw: [(t, d) for t, i, d in raw if i == FrameId.STEER_TORQUE_CMD]  # noqa: E731
-    diags = lambda raw: [(t, diag_fields(d)) for t, i, d in raw if i == FrameId.CTRL_DIAG]  # noqa: E731
-    ours, theirs = commands(python_raw), commands(c_raw)
+    (ours, our_diags), (theirs, their_diags) = (commands_and_diags(python_run.extra["ecu_frames_raw"]),
+                                                commands_and_diags(c_raw))
     differing = sum(a != b for a, b in zip(ours, theirs))
     figures = {"commands": len(ours), "c_commands": len(theirs), "differing": differing,
                "rmse_python": python_run.tracking.lateral.rmse, "rmse_c": c_tracking.lateral.rmse}
     print(f"{controller} on {scenario_name}: {figures}")
     assert len(theirs) == len(ours) and differing == 0
-    assert diags(c_raw) == diags(python_raw)
+    assert their_diags == our_diags
     return figures
 
 
@@ -116,3 +145,58 @@ def test_a_path_that_does_not_load_latches_fault(native, tmp_path: Path) -> None
     commands = [decode(i, d).frame for _, i, d in raw if i == FrameId.STEER_TORQUE_CMD]
     assert len(commands) == 160
     assert all(int(c.ctrl_mode) == 5 and not c.cmd_valid and c.drive_torque_cmd == 0.0 for c in commands)
+
+
+#: Conformance cases (contract rev. 2 faults), each from 1.5 s of dlc_smoke: name -> the
+#: ``[faults]`` table or a jump of virtual time. The first ones run in make test.
+CONFORMANCE_CASES = {
+    "sample_gap_degraded": {"bus": [{"kind": "silent", "sender": "plant", "start_s": 1.5, "duration_s": 0.06}]},
+    "delayed_samples": {"bus": [{"kind": "delay", "sender": "plant", "start_s": 1.5, "duration_s": 1.0,
+                                 "delay_ms": 15}]},
+    "plant_silent_safe_stop": {"bus": [{"kind": "silent", "sender": "plant", "start_s": 1.5, "duration_s": 0.5}]},
+    "time_jump": {"jump": (1500, 10_000)},
+    "planner_wrong_crc_standby": {"bus": [{"kind": "wrong_crc", "sender": "planner", "start_s": 1.5,
+                                           "duration_s": 0.3}]},
+    "plant_drops": {"seed": 3, "bus": [{"kind": "drop", "sender": "plant", "start_s": 1.5, "rate": 0.3,
+                                        "burst": 2}]},
+    "plant_duplicates": {"bus": [{"kind": "duplicate", "sender": "plant", "start_s": 1.5, "rate": 0.5}]},
+    "plant_reorder": {"seed": 2, "bus": [{"kind": "reorder", "sender": "plant", "start_s": 1.5, "rate": 0.5}]},
+    "plant_bitflips": {"seed": 4, "bus": [{"kind": "bitflip", "sender": "plant", "start_s": 1.5, "rate": 0.2}]},
+    "frozen_counter": {"bus": [{"kind": "frozen_counter", "sender": "plant", "start_s": 1.5, "duration_s": 0.2}]},
+    "implausible_vx": {"bus": [{"kind": "override", "ids": [0x100], "field": "vx", "value": 100.0,
+                                "start_s": 1.5, "duration_s": 0.1}]},
+    "engage_toggle": {"bus": [{"kind": "engage_toggle", "sender": "planner", "start_s": 1.5,
+                               "duration_s": 1.0, "period_ms": 50}]},
+    "extended_lookalikes": {"bus": [{"kind": "lookalike", "sender": "plant", "frame_kind": "extended",
+                                     "start_s": 1.5}]},
+    "replayed_plant": {"bus": [{"kind": "replay", "sender": "plant", "age_ms": 50, "start_s": 1.5,
+                                "duration_s": 0.5}]},
+    "babbling_node": {"seed": 5, "bus": [{"kind": "babble", "ids": [0x100], "babble_id": 0x50,
+                                          "frames_per_tick": 2, "start_s": 1.5, "duration_s": 0.3}]},
+}
+IN_MAKE_TEST = ("sample_gap_degraded", "plant_silent_safe_stop", "time_jump")
+CONFORMANCE_FULL = os.environ.get("ECU_CONFORMANCE_FULL") == "1"
+
+
+@pytest.mark.parametrize("case", [pytest.param(name, marks=() if name in IN_MAKE_TEST else [
+    pytest.mark.slow, pytest.mark.skipif(not CONFORMANCE_FULL, reason="make firmware-conformance")])
+    for name in CONFORMANCE_CASES])
+def test_conformance_c_ecu_equals_python_ecu_under_faults(native, case: str, tmp_path: Path) -> None:
+    """Both ECUs as processes on the hub, the same faults injected: the same frames (the
+    modes, fault bits, fallbacks and commands of the contract's fault reactions)."""
+    table = dict(CONFORMANCE_CASES[case])
+    jump = table.pop("jump", None)
+    runs = {}
+    for which in ("python", "c"):
+        raw, tracking, status, output = run_on_hub(which, "dlc_smoke", "lmpc", tmp_path / f"{which}.log",
+                                                   faults=table or None, jump=jump)
+        assert status == 0, output[-2000:]
+        runs[which] = commands_and_diags(raw)
+    (py_commands, py_diags), (c_commands, c_diags) = runs["python"], runs["c"]
+    modes = sorted({decode(FrameId.STEER_TORQUE_CMD, d).frame.ctrl_mode.name for _, d in py_commands})
+    faults = sorted({f[3] for _, f in py_diags})
+    print(f"{case}: {len(py_commands)} commands, modes {modes}, FAULTS values {faults}")
+    assert len(c_commands) == len(py_commands)
+    first = next((i for i, (a, b) in enumerate(zip(py_commands, c_commands)) if a != b), None)
+    assert first is None, f"first differing STEER_TORQUE_CMD at tick {py_commands[first][0]} ms"
+    assert c_diags == py_diags
