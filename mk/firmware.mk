@@ -7,11 +7,12 @@
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
 #   make firmware-equivalence - --native and the C executable vs the Python ECU, full lane changes
 #   make firmware-conformance - the C and the Python ECU under 15 bus faults, frames compared
+#   make firmware-vcan   - the C ECU on vcan0 (user-mode Linux) vs the Python ECU, full lane change
 #   make firmware-asan   - the same tests on an -fsanitize=address,undefined build (build/firmware-asan)
 #   make firmware-cross  - the aarch64 cross build, replayed under qemu against the host build
 #   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
 .PHONY: firmware firmware-deps firmware-test firmware-equivalence firmware-conformance firmware-asan \
-	firmware-cross bench-native
+	firmware-cross firmware-vcan bench-native
 
 FW_DIR := build/firmware
 FW_GEN := $(FW_DIR)/gen
@@ -85,6 +86,10 @@ firmware-equivalence: firmware
 ## the C ECU and the Python ECU on the hub under 15 contract faults: the same frames
 firmware-conformance: firmware
 	ECU_CONFORMANCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_bus.py -k conformance
+
+## the C ECU on a real vcan0 (host or user-mode Linux) vs the Python ECU, full lane change
+firmware-vcan: firmware apt-deps
+	ECU_VCAN_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_vcan.py
 
 ## the C tests and fuzz (step, E2E, decode, executable) on a -fsanitize=address,undefined build
 firmware-asan: firmware
