@@ -63,7 +63,7 @@ def test_replay_equals_python_controller(native, name: str, tmp_path: Path) -> N
      "error: nowhere.bin: cannot open the ECU data file"),
     (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv"], "error: give --interface / --channel / --lockstep"),
     (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
-      "--realtime"], "error: --realtime on the bus is not in the C ECU yet"),
+      "--realtime", "--lockstep"], "error: exactly one of --lockstep or --realtime is required"),
     (["--interface", "socketcand", "--channel", "vcan0", "--port", "1", "--controller", "lmpc", "--path",
       "1=hil/paths/dlc.csv", "--lockstep"], "error: cannot open CAN bus (interface=socketcand, channel=vcan0)"),
     (["--interface", "socketcan", "--channel", "nosuchcan0", "--controller", "lmpc", "--path",

@@ -3,18 +3,19 @@
  *
  *   ecu --version
  *   ecu --interface socketcan|socketcand --channel C [--host H --port P] --controller NAME
- *       --path ID=FILE.csv [--path ...] [--data FILE] --lockstep
+ *       --path ID=FILE.csv [--path ...] [--data FILE] (--lockstep | --realtime)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
  *       --replay SAMPLES.csv [--realtime]
  *
- * On the bus (lockstep; ecu_node.c) it is the Python ECU's node: a model or path file that
+ * On the bus (lockstep, or real time on absolute 25 ms deadlines; ecu_node.c) it is the
+ * Python ECU's node: a model or path file that
  * does not load latches FAULT; SIGINT / SIGTERM / SIGHUP send one last STEER_TORQUE_CMD
  * with CMD_VALID = 0 and exit 0; a lost bus is reopened every second.
  * --replay steps the control core on recorded samples (CSV header
  * vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed) and writes one CSV row per
  * step to stdout; --realtime paces the steps on absolute 25 ms deadlines and counts
  * overruns on stderr. Bad arguments are one "error: ..." line on stderr and exit status 2
- * (1: the bus cannot be opened). Real time on the bus is not in the C ECU yet.
+ * (1: the bus cannot be opened).
  */
 #include <errno.h>
 #include <math.h>
@@ -38,7 +39,7 @@ static const char *const SAMPLE_HEADER = "vx,vy,yaw_rate,x,y,yaw,steer_angle,dri
 static const char *const USAGE =
   "usage: ecu --version\n"
   "       ecu --interface socketcan|socketcand --channel C [--host H] [--port P] --controller NAME\n"
-  "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] --lockstep\n"
+  "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -105,7 +106,8 @@ static int replay(FILE *samples, const char *name, int realtime) {
 static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os_can_send(id, data, length); }
 
 /* The node on the bus until a stop signal; the bus is reopened every second while lost. */
-static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error) {
+static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error,
+                   int realtime) {
   char err[300];
   os_can_frame_t frame;
   if (os_can_open(interface, channel, host, port, err, sizeof err) != 0) {
@@ -113,6 +115,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     return EXIT_BUS;
   }
   ecu_node_init(send_on_bus, load_error);
+  if (realtime) ecu_node_set_realtime();
   os_install_stop_handler(&stop_requested);
   int lost = 0;
   int64_t next_reopen = 0;
@@ -131,7 +134,12 @@ static int run_bus(const char *interface, const char *channel, const char *host,
       os_sleep_until_ns(now + RECV_TIMEOUT_NS < next_reopen ? now + RECV_TIMEOUT_NS : next_reopen);
       continue;
     }
-    int status = os_can_recv(&frame, RECV_TIMEOUT_NS);
+    int64_t wait = RECV_TIMEOUT_NS;
+    if (realtime) {
+      int64_t now = os_monotonic_ns(), next = ecu_node_poll(now);
+      if (next - now < wait) wait = next - now > 0 ? next - now : 0;
+    }
+    int status = os_can_recv(&frame, wait);
     if (status == 1) {
       ecu_node_receive(frame.id, frame.data, frame.length, frame.contract_kind);
     } else if (status < 0) {
@@ -224,8 +232,7 @@ int main(int argc, char **argv) {
     static char load_error[700];
     if (!interface || !channel) return fail("--interface and --channel are required on the bus");
     if (samples_file) return fail("--replay runs without a bus: give no --interface / --channel");
-    if (realtime) return fail("--realtime on the bus is not in the C ECU yet: use --lockstep");
-    if (!lockstep) return fail("one of --lockstep or --realtime is required");
+    if (lockstep == realtime) return fail("exactly one of --lockstep or --realtime is required");
     for (int k = 0; k < n_paths; k++) {
       FILE *probe = fopen(path_files[k], "r");
       if (!probe) {
@@ -249,7 +256,7 @@ int main(int argc, char **argv) {
       }
     }
     if (failure) fprintf(stderr, "error: FAULT latched: %s\n", failure);
-    return run_bus(interface, channel, host, port, failure);
+    return run_bus(interface, channel, host, port, failure, realtime);
   }
   if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);
   /* Every path file is checked at start-up; the selected one is loaded last. */

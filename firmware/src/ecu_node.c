@@ -10,6 +10,7 @@
 #include "ecu_node.h"
 #include "ecu_core.h"
 #include "ecu_rx.h"
+#include "os.h"
 #include "vehicle.h"
 
 #define NS_PER_MS 1000000LL
@@ -80,6 +81,8 @@ static double previous_valid_steer;
 static int tx_counter[2]; /* STEER_TORQUE_CMD, CTRL_DIAG */
 static int synchronised;
 static when_t last_tick;
+static int realtime, warned_sync, release_started;
+static int64_t next_release;
 
 int ecu_node_mode(void) { return mode; }
 int ecu_node_cycles(void) { return cycles; }
@@ -423,7 +426,6 @@ static void control_task(int64_t now_ns, double started_s) {
 }
 
 /* ------------------------------------------------------------------ lockstep */
-#include "os.h"
 
 static double wall_seconds(void) { return 1e-9 * (double)os_monotonic_ns(); }
 
@@ -483,10 +485,41 @@ static void on_tick(uint32_t tick) {
 }
 
 void ecu_node_receive(uint32_t id, const uint8_t *data, int length, int contract_kind) {
-  when_t unknown = {0, 0}; /* lockstep: stamped by the next HIL_SYNC */
+  /* lockstep: the arrival is stamped by the next HIL_SYNC; real time: now */
+  when_t arrival = {realtime, realtime ? os_monotonic_ns() : 0};
   if (!contract_kind) return; /* rev. 2: never taken for a contract frame, never FAULTS */
-  int64_t tick = rx_receive(id, data, length, unknown);
-  if (tick >= 0) on_tick((uint32_t)tick);
+  int64_t tick = rx_receive(id, data, length, arrival);
+  if (tick < 0) return;
+  if (!realtime) on_tick((uint32_t)tick);
+  else if (!warned_sync) {
+    warned_sync = 1;
+    fprintf(stderr, "warning: HIL_SYNC ignored in real-time mode\n");
+  }
+}
+
+/* ------------------------------------------------------------------ real time */
+void ecu_node_set_realtime(void) { realtime = 1; }
+
+int64_t ecu_node_poll(int64_t now_ns) {
+  const int64_t period = CONTROL_PERIOD_MS * NS_PER_MS;
+  if (!realtime) return 0;
+  if (!release_started) {
+    next_release = now_ns;
+    release_started = 1;
+  }
+  if (now_ns < next_release) return next_release;
+  /* RealtimeSchedule.release: absolute releases (next += period); whole periods missed
+   * are skipped, not run in a burst, and counted as overruns. */
+  int64_t ideal = next_release;
+  next_release = ideal + period;
+  if (now_ns >= next_release) {
+    int64_t skipped = (now_ns - next_release) / period + 1;
+    next_release += skipped * period;
+    overruns += (int)skipped;
+  }
+  control_task(now_ns, 1e-9 * (double)now_ns);
+  if (os_monotonic_ns() > ideal + period) overruns++;
+  return next_release;
 }
 
 void ecu_node_close(void) {

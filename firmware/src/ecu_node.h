@@ -20,6 +20,14 @@ void ecu_node_init(ecu_send_fn send, const char *load_error);
  * runs the due control tasks and answers. Never fails. */
 void ecu_node_receive(uint32_t id, const uint8_t *data, int length, int contract_kind);
 
+/* Real-time mode (instead of lockstep): arrivals stamped on the monotonic clock, HIL_SYNC
+ * ignored, the control task released by ecu_node_poll on absolute 25 ms deadlines. */
+void ecu_node_set_realtime(void);
+
+/* Real time: run the control task if its release has come; returns the next release (ns
+ * on os_monotonic_ns). */
+int64_t ecu_node_poll(int64_t now_ns);
+
 /* On stopping: one last STEER_TORQUE_CMD with CMD_VALID = 0 (STANDBY, FAULT when latched),
  * the held steering angle and zero torque. */
 void ecu_node_close(void);
