@@ -69,6 +69,9 @@ class _E2EResult(ctypes.Structure):
 E2E_STATUS_NAMES = ("OK", "CRC_ERROR", "REPEATED", "LOST", "SEQUENCE_ERROR", "WRONG_LENGTH", "UNKNOWN_ID",
                     "BAD_TICK")
 
+#: ecu_node.h's ecu_send_fn: (frame ID, payload, length) -> 0.
+_SEND_FUNCTION = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_uint32, ctypes.POINTER(ctypes.c_uint8), ctypes.c_int)
+
 _library: ctypes.CDLL | None = None
 
 
@@ -111,6 +114,11 @@ def load_library(path: str | Path | None = None) -> ctypes.CDLL:
     library.ecu_e2e_reset.restype = None
     library.ecu_decode.argtypes = [ctypes.c_uint32, byte_p, ctypes.POINTER(ctypes.c_double)]
     library.ecu_decode.restype = ctypes.c_int
+    library.ecu_node_init.argtypes = [_SEND_FUNCTION, ctypes.c_char_p]
+    library.ecu_node_init.restype = None
+    library.ecu_node_receive.argtypes = [ctypes.c_uint32, byte_p, ctypes.c_int, ctypes.c_int]
+    library.ecu_node_receive.restype = None
+    library.ecu_node_mode.restype = ctypes.c_int
     library.ecu_version.restype = ctypes.c_char_p
     library.ecu_build_shapes.restype = ctypes.c_char_p
     _library = library
@@ -238,6 +246,32 @@ class NativeE2EMonitor:
     def reset(self) -> None:
         """Forget every counter reference."""
         self._lib.ecu_e2e_reset()
+
+
+class NativeNode:
+    """The C ECU node (``ecu_node.c``: lockstep) on a loaded core, fed frames from Python;
+    what it sends is collected in ``sent`` as (frame ID, payload). Load the core first
+    (``NativeController``) and its path (``load_path_file``: PATH_ID 0)."""
+
+    def __init__(self) -> None:
+        self._lib = load_library()
+        self.sent: list[tuple[int, bytes]] = []
+
+        def send(frame_id: int, data: ctypes.Array, length: int) -> int:
+            self.sent.append((int(frame_id), bytes(data[:length])))
+            return 0
+
+        self._send = _SEND_FUNCTION(send)  # kept: the C side holds the pointer
+        self._lib.ecu_node_init(self._send, None)
+
+    def receive(self, frame_id: int, data: bytes, contract_kind: bool = True) -> None:
+        """One received frame (any length, any ID); a HIL_SYNC runs the due tasks."""
+        self._lib.ecu_node_receive(frame_id, _bytes_pointer(data), len(data), int(contract_kind))
+
+    @property
+    def mode(self) -> int:
+        """CTRL_MODE of the node."""
+        return int(self._lib.ecu_node_mode())
 
 
 def e2e_crc(frame_id: int, data: bytes) -> int:

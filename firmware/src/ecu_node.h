@@ -10,30 +10,32 @@
 
 #include <stdint.h>
 
+#include "ecu_core.h"
+
 typedef int (*ecu_send_fn)(uint32_t id, const uint8_t *data, int length);
 
 /* The node on a loaded core: load_error NULL, or why the model or a path failed (FAULT
  * latched, as the Python ECU does). */
-void ecu_node_init(ecu_send_fn send, const char *load_error);
+ECU_API void ecu_node_init(ecu_send_fn send, const char *load_error);
 
 /* One received frame (contract_kind: a classic data frame with an 11-bit ID); a HIL_SYNC
  * runs the due control tasks and answers. Never fails. */
-void ecu_node_receive(uint32_t id, const uint8_t *data, int length, int contract_kind);
+ECU_API void ecu_node_receive(uint32_t id, const uint8_t *data, int length, int contract_kind);
 
 /* Real-time mode (instead of lockstep): arrivals stamped on the monotonic clock, HIL_SYNC
  * ignored, the control task released by ecu_node_poll on absolute 25 ms deadlines. */
-void ecu_node_set_realtime(void);
+ECU_API void ecu_node_set_realtime(void);
 
 /* Real time: run the control task if its release has come; returns the next release (ns
  * on os_monotonic_ns). */
-int64_t ecu_node_poll(int64_t now_ns);
+ECU_API int64_t ecu_node_poll(int64_t now_ns);
 
 /* On stopping: one last STEER_TORQUE_CMD with CMD_VALID = 0 (STANDBY, FAULT when latched),
  * the held steering angle and zero torque. */
-void ecu_node_close(void);
+ECU_API void ecu_node_close(void);
 
 /* The node's mode (CTRL_MODE values) and its counts, for logs and tests. */
-int ecu_node_mode(void);
-int ecu_node_cycles(void);
+ECU_API int ecu_node_mode(void);
+ECU_API int ecu_node_cycles(void);
 
 #endif
