@@ -228,3 +228,53 @@ def test_c_ecu_in_real_time_tracks_as_the_python_ecu(native, tmp_path: Path) -> 
     cycles = round(4.0 / 0.025)  # dlc_smoke: 4 s; the ECU also runs before the plant starts
     assert n_c >= cycles and active_c >= 0.9 * cycles
     assert abs(rmse_c - results["python"][2]) <= 0.005
+
+
+def test_lost_bus_is_reopened(native, tmp_path: Path) -> None:
+    """The bus goes away (the hub closes) and comes back on the same port: the C ECU says
+    so once, reopens it within about a second, and answers a new handshake (contract rev. 2,
+    "lost bus")."""
+    from hil.planner_node import PlannerNode
+    from hil.plant_node import PlantNode
+    from hil.recorder import EcuFrameMonitor
+    from hil.scenario import load_scenario
+    from hil.time_master import LockstepMaster
+    from hil.timing.hub import LoopbackCanHub
+
+    scenario = load_scenario("dlc_smoke")
+    hub = LoopbackCanHub(port=0).start()
+    port = hub.port
+    log = tmp_path / "ecu.log"
+
+    def drive(seconds: float) -> list:
+        bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=port, tcp_tune=True)
+        try:
+            time.sleep(0.2)
+            monitor = EcuFrameMonitor()
+            master = LockstepMaster(bus, [PlantNode(scenario), PlannerNode(scenario), monitor],
+                                    handshake_timeout_s=30.0, ack_timeout_s=10.0)
+            master.run(seconds)
+            return monitor.commands
+        finally:
+            bus.shutdown()
+
+    with log.open("w") as output:
+        command, environment = ecu_command("c", "lmpc", scenario.path_file, port)
+        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
+        try:
+            first = drive(0.5)
+            hub.close()
+            time.sleep(0.5)
+            hub = LoopbackCanHub(port=port).start()
+            deadline = time.monotonic() + 10.0
+            while "bus reopened" not in log.read_text() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            second = drive(0.5)
+        finally:
+            ecu.send_signal(signal.SIGTERM)
+            status = ecu.wait(timeout=20)
+            hub.close()
+    output_text = log.read_text()
+    assert status == 0, output_text
+    assert output_text.count("bus lost") == 1 and "bus reopened after it was lost" in output_text
+    assert len(first) == len(second) == 20  # 0.5 s of 25 ms control tasks, each run
