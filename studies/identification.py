@@ -8,13 +8,14 @@ files equal the regenerated ones.
 The circuit is the polar curve r(theta) = R0 (1 + 0.2 sin 2 theta + 0.08 cos 3 theta),
 R0 = 420 m: 2.78 km a lap, left and right bends, the tightest of radius 248 m (3.6 m/s^2
 at 30 m/s, inside the grip of mu >= 0.5 with the excitation on top), laid out four times
-in driving order (11.1 km, more than the 10-minute drive covers). The speed holds each of
+in driving order, each lap 3 % (9 to 16 m) wider than the one before so that the laps
+never coincide (11.5 km, more than the 10-minute drive covers). The speed holds each of
 20 levels for 22 s and ramps between them at 1.5 m/s^2; the levels visit 3-30 m/s in a
 mixed order so that every speed is reached from below and from above.
 
 Part 2, the study (``python -m studies.identification study``, ``make identify``): a
 changed plant (mass +300 kg, steering actuator lag x3) drives the identification drive
-over CAN with DMDc-ESO and the ``prbs-torque`` excitation while the bus is recorded; the
+over CAN with LMPC and the ``prbs-torque`` excitation while the bus is recorded; the
 Koopman model and the linear bicycle are identified from that log alone
 (``python -m models.koopman_train --logs``); then Tables II and III run on the changed
 plant with the nominal and the re-identified models, for ESO-DKMPC and LMPC alike, beside
@@ -53,6 +54,7 @@ IDENTIFICATION_SCENARIO_FILE = SCENARIO_DIR / "identification" / "drive.toml"
 CIRCUIT_RADIUS_M = 420.0
 CIRCUIT_SHAPE = (0.2, 0.08)  # amplitudes of sin 2 theta and cos 3 theta
 CIRCUIT_LAPS = 4
+LAP_GROWTH = 0.03
 POINT_SPACING_M = 0.45  # chords of 0.45 m of arc stay inside the contract's 0.5 m
 #: Speed levels (m/s), each held for LEVEL_HOLD_S, ramps of SPEED_RAMP_MPS2 between them.
 SPEED_LEVELS_MPS = (8.0, 15.0, 5.0, 22.0, 12.0, 28.0, 3.0, 18.0, 25.0, 10.0,
@@ -62,20 +64,33 @@ SPEED_RAMP_MPS2 = 1.5
 DRIVE_MU = 0.85
 
 
+def _circuit_radius(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Radius (m) and its derivative d r / d theta of the widening circuit at ``theta``
+    (rad, from 0 over all laps)."""
+    a, b = CIRCUIT_SHAPE
+    shape = 1.0 + a * np.sin(2.0 * theta) + b * np.cos(3.0 * theta)
+    d_shape = 2.0 * a * np.cos(2.0 * theta) - 3.0 * b * np.sin(3.0 * theta)
+    growth = 1.0 + LAP_GROWTH * theta / (2.0 * math.pi)
+    radius = CIRCUIT_RADIUS_M * growth * shape
+    return radius, CIRCUIT_RADIUS_M * (LAP_GROWTH / (2.0 * math.pi) * shape + growth * d_shape)
+
+
 def circuit_points(laps: int = CIRCUIT_LAPS, spacing_m: float = POINT_SPACING_M) -> np.ndarray:
     """The circuit, ``laps`` times in driving order (counter-clockwise), points
-    ``spacing_m`` of arc apart: (n, 3) [x, y, yaw], starting at theta = 0 heading north."""
-    a, b = CIRCUIT_SHAPE
-    theta = np.linspace(0.0, 2.0 * math.pi, 400_001)
-    radius = CIRCUIT_RADIUS_M * (1.0 + a * np.sin(2.0 * theta) + b * np.cos(3.0 * theta))
+    ``spacing_m`` of arc apart: (n, 3) [x, y, yaw], starting at the origin.
+
+    Each lap is LAP_GROWTH (3 %, 9 to 16 m) wider than the one before: laps that lay on
+    top of each other would make the nearest point of the path ambiguous, and a
+    controller that engages with a search over the whole path could start on a later lap
+    and run out of path early (it did, 540 s into the drive, before the laps widened).
+    """
+    theta = np.linspace(0.0, 2.0 * math.pi * laps, 400_000 * laps + 1)
+    radius, _ = _circuit_radius(theta)
     x, y = radius * np.cos(theta), radius * np.sin(theta)
     arc = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))))
-    lap_length = arc[-1]
-    s = np.arange(0.0, laps * lap_length, spacing_m)
-    lap_s = np.mod(s, lap_length)
-    theta_s = np.interp(lap_s, arc, theta)
-    r = CIRCUIT_RADIUS_M * (1.0 + a * np.sin(2.0 * theta_s) + b * np.cos(3.0 * theta_s))
-    dr = CIRCUIT_RADIUS_M * (2.0 * a * np.cos(2.0 * theta_s) - 3.0 * b * np.sin(3.0 * theta_s))
+    s = np.arange(0.0, arc[-1], spacing_m)
+    theta_s = np.interp(s, arc, theta)
+    r, dr = _circuit_radius(theta_s)
     px, py = r * np.cos(theta_s), r * np.sin(theta_s)
     tangent_x = dr * np.cos(theta_s) - r * np.sin(theta_s)
     tangent_y = dr * np.sin(theta_s) + r * np.cos(theta_s)
@@ -151,10 +166,10 @@ def write_drive(path_file: Path = IDENTIFICATION_PATH_FILE,
 #: The changed plant: mass offset (kg) and the factor on the steering actuator's lag.
 CHANGED_MASS_OFFSET_KG = 300.0
 CHANGED_LAG_FACTOR = 3.0
-#: The drive's controller: on the changed plant (lag x3, +300 kg) LMPC spun out at 24 m/s
-#: with the excitation on; DMDc-ESO completed every high-mu cell of the robustness grid
-#: at lag x3 and +300 kg. Any controller will do: the data are what the plant does.
-DRIVE_CONTROLLER = "dmdc-eso"
+#: The drive's controller. Not one with an observer: the excitation is not in the
+#: command the observer sees, so it estimates it as a disturbance and fights it (DMDc-ESO
+#: on the changed plant then kept the steering saturated at +-0.3 rad from 20 s on).
+DRIVE_CONTROLLER = "lmpc"
 DRIVE_EXCITATION = "prbs-torque"
 TABLE_SCENARIOS = {"dlc_high_mu": "Table II (high mu), changed plant",
                    "dlc_low_mu": "Table III (low mu), changed plant"}
