@@ -11,9 +11,16 @@ step as the C core times itself (``ecu_step`` alone: what an ECU would spend) an
 wall time of the Python call into it (ctypes and the result's conversion added).
 The commands of both are compared as well: the largest difference is printed.
 
+Then, with ``--task-seconds N`` (default 10; 0 skips it), the C ECU executable and the
+Python ECU each run ESO-DKMPC in real time for N s of the high-mu lane change as a
+process on the socketcand hub of the timing tests (``run_on_hub``, also the harness of
+tests/test_firmware_c_bus.py): the control task's own time as each ECU reports it in
+CTRL_DIAG.CYCLE_TIME_US, and its overruns.
+
 The last line is one JSON object: ``c_p50_us``, ``c_p99_us`` (the C core's own step
-time of ESO-DKMPC), ``python_p50_us``, ``python_p99_us`` (the Python step's wall time)
-and, per controller, every figure. Figures depend on the machine and its load.
+time of ESO-DKMPC), ``python_p50_us``, ``python_p99_us`` (the Python step's wall time),
+per controller every figure, and the task figures (``c_task_p99_us`` ...). Figures
+depend on the machine and its load.
 """
 from __future__ import annotations
 
@@ -23,8 +30,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402 (after the BLAS setting on purpose)
 import json  # noqa: E402
+import signal  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import can  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -35,6 +48,11 @@ from firmware_sim.native import NATIVE_CONTROLLERS, NativeController  # noqa: E4
 from studies.bench import BenchError, record_samples, time_controllers  # noqa: E402
 from studies.machine import load_average, machine_description  # noqa: E402
 
+ROOT = Path(__file__).resolve().parent.parent
+#: The C ECU executable (make firmware).
+DEFAULT_EXECUTABLE = ROOT / "build" / "firmware" / "ecu"
+#: The socketcand channel every process opens on the hub.
+CHANNEL = "vcan0"
 #: The controller of the JSON line's four headline figures.
 HEADLINE = "eso-dkmpc"
 #: Issue 18's target for the C step's p99 (us).
@@ -63,6 +81,69 @@ class _Recorded(Controller):
         return command, debug
 
 
+def ecu_command(which: str, controller: str, path: Path, port: int, time_base: str = "--lockstep",
+                executable: Path = DEFAULT_EXECUTABLE) -> tuple[list[str], dict[str, str]]:
+    """Command line and environment of the C ECU (``which`` "c": ``executable``) or the
+    Python ECU ("python") as a process on the hub at ``port``."""
+    if which == "c":
+        return ([str(executable), "--interface", "socketcand", "--channel", CHANNEL, "--port", str(port), "--controller",
+                 controller, "--path", f"1={path}", time_base], dict(os.environ))
+    environment = dict(os.environ, CAN_CONFIG=json.dumps({"host": "127.0.0.1", "port": port, "tcp_tune": True}))
+    return ([sys.executable, "-m", "firmware_sim", "--interface", "socketcand", "--channel", CHANNEL,
+             "--controller", controller, "--path", f"1={path}", time_base], environment)
+
+
+def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_file: Path | None = None,
+               faults: dict | None = None, jump: tuple[int, int] | None = None, realtime: bool = False,
+               executable: Path = DEFAULT_EXECUTABLE, duration_s: float | None = None):
+    """The scenario with one ECU process on the hub; this process runs plant, planner and
+    time master (``hil``), the bus faults of ``faults`` (a ``[faults]`` table) injected
+    as ``hil run --faults`` does, ``jump`` = (from TICK ms, ahead ms) a jump of virtual
+    time; ``realtime``: every node on the wall clock (``hil.time_master.RealTimeMaster``);
+    ``duration_s``: shorter than the scenario. Returns (the monitor's raw frames (tick ms,
+    ID, payload), tracking, exit status, the ECU's output)."""
+    from hil.faults import FaultInjector, FaultSpec, TimeShiftingBus
+    from hil.planner_node import PlannerNode
+    from hil.plant_node import PlantNode
+    from hil.recorder import EcuFrameMonitor
+    from hil.scenario import load_scenario
+    from hil.session import control_instant_metrics, reference_path
+    from hil.time_master import LockstepMaster, RealTimeMaster
+    from hil.timing.hub import LoopbackCanHub
+
+    scenario = load_scenario(scenario_name)
+    injector = FaultInjector(FaultSpec.from_mapping(faults)) if faults else None
+    hub = LoopbackCanHub(port=0).start()
+    command, environment = ecu_command(which, controller, path_file or scenario.path_file, hub.port,
+                                       "--realtime" if realtime else "--lockstep", executable)
+    with log.open("w") as output:
+        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
+        bus = None
+        try:
+            bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=hub.port, tcp_tune=True)
+            master_bus = bus if jump is None else TimeShiftingBus(bus, *jump)
+            time.sleep(0.2)  # the hub delivers to a new client after its READY_DELAY_S
+            plant = PlantNode(scenario, vehicle=injector.vehicle(scenario) if injector else None)
+            planner, monitor = PlannerNode(scenario), EcuFrameMonitor()
+            if realtime:
+                time.sleep(1.5 if which == "python" else 0.3)  # the ECU's start-up (imports, model)
+                master = RealTimeMaster(master_bus, [plant, planner, monitor])
+            else:
+                master = LockstepMaster(master_bus, [plant, planner, monitor], handshake_timeout_s=60.0,
+                                        ack_timeout_s=10.0, send_hook=injector.outgoing if injector else None,
+                                        peer_alive=lambda: None if ecu.poll() is None else f"ECU exited {ecu.returncode}")
+            master.run(min(scenario.duration_s, duration_s or scenario.duration_s))
+            time.sleep(0.1)
+        finally:
+            ecu.send_signal(signal.SIGTERM)
+            status = ecu.wait(timeout=20)
+            if bus is not None:
+                bus.shutdown()
+            hub.close()
+    tracking = control_instant_metrics(plant.trace(), reference_path(scenario))
+    return monitor.raw, tracking, status, log.read_text()
+
+
 def bench_one(name: str, samples: Sequence[VehicleSample], path: ReferencePath) -> dict[str, float]:
     """Python and C steps of controller ``name`` on ``samples``, figures in us."""
     from controller.registry import create_controller
@@ -86,11 +167,42 @@ def bench_one(name: str, samples: Sequence[VehicleSample], path: ReferencePath) 
             "max_steer_difference_rad": steer_difference}
 
 
+def task_times(seconds: float, controller: str = HEADLINE) -> dict[str, float]:
+    """Both ECUs in real time on the hub (``run_on_hub``) through the high-mu lane change
+    for ``seconds``: the control task's own time from CTRL_DIAG.CYCLE_TIME_US (us; the
+    first second, start-up, left out) and the ECU's overrun count."""
+    import tempfile
+
+    from can_defs.codec import decode
+    from can_defs.frames import FrameId
+
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for which in ("python", "c"):
+            raw, _, status, output = run_on_hub(which, "dlc_high_mu", controller, Path(folder) / f"{which}.log",
+                                                realtime=True, duration_s=seconds)
+            if status != 0:
+                raise BenchError(f"{which} ECU on the hub exited {status}: {output[-500:]}")
+            diags = [(tick, decode(i, d).frame) for tick, i, d in raw if i == FrameId.CTRL_DIAG]
+            cycle = np.array([float(f.cycle_time_us) for tick, f in diags if tick >= 1000])
+            if cycle.size == 0:
+                raise BenchError(f"{which} ECU sent no CTRL_DIAG after the first second")
+            figures[f"{which}_task_p50_us"] = float(np.percentile(cycle, 50))
+            figures[f"{which}_task_p99_us"] = float(np.percentile(cycle, 99))
+            figures[f"{which}_task_max_us"] = float(cycle.max())
+            figures[f"{which}_task_overruns"] = float(max(f.overruns for _, f in diags))
+            figures[f"{which}_task_cycles"] = float(cycle.size)
+    return figures
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=None, help="only the first N control steps")
     parser.add_argument("--controllers", default=",".join(NATIVE_CONTROLLERS),
                         help=f"comma-separated, of {', '.join(NATIVE_CONTROLLERS)}")
+    parser.add_argument("--task-seconds", type=float, default=10.0,
+                        help="seconds of each ECU in real time on the hub for the control task's time "
+                             "(0: skip)")
     args = parser.parse_args(argv)
     names = [n.strip() for n in args.controllers.split(",") if n.strip()]
     unknown = [n for n in names if n not in NATIVE_CONTROLLERS]
@@ -102,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
         load_start = load_average()
         samples, path, description = record_samples(args.steps)
         results = {name: bench_one(name, samples, path) for name in names}
-    except (BenchError, EcuError) as e:
+        tasks = task_times(args.task_seconds) if args.task_seconds > 0 else {}
+    except (BenchError, EcuError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(f"{description}; {machine_description()}; load average {load_start[0]:.2f} at the start, "
@@ -119,8 +232,14 @@ def main(argv: list[str] | None = None) -> int:
     headline_name = HEADLINE if HEADLINE in results else next(iter(results))
     verdict = "met" if head["c_p99_us"] <= TARGET_P99_US else "NOT met"
     print(f"target: {headline_name} C step p99 <= {TARGET_P99_US:.0f} us: {verdict} ({head['c_p99_us']:.1f} us)")
+    if tasks:
+        print(f"control task in real time on the hub, {HEADLINE}, {args.task_seconds:g} s of dlc_high_mu "
+              f"(CTRL_DIAG.CYCLE_TIME_US, first second left out): C p50 {tasks['c_task_p50_us']:.0f} us, "
+              f"p99 {tasks['c_task_p99_us']:.0f} us, {tasks['c_task_overruns']:.0f} overruns; Python p50 "
+              f"{tasks['python_task_p50_us']:.0f} us, p99 {tasks['python_task_p99_us']:.0f} us, "
+              f"{tasks['python_task_overruns']:.0f} overruns")
     summary = {key: head[key] for key in ("c_p50_us", "c_p99_us", "python_p50_us", "python_p99_us")}
-    summary.update(controller=headline_name, controllers=results)
+    summary.update(controller=headline_name, controllers=results, **tasks)
     print(json.dumps(summary))
     return 0
 

@@ -1,20 +1,20 @@
-"""The C ECU executable on a bus, lockstep: equivalence with the Python ECU.
+"""The C ECU executable on a bus: equivalence and conformance with the Python ECU.
 
-The executable runs as its own process on the socketcand hub of the timing tests
-(``hil.timing.hub``, TCP loopback); this process runs the plant, the planner and the time
-master of ``hil`` on the same hub. Its frames are compared with those of the Python ECU
-(in-process, virtual bus) on the same scenario: STEER_TORQUE_CMD byte for byte, CTRL_DIAG
-in every field but the wall-clock ones (SOLVE_TIME_US, CYCLE_TIME_US, OVERRUNS: the
-contract says those are the only fields not repeatable) and the CRC that covers them.
-``dlc_smoke`` here (``make test``); both full lane changes with ECU_EQUIVALENCE_FULL=1.
+An ECU process - the executable, or ``python -m firmware_sim`` - runs on the socketcand
+hub of the timing tests (``hil.timing.hub``, TCP loopback); this process runs the plant,
+the planner and the time master of ``hil`` on the same hub (``studies.bench_native.
+run_on_hub``). Frames are compared with those of the Python ECU on the same scenario:
+STEER_TORQUE_CMD byte for byte, CTRL_DIAG in every field but the wall-clock ones
+(SOLVE_TIME_US, CYCLE_TIME_US, OVERRUNS: the contract says those alone are not
+repeatable) and the CRC that covers them. ``dlc_smoke`` and three fault cases here
+(``make test``); the full lane changes with ECU_EQUIVALENCE_FULL=1, every fault case with
+ECU_CONFORMANCE_FULL=1.
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -23,78 +23,17 @@ import pytest
 
 from can_defs.codec import decode
 from can_defs.frames import FrameId
+from studies.bench_native import CHANNEL, ecu_command, run_on_hub
 from test_firmware_c_core import native  # noqa: F401 (the fixture: the firmware built)
 
 ROOT = Path(__file__).resolve().parent.parent
 ECU = ROOT / os.environ.get("ECU_EXE", "build/firmware/ecu")
-CHANNEL = "vcan0"
 FULL = os.environ.get("ECU_EQUIVALENCE_FULL") == "1"
-
-
-def ecu_command(which: str, controller: str, path: Path, port: int,
-                time_base: str = "--lockstep") -> tuple[list[str], dict[str, str]]:
-    """Command line and environment of the C ECU (``which`` "c") or the Python ECU ("python")
-    as a process on the hub at ``port``."""
-    if which == "c":
-        return ([str(ECU), "--interface", "socketcand", "--channel", CHANNEL, "--port", str(port), "--controller",
-                 controller, "--path", f"1={path}", time_base], dict(os.environ))
-    environment = dict(os.environ, CAN_CONFIG=json.dumps({"host": "127.0.0.1", "port": port, "tcp_tune": True}))
-    return ([sys.executable, "-m", "firmware_sim", "--interface", "socketcand", "--channel", CHANNEL,
-             "--controller", controller, "--path", f"1={path}", time_base], environment)
-
-
-def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_file: Path | None = None,
-               faults: dict | None = None, jump: tuple[int, int] | None = None, realtime: bool = False):
-    """The scenario with one ECU process on the hub; this process runs plant, planner and
-    time master (``hil``), the bus faults of ``faults`` (a ``[faults]`` table) injected
-    as ``hil run --faults`` does, ``jump`` = (from TICK ms, ahead ms) a jump of virtual
-    time; ``realtime``: every node on the wall clock (``hil.time_master.RealTimeMaster``).
-    Returns (the monitor's raw frames, tracking, exit status, the ECU's output)."""
-    from hil.faults import FaultInjector, FaultSpec, TimeShiftingBus
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
-    from hil.scenario import load_scenario
-    from hil.session import control_instant_metrics, reference_path
-    from hil.time_master import LockstepMaster, RealTimeMaster
-    from hil.timing.hub import LoopbackCanHub
-
-    scenario = load_scenario(scenario_name)
-    injector = FaultInjector(FaultSpec.from_mapping(faults)) if faults else None
-    hub = LoopbackCanHub(port=0).start()
-    command, environment = ecu_command(which, controller, path_file or scenario.path_file, hub.port,
-                                       "--realtime" if realtime else "--lockstep")
-    with log.open("w") as output:
-        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
-        bus = None
-        try:
-            bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=hub.port, tcp_tune=True)
-            master_bus = bus if jump is None else TimeShiftingBus(bus, *jump)
-            time.sleep(0.2)  # the hub delivers to a new client after its READY_DELAY_S
-            plant = PlantNode(scenario, vehicle=injector.vehicle(scenario) if injector else None)
-            planner, monitor = PlannerNode(scenario), EcuFrameMonitor()
-            if realtime:
-                time.sleep(1.5 if which == "python" else 0.3)  # the ECU's start-up (imports, model)
-                master = RealTimeMaster(master_bus, [plant, planner, monitor])
-            else:
-                master = LockstepMaster(master_bus, [plant, planner, monitor], handshake_timeout_s=60.0,
-                                        ack_timeout_s=10.0, send_hook=injector.outgoing if injector else None,
-                                        peer_alive=lambda: None if ecu.poll() is None else f"ECU exited {ecu.returncode}")
-            master.run(scenario.duration_s)
-            time.sleep(0.1)
-        finally:
-            ecu.send_signal(signal.SIGTERM)
-            status = ecu.wait(timeout=20)
-            if bus is not None:
-                bus.shutdown()
-            hub.close()
-    tracking = control_instant_metrics(plant.trace(), reference_path(scenario))
-    return monitor.raw, tracking, status, log.read_text()
 
 
 def run_c_ecu(scenario_name: str, controller: str, log: Path, path_file: Path | None = None):
     """The scenario with the C ECU on the hub (see `run_on_hub`)."""
-    return run_on_hub("c", scenario_name, controller, log, path_file)
+    return run_on_hub("c", scenario_name, controller, log, path_file, executable=ECU)
 
 
 def diag_fields(data: bytes) -> tuple:
@@ -196,7 +135,7 @@ def test_conformance_c_ecu_equals_python_ecu_under_faults(native, case: str, tmp
     runs = {}
     for which in ("python", "c"):
         raw, tracking, status, output = run_on_hub(which, "dlc_smoke", "lmpc", tmp_path / f"{which}.log",
-                                                   faults=table or None, jump=jump)
+                                                   faults=table or None, jump=jump, executable=ECU)
         assert status == 0, output[-2000:]
         runs[which] = commands_and_diags(raw)
     (py_commands, py_diags), (c_commands, c_diags) = runs["python"], runs["c"]
@@ -218,7 +157,7 @@ def test_c_ecu_in_real_time_tracks_as_the_python_ecu(native, tmp_path: Path) -> 
     results = {}
     for which in ("python", "c"):
         raw, tracking, status, output = run_on_hub(which, "dlc_smoke", "lmpc", tmp_path / f"{which}.log",
-                                                   realtime=True)
+                                                   realtime=True, executable=ECU)
         assert status == 0, output[-2000:]
         commands = [decode(i, d).frame for _, i, d in raw if i == FrameId.STEER_TORQUE_CMD]
         active = sum(int(c.ctrl_mode) in (2, 3) and c.cmd_valid for c in commands)  # ACTIVE, DEGRADED
@@ -259,7 +198,7 @@ def test_lost_bus_is_reopened(native, tmp_path: Path) -> None:
             bus.shutdown()
 
     with log.open("w") as output:
-        command, environment = ecu_command("c", "lmpc", scenario.path_file, port)
+        command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU)
         ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
         try:
             first = drive(0.5)
