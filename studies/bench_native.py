@@ -82,25 +82,28 @@ class _Recorded(Controller):
 
 
 def ecu_command(which: str, controller: str, path: Path, port: int, time_base: str = "--lockstep",
-                executable: Path = DEFAULT_EXECUTABLE) -> tuple[list[str], dict[str, str]]:
+                executable: Path = DEFAULT_EXECUTABLE,
+                extra: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
     """Command line and environment of the C ECU (``which`` "c": ``executable``) or the
-    Python ECU ("python") as a process on the hub at ``port``."""
+    Python ECU ("python") as a process on the hub at ``port``; ``extra`` options of both
+    CLIs (``--cpu``, ``--rt-priority``)."""
     if which == "c":
         return ([str(executable), "--interface", "socketcand", "--channel", CHANNEL, "--port", str(port), "--controller",
-                 controller, "--path", f"1={path}", time_base], dict(os.environ))
+                 controller, "--path", f"1={path}", time_base, *extra], dict(os.environ))
     environment = dict(os.environ, CAN_CONFIG=json.dumps({"host": "127.0.0.1", "port": port, "tcp_tune": True}))
     return ([sys.executable, "-m", "firmware_sim", "--interface", "socketcand", "--channel", CHANNEL,
-             "--controller", controller, "--path", f"1={path}", time_base], environment)
+             "--controller", controller, "--path", f"1={path}", time_base, *extra], environment)
 
 
 def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_file: Path | None = None,
                faults: dict | None = None, jump: tuple[int, int] | None = None, realtime: bool = False,
-               executable: Path = DEFAULT_EXECUTABLE, duration_s: float | None = None):
+               executable: Path = DEFAULT_EXECUTABLE, duration_s: float | None = None,
+               extra: tuple[str, ...] = ()):
     """The scenario with one ECU process on the hub; this process runs plant, planner and
     time master (``hil``), the bus faults of ``faults`` (a ``[faults]`` table) injected
     as ``hil run --faults`` does, ``jump`` = (from TICK ms, ahead ms) a jump of virtual
     time; ``realtime``: every node on the wall clock (``hil.time_master.RealTimeMaster``);
-    ``duration_s``: shorter than the scenario. Returns (the monitor's raw frames (tick ms,
+    ``duration_s``: shorter than the scenario; ``extra``: more ECU options. Returns (the monitor's raw frames (tick ms,
     ID, payload), tracking, exit status, the ECU's output)."""
     from hil.faults import FaultInjector, FaultSpec, TimeShiftingBus
     from hil.planner_node import PlannerNode
@@ -115,7 +118,7 @@ def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_
     injector = FaultInjector(FaultSpec.from_mapping(faults)) if faults else None
     hub = LoopbackCanHub(port=0).start()
     command, environment = ecu_command(which, controller, path_file or scenario.path_file, hub.port,
-                                       "--realtime" if realtime else "--lockstep", executable)
+                                       "--realtime" if realtime else "--lockstep", executable, extra)
     with log.open("w") as output:
         ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
         bus = None

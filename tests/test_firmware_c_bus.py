@@ -153,11 +153,11 @@ def test_c_ecu_in_real_time_tracks_as_the_python_ecu(native, tmp_path: Path) -> 
     frame for frame, so the run is compared by its outcome - the C ECU sends valid
     commands (ACTIVE, DEGRADED on a late sample of a busy host) in at least 90 % of the
     run's control periods and tracks dlc_smoke as the Python ECU does
-    (e_Y RMSE within 5 mm)."""
+    (e_Y RMSE within 5 mm). Both ECUs pinned to CPU 0 (``--cpu``)."""
     results = {}
     for which in ("python", "c"):
         raw, tracking, status, output = run_on_hub(which, "dlc_smoke", "lmpc", tmp_path / f"{which}.log",
-                                                   realtime=True, executable=ECU)
+                                                   realtime=True, executable=ECU, extra=("--cpu", "0"))
         assert status == 0, output[-2000:]
         commands = [decode(i, d).frame for _, i, d in raw if i == FrameId.STEER_TORQUE_CMD]
         active = sum(int(c.ctrl_mode) in (2, 3) and c.cmd_valid for c in commands)  # ACTIVE, DEGRADED

@@ -66,6 +66,10 @@ def test_replay_equals_python_controller(native, name: str, tmp_path: Path) -> N
       "--realtime", "--lockstep"], "error: exactly one of --lockstep or --realtime is required"),
     (["--interface", "socketcand", "--channel", "vcan0", "--port", "1", "--controller", "lmpc", "--path",
       "1=hil/paths/dlc.csv", "--lockstep"], "error: cannot open CAN bus (interface=socketcand, channel=vcan0)"),
+    (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
+      "--lockstep", "--rt-priority", "1000"], "error: SCHED_FIFO priority must be in 1..99, got 1000"),
+    (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
+      "--lockstep", "--cpu", "x"], "error: --cpu: expected a non-negative integer, got 'x'"),
     (["--interface", "socketcan", "--channel", "nosuchcan0", "--controller", "lmpc", "--path",
       "1=hil/paths/dlc.csv", "--lockstep"], "error: cannot open CAN bus (interface=socketcan, channel=nosuchcan0)"),
 ])

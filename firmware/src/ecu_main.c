@@ -3,7 +3,8 @@
  *
  *   ecu --version
  *   ecu --interface socketcan|socketcand --channel C [--host H --port P] --controller NAME
- *       --path ID=FILE.csv [--path ...] [--data FILE] (--lockstep | --realtime)
+ *       --path ID=FILE.csv [--path ...] [--data FILE] (--lockstep | --realtime) [--cpu N]
+ *       [--rt-priority P]     (pin to a CPU, SCHED_FIFO; skipped with a warning where refused)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
  *       --replay SAMPLES.csv [--realtime]
  *
@@ -40,6 +41,7 @@ static const char *const USAGE =
   "usage: ecu --version\n"
   "       ecu --interface socketcan|socketcand --channel C [--host H] [--port P] --controller NAME\n"
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
+  "           [--cpu N] [--rt-priority P]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -158,7 +160,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
 int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
-  int port = 29536, lockstep = 0;
+  int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0;
   const char *path_files[MAX_PATHS];
   int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0;
   char err[600], message[800];
@@ -175,7 +177,8 @@ int main(int argc, char **argv) {
                           strcmp(arg, "--data") == 0 || strcmp(arg, "--replay") == 0 ||
                           strcmp(arg, "--path-id") == 0 || strcmp(arg, "--interface") == 0 ||
                           strcmp(arg, "--channel") == 0 || strcmp(arg, "--host") == 0 ||
-                          strcmp(arg, "--port") == 0)) {
+                          strcmp(arg, "--port") == 0 || strcmp(arg, "--cpu") == 0 ||
+                          strcmp(arg, "--rt-priority") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
@@ -192,6 +195,15 @@ int main(int argc, char **argv) {
       long value = strtol(argv[++i], &end, 10);
       if (*end != '\0' || value < 1 || value > 65535) return fail("--port: expected an integer in 1..65535");
       port = (int)value;
+    } else if (strcmp(arg, "--cpu") == 0 || strcmp(arg, "--rt-priority") == 0) {
+      char *end;
+      long value = strtol(argv[++i], &end, 10);
+      if (*end != '\0' || value < 0 || value > 4096) {
+        snprintf(message, sizeof message, "%s: expected a non-negative integer, got '%s'", arg, argv[i]);
+        return fail(message);
+      }
+      if (strcmp(arg, "--cpu") == 0) cpu = (int)value;
+      else fifo_priority = (int)value;
     } else if (strcmp(arg, "--data") == 0) {
       data = argv[++i];
     } else if (strcmp(arg, "--replay") == 0) {
@@ -256,6 +268,11 @@ int main(int argc, char **argv) {
       }
     }
     if (failure) fprintf(stderr, "error: FAULT latched: %s\n", failure);
+    if (cpu >= 0 || fifo_priority) {
+      char note[300];
+      if (os_realtime_policy(cpu, fifo_priority, note, sizeof note, err, sizeof err) != 0) return fail(err);
+      if (note[0]) fprintf(stderr, "warning: %s\n", note);
+    }
     return run_bus(interface, channel, host, port, failure, realtime);
   }
   if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);

@@ -6,6 +6,7 @@
 #define ECU_OS_H
 
 #include <signal.h>
+#include <stddef.h>
 #include <stdint.h>
 
 /* Monotonic time in ns (never jumps with the wall clock). */
@@ -17,6 +18,11 @@ int os_sleep_until_ns(int64_t deadline_ns);
 
 /* SIGINT, SIGTERM and SIGHUP set *stop to 1 (the loops poll it). */
 void os_install_stop_handler(volatile sig_atomic_t *stop);
+
+/* Pin this process to cpu (-1: leave) and run it under SCHED_FIFO priority (0: leave).
+ * A request the OS refuses is skipped with one line in note (empty when all was done);
+ * -1 with err for a priority outside the OS's FIFO range or a negative cpu. */
+int os_realtime_policy(int cpu, int fifo_priority, char *note, size_t note_len, char *err, size_t err_len);
 
 /* One CAN frame as the firmware sees it: ID, up to 8 bytes, and whether it is a classic
  * data frame with an 11-bit ID (the only kind the contract uses; others are ignored). */

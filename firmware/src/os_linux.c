@@ -3,7 +3,7 @@
  * socketcand TCP protocol. The only file with OS calls; the rest of the firmware is C11
  * with libc's stdio and libm.
  */
-#define _DEFAULT_SOURCE
+#define _GNU_SOURCE /* sched_setaffinity */
 
 #include <arpa/inet.h>
 #include <errno.h>
@@ -13,6 +13,7 @@
 #include <netinet/in.h>
 #include <netinet/tcp.h>
 #include <poll.h>
+#include <sched.h>
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -52,6 +53,36 @@ void os_install_stop_handler(volatile sig_atomic_t *stop) {
   sigaction(SIGINT, &action, NULL);
   sigaction(SIGTERM, &action, NULL);
   sigaction(SIGHUP, &action, NULL);
+}
+
+int os_realtime_policy(int cpu, int fifo_priority, char *note, size_t note_len, char *err, size_t err_len) {
+  size_t used = 0;
+  note[0] = '\0';
+  if (cpu < -1) {
+    snprintf(err, err_len, "--cpu must be >= 0, got %d", cpu);
+    return -1;
+  }
+  if (fifo_priority) {
+    int low = sched_get_priority_min(SCHED_FIFO), high = sched_get_priority_max(SCHED_FIFO);
+    if (fifo_priority < low || fifo_priority > high) {
+      snprintf(err, err_len, "SCHED_FIFO priority must be in %d..%d, got %d", low, high, fifo_priority);
+      return -1;
+    }
+  }
+  if (cpu >= 0) {
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    CPU_SET(cpu, &set);
+    if (sched_setaffinity(0, sizeof set, &set) != 0)
+      used += (size_t)snprintf(note + used, note_len - used, "cpu %d not pinned: %s; ", cpu, strerror(errno));
+  }
+  if (fifo_priority) {
+    struct sched_param param = {0};
+    param.sched_priority = fifo_priority;
+    if (sched_setscheduler(0, SCHED_FIFO, &param) != 0 && used < note_len)
+      snprintf(note + used, note_len - used, "SCHED_FIFO not permitted: %s", strerror(errno));
+  }
+  return 0;
 }
 
 /* ------------------------------------------------------------------ CAN */
