@@ -549,19 +549,25 @@ class Ecu:
                         int(debug.iterations), float(debug.solve_time_s), faults)
 
     def _excite(self, now_s: float, measurement: Any, steer: float, torque: float) -> tuple[float, float]:
-        """The law's command with the identification excitation (ACTIVE only) added."""
+        """The law's command with the identification excitation (ACTIVE only) added.
+        Never raises: a failure stops the excitation and leaves the law's command."""
         assert self._excitation is not None
-        lateral_error = None
-        if self._excitation_tracker is not None and self.mode is CtrlMode.ACTIVE:
-            lateral_error = self._excitation_tracker.update(
-                measurement.x, measurement.y, measurement.yaw).lateral_error
         was_stopped = self._excitation.stopped_reason
-        steer, torque, status = self._excitation.step(
-            now_s, self.mode is CtrlMode.ACTIVE, measurement.vx, lateral_error, steer, torque,
-            self._limits.steer_range(), self._limits.torque_range())
+        try:
+            lateral_error = None
+            if self._excitation_tracker is not None and self.mode is CtrlMode.ACTIVE:
+                lateral_error = self._excitation_tracker.update(
+                    measurement.x, measurement.y, measurement.yaw).lateral_error
+            excited_steer, excited_torque, status = self._excitation.step(
+                now_s, self.mode is CtrlMode.ACTIVE, measurement.vx, lateral_error, steer, torque,
+                self._limits.steer_range(), self._limits.torque_range())
+        except Exception as error:  # the control task never raises
+            self._excitation.stopped_reason = f"excitation failed: {error}"
+            _LOG.error("excitation stopped for this engagement: %s", self._excitation.stopped_reason)
+            return steer, torque
         if status.stopped_reason is not None and was_stopped is None:
             _LOG.warning("excitation stopped for this engagement: %s", status.stopped_reason)
-        return steer, torque
+        return excited_steer, excited_torque
 
     def _predict(self, sample: VehicleSample, sample_age_ns: int | None) -> VehicleSample | None:
         from controller.dead_reckoning import predict_sample

@@ -14,7 +14,7 @@ identify: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.identification study --out results/identification $(IDENTIFY_ARGS)
 	$(PROVENANCE_STAMP) $(addprefix results/identification/,tables.md summary.json training_report.md) \
 		--command "$(call provenance_command,identify,IDENTIFY_ARGS)" \
-		--inputs $(PROVENANCE_HIL) $(PROVENANCE_DMDC) hil/scenarios/identification/drive.toml \
+		--inputs $(PROVENANCE_HIL) hil/scenarios/identification/drive.toml \
 		--modules studies.identification models.koopman_train
 
 ## regenerate the identification drive: hil/paths/identification.csv and hil/scenarios/identification/drive.toml

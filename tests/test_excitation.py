@@ -164,3 +164,25 @@ def test_hil_run_with_excitation_adds_it_only_while_active_and_within_the_limits
     assert np.abs(difference[~early]).max() > 0.005
     assert np.all(np.abs(excited["steer_angle_cmd"]) <= 0.3)
     assert excited_run.tracking.lateral.max_abs < 1.5
+
+
+def test_a_failing_excitation_leaves_the_law_command_and_never_raises(monkeypatch):
+    import can
+    from firmware_sim.ecu import Ecu
+    from firmware_sim.excitation import Excitation as RealExcitation
+
+    bus = can.Bus(interface="virtual", channel="excitation-failure")
+    ecu = Ecu(bus, "lmpc", {}, controller_factory=lambda name: None,
+              excitation=SHIPPED_PROGRAMS["prbs"])
+    try:
+        def broken(self, *args, **kwargs):
+            raise ValueError("broken")
+        monkeypatch.setattr(RealExcitation, "step", broken)
+
+        class Measurement:
+            x = y = yaw = 0.0
+            vx = 10.0
+        assert ecu._excite(1.0, Measurement(), 0.01, 5.0) == (0.01, 5.0)
+        assert "excitation failed: broken" in ecu._excitation.stopped_reason
+    finally:
+        ecu.close()
