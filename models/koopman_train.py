@@ -23,7 +23,9 @@ one, 2 it/s vs 9 it/s at load ~6), a seeded batch sampler, and a fixed number of
 epoch (never a wall-clock budget).
 
 CLI: ``python -m models.koopman_train --data data/nominal --out models/artifacts/dk_d5``;
-``--states/--inputs/--ts`` train on any named-column CSV data set.
+``--states/--inputs/--ts`` train on any named-column CSV data set; ``--logs LOG [LOG ...]
+--out DIR`` trains from CAN logs of the contract's bus and writes the artefact, a fitted
+bicycle and a report into DIR (``models/log_identification.py``, docs/identification.md).
 """
 from __future__ import annotations
 
