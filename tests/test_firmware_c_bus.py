@@ -217,3 +217,28 @@ def test_lost_bus_is_reopened(native, tmp_path: Path) -> None:
     assert status == 0, output_text
     assert output_text.count("bus lost") == 1 and "bus reopened after it was lost" in output_text
     assert len(first) == len(second) == 20  # 0.5 s of 25 ms control tasks, each run
+
+
+def test_timing_record_reads_as_the_python_ecus(native, tmp_path: Path) -> None:
+    """--timing-out: the C ECU's record of a real-time run loads with
+    firmware_sim.timing.load_timing, one row per control task, the fields measured."""
+    import numpy as np
+
+    from firmware_sim.timing import TIMING_FIELDS, load_timing
+
+    record_file = tmp_path / "timing.npz"
+    raw, _, status, output = run_on_hub("c", "dlc_smoke", "lmpc", tmp_path / "ecu.log", realtime=True,
+                                        executable=ECU, duration_s=2.0,
+                                        extra=("--timing-out", str(record_file)))
+    assert status == 0, output
+    record = load_timing(record_file)
+    diags = sum(1 for _, i, _ in raw if i == FrameId.CTRL_DIAG)
+    assert record.count >= diags >= 70  # the ECU also runs before and after the master
+    assert set(TIMING_FIELDS) <= set(record.columns)
+    task = record.columns["task_time"]
+    assert np.all(np.isfinite(task)) and np.all(task > 0.0) and np.median(task) < 0.025
+    assert np.all(np.isfinite(record.columns["release_jitter"]))
+    active = record.columns["mode"] == 2
+    assert active.sum() >= 60 and np.all(np.isfinite(record.columns["input_age"][active]))
+    print(f"C ECU task time p50 {np.median(task) * 1e6:.0f} us, p99 {np.percentile(task, 99) * 1e6:.0f} us "
+          f"over {record.count} tasks")

@@ -70,6 +70,12 @@ def test_replay_equals_python_controller(native, name: str, tmp_path: Path) -> N
       "--lockstep", "--rt-priority", "1000"], "error: SCHED_FIFO priority must be in 1..99, got 1000"),
     (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
       "--lockstep", "--cpu", "x"], "error: --cpu: expected a non-negative integer, got 'x'"),
+    (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
+      "--lockstep", "--timing-out", "hil/paths/dlc.csv"],
+     "error: --timing-out hil/paths/dlc.csv: file exists (give --replace to overwrite it)"),
+    (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
+      "--lockstep", "--timing-out", "no/such/folder/t.npz"],
+     "error: --timing-out no/such/folder/t.npz: folder no/such/folder does not exist"),
     (["--interface", "socketcan", "--channel", "nosuchcan0", "--controller", "lmpc", "--path",
       "1=hil/paths/dlc.csv", "--lockstep"], "error: cannot open CAN bus (interface=socketcan, channel=nosuchcan0)"),
 ])

@@ -5,6 +5,7 @@
  *   ecu --interface socketcan|socketcand --channel C [--host H --port P] --controller NAME
  *       --path ID=FILE.csv [--path ...] [--data FILE] (--lockstep | --realtime) [--cpu N]
  *       [--rt-priority P]     (pin to a CPU, SCHED_FIFO; skipped with a warning where refused)
+ *       [--timing-out FILE.npz [--replace]]   (firmware_sim.timing's record, written on exit)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
  *       --replay SAMPLES.csv [--realtime]
  *
@@ -18,7 +19,11 @@
  * overruns on stderr. Bad arguments are one "error: ..." line on stderr and exit status 2
  * (1: the bus cannot be opened).
  */
+#define _POSIX_C_SOURCE 200809L /* access, stat */
+
 #include <errno.h>
+#include <sys/stat.h>
+#include <unistd.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -41,7 +46,7 @@ static const char *const USAGE =
   "usage: ecu --version\n"
   "       ecu --interface socketcan|socketcand --channel C [--host H] [--port P] --controller NAME\n"
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
-  "           [--cpu N] [--rt-priority P]\n"
+  "           [--cpu N] [--rt-priority P] [--timing-out FILE.npz [--replace]] [--log-level L]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -105,11 +110,37 @@ static int replay(FILE *samples, const char *name, int realtime) {
   return 0;
 }
 
+/* check_output_file of the Python CLI: refuse an output file the ECU could not write at
+ * its end, before anything runs. NULL when fine, else the message. */
+static const char *check_output_file(const char *file, int replace, char *message, size_t len) {
+  struct stat info;
+  char folder[512];
+  const char *slash = strrchr(file, '/');
+  snprintf(folder, sizeof folder, "%.*s", slash ? (int)(slash - file) : 1, slash ? file : ".");
+  if (folder[0] == '\0') snprintf(folder, sizeof folder, "/");
+  if (stat(folder, &info) != 0 || !S_ISDIR(info.st_mode)) {
+    snprintf(message, len, "--timing-out %s: folder %s does not exist", file, folder);
+    return message;
+  }
+  if (stat(file, &info) == 0) {
+    if (S_ISDIR(info.st_mode)) snprintf(message, len, "--timing-out %s: is a folder", file);
+    else if (!replace) snprintf(message, len, "--timing-out %s: file exists (give --replace to overwrite it)", file);
+    else if (access(file, W_OK) != 0) snprintf(message, len, "--timing-out %s: file is not writable", file);
+    else return NULL;
+    return message;
+  }
+  if (access(folder, W_OK | X_OK) != 0) {
+    snprintf(message, len, "--timing-out %s: folder %s is not writable", file, folder);
+    return message;
+  }
+  return NULL;
+}
+
 static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os_can_send(id, data, length); }
 
 /* The node on the bus until a stop signal; the bus is reopened every second while lost. */
 static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error,
-                   int realtime) {
+                   int realtime, const char *timing_out) {
   char err[300];
   os_can_frame_t frame;
   if (os_can_open(interface, channel, host, port, err, sizeof err) != 0) {
@@ -154,13 +185,18 @@ static int run_bus(const char *interface, const char *channel, const char *host,
   }
   if (!lost) ecu_node_close();
   os_can_close();
+  if (timing_out && ecu_node_save_timing(timing_out, err, sizeof err) != 0) {
+    fprintf(stderr, "error: --timing-out %s\n", err);
+    return EXIT_BUS;
+  }
   return 0;
 }
 
 int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
-  int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0;
+  const char *timing_out = NULL;
+  int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0;
   const char *path_files[MAX_PATHS];
   int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0;
   char err[600], message[800];
@@ -173,12 +209,15 @@ int main(int argc, char **argv) {
       realtime = 1;
     } else if (strcmp(arg, "--lockstep") == 0) {
       lockstep = 1;
+    } else if (strcmp(arg, "--replace") == 0) {
+      replace = 1;
     } else if (!value && (strcmp(arg, "--controller") == 0 || strcmp(arg, "--path") == 0 ||
                           strcmp(arg, "--data") == 0 || strcmp(arg, "--replay") == 0 ||
                           strcmp(arg, "--path-id") == 0 || strcmp(arg, "--interface") == 0 ||
                           strcmp(arg, "--channel") == 0 || strcmp(arg, "--host") == 0 ||
                           strcmp(arg, "--port") == 0 || strcmp(arg, "--cpu") == 0 ||
-                          strcmp(arg, "--rt-priority") == 0)) {
+                          strcmp(arg, "--rt-priority") == 0 || strcmp(arg, "--timing-out") == 0 ||
+                          strcmp(arg, "--log-level") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
@@ -204,6 +243,16 @@ int main(int argc, char **argv) {
       }
       if (strcmp(arg, "--cpu") == 0) cpu = (int)value;
       else fifo_priority = (int)value;
+    } else if (strcmp(arg, "--timing-out") == 0) {
+      timing_out = argv[++i];
+    } else if (strcmp(arg, "--log-level") == 0) {
+      /* The C ECU writes its warnings and errors only; the levels are accepted for the
+       * Python ECU's command lines. */
+      const char *level = argv[++i];
+      if (strcmp(level, "debug") && strcmp(level, "info") && strcmp(level, "warning") && strcmp(level, "error")) {
+        snprintf(message, sizeof message, "--log-level: '%s' is not one of debug, info, warning, error", level);
+        return fail(message);
+      }
     } else if (strcmp(arg, "--data") == 0) {
       data = argv[++i];
     } else if (strcmp(arg, "--replay") == 0) {
@@ -245,6 +294,7 @@ int main(int argc, char **argv) {
     if (!interface || !channel) return fail("--interface and --channel are required on the bus");
     if (samples_file) return fail("--replay runs without a bus: give no --interface / --channel");
     if (lockstep == realtime) return fail("exactly one of --lockstep or --realtime is required");
+    if (timing_out && check_output_file(timing_out, replace, message, sizeof message)) return fail(message);
     for (int k = 0; k < n_paths; k++) {
       FILE *probe = fopen(path_files[k], "r");
       if (!probe) {
@@ -273,7 +323,7 @@ int main(int argc, char **argv) {
       if (os_realtime_policy(cpu, fifo_priority, note, sizeof note, err, sizeof err) != 0) return fail(err);
       if (note[0]) fprintf(stderr, "warning: %s\n", note);
     }
-    return run_bus(interface, channel, host, port, failure, realtime);
+    return run_bus(interface, channel, host, port, failure, realtime, timing_out);
   }
   if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);
   /* Every path file is checked at start-up; the selected one is loaded last. */

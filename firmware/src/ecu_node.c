@@ -9,6 +9,7 @@
 
 #include "ecu_node.h"
 #include "ecu_core.h"
+#include "ecu_npz.h"
 #include "ecu_rx.h"
 #include "os.h"
 #include "vehicle.h"
@@ -81,6 +82,7 @@ static double previous_valid_steer;
 static int tx_counter[2]; /* STEER_TORQUE_CMD, CTRL_DIAG */
 static int synchronised;
 static when_t last_tick;
+static int64_t timing_count; /* control tasks recorded since the run started */
 static int realtime, warned_sync, release_started;
 static int64_t next_release;
 
@@ -374,11 +376,32 @@ static request_t make_request(int previous_mode, const events_t *e, int64_t samp
   return r;
 }
 
-static void control_task(int64_t now_ns, double started_s);
-
 static double wall_seconds(void);
 
-static void control_task(int64_t now_ns, double started_s) {
+/* The timing record (firmware_sim.timing.TimingRecorder): the last TIMING_CAPACITY control
+ * tasks, fields TIMING_FIELDS (s; overruns a count) and the context start_time, mode. */
+#define TIMING_CAPACITY 65536
+#define N_TIMING_FIELDS 6
+static double timing_rows[TIMING_CAPACITY][N_TIMING_FIELDS];
+static double timing_context[TIMING_CAPACITY][2];
+
+static void record_timing(double release_jitter_s, double task_time_s, double solve_time_s, int64_t now_ns,
+                          when_t tx) {
+  double input_age = NAN, latency = NAN;
+  if (realtime && rx.has_sample && rx.sample_arrival.set && tx.set) {
+    input_age = (double)(now_ns - rx.sample_arrival.ns) / 1e9;
+    latency = (double)(tx.ns - rx.sample_arrival.ns) / 1e9;
+  }
+  int64_t i = timing_count % TIMING_CAPACITY;
+  const double row[N_TIMING_FIELDS] = {release_jitter_s, task_time_s, solve_time_s, input_age, latency,
+                                       (double)overruns};
+  memcpy(timing_rows[i], row, sizeof row);
+  timing_context[i][0] = (double)now_ns / 1e9;
+  timing_context[i][1] = mode;
+  timing_count++;
+}
+
+static void control_task(int64_t now_ns, double release_jitter_s, double started_s) {
   events_t e;
   cycles++;
   int has_age = rx.has_sample && rx.sample_arrival.set;
@@ -422,7 +445,9 @@ static void control_task(int64_t now_ns, double started_s) {
   }
   previous_valid_steer = steer;
   send_command(mode == ACTIVE || mode == DEGRADED || mode == SAFE_STOP, steer, torque);
+  when_t tx = {realtime, realtime ? os_monotonic_ns() : 0};
   send_diag(r.qp_status, r.solve_time_s, wall_seconds() - started_s, r.iterations, faults);
+  record_timing(release_jitter_s, wall_seconds() - started_s, r.solve_time_s, now_ns, tx);
 }
 
 /* ------------------------------------------------------------------ lockstep */
@@ -479,7 +504,7 @@ static void on_tick(uint32_t tick) {
   last_tick.set = 1;
   last_tick.ns = t;
   stamp_pending(t * NS_PER_MS);
-  for (int64_t k = 0; k < due_count; k++) control_task(t * NS_PER_MS, wall_seconds());
+  for (int64_t k = 0; k < due_count; k++) control_task(t * NS_PER_MS, NAN, wall_seconds());
   send_ack(tick);
   if (wall_seconds() - started > CONTROL_PERIOD_MS / 1000.0) overruns++;
 }
@@ -517,7 +542,7 @@ int64_t ecu_node_poll(int64_t now_ns) {
     next_release += skipped * period;
     overruns += (int)skipped;
   }
-  control_task(now_ns, 1e-9 * (double)now_ns);
+  control_task(now_ns, (double)(now_ns - ideal) / 1e9, 1e-9 * (double)now_ns);
   if (os_monotonic_ns() > ideal + period) overruns++;
   return next_release;
 }
@@ -528,4 +553,35 @@ void ecu_node_close(void) {
   mode = final_mode;
   send_command(0, previous_valid_steer, 0.0);
   mode = saved;
+}
+
+int ecu_node_save_timing(const char *path, char *err, size_t err_len) {
+  /* Oldest first, as TimingRecorder.rows(): unroll the ring into the output arrays. */
+  static double rows[TIMING_CAPACITY][N_TIMING_FIELDS], context[TIMING_CAPACITY][2];
+  static const char fields[N_TIMING_FIELDS][16] = {"release_jitter", "task_time", "solve_time", "input_age",
+                                                   "rx_to_tx_latency", "overruns"};
+  static const char context_fields[2][10] = {"start_time", "mode"};
+  static uint32_t field_text[N_TIMING_FIELDS][16], context_text[2][10]; /* numpy '<U': UTF-32 */
+  int64_t n = timing_count < TIMING_CAPACITY ? timing_count : TIMING_CAPACITY;
+  int64_t first = timing_count < TIMING_CAPACITY ? 0 : timing_count % TIMING_CAPACITY;
+  for (int64_t k = 0; k < n; k++) {
+    memcpy(rows[k], timing_rows[(first + k) % TIMING_CAPACITY], sizeof rows[k]);
+    memcpy(context[k], timing_context[(first + k) % TIMING_CAPACITY], sizeof context[k]);
+  }
+  for (int f = 0; f < N_TIMING_FIELDS; f++)
+    for (int c = 0; c < 16; c++) field_text[f][c] = (uint8_t)fields[f][c];
+  for (int f = 0; f < 2; f++)
+    for (int c = 0; c < 10; c++) context_text[f][c] = (uint8_t)context_fields[f][c];
+  char rows_shape[40], context_shape[40];
+  snprintf(rows_shape, sizeof rows_shape, "(%lld, %d)", (long long)n, N_TIMING_FIELDS);
+  snprintf(context_shape, sizeof context_shape, "(%lld, 2)", (long long)n);
+  int64_t count = timing_count;
+  const npz_array_t arrays[] = {
+    {"rows", "<f8", rows_shape, rows, (size_t)n * sizeof rows[0]},
+    {"context", "<f8", context_shape, context, (size_t)n * sizeof context[0]},
+    {"fields", "<U16", "(6,)", field_text, sizeof field_text},
+    {"context_fields", "<U10", "(2,)", context_text, sizeof context_text},
+    {"count", "<i8", "()", &count, sizeof count},
+  };
+  return npz_write(path, arrays, 5, err, err_len);
 }

@@ -8,6 +8,7 @@
 #ifndef ECU_NODE_H
 #define ECU_NODE_H
 
+#include <stddef.h>
 #include <stdint.h>
 
 #include "ecu_core.h"
@@ -33,6 +34,10 @@ ECU_API int64_t ecu_node_poll(int64_t now_ns);
 /* On stopping: one last STEER_TORQUE_CMD with CMD_VALID = 0 (STANDBY, FAULT when latched),
  * the held steering angle and zero torque. */
 ECU_API void ecu_node_close(void);
+
+/* Write the timing record (the last 65,536 control tasks) as firmware_sim.timing's .npz
+ * (``--timing-out``); 0, or -1 with err. */
+ECU_API int ecu_node_save_timing(const char *path, char *err, size_t err_len);
 
 /* The node's mode (CTRL_MODE values) and its counts, for logs and tests. */
 ECU_API int ecu_node_mode(void);
