@@ -119,6 +119,8 @@ def load_library(path: str | Path | None = None) -> ctypes.CDLL:
     library.ecu_node_receive.argtypes = [ctypes.c_uint32, byte_p, ctypes.c_int, ctypes.c_int]
     library.ecu_node_receive.restype = None
     library.ecu_node_mode.restype = ctypes.c_int
+    library.ecu_node_save_timing.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_size_t]
+    library.ecu_node_save_timing.restype = ctypes.c_int
     library.ecu_version.restype = ctypes.c_char_p
     library.ecu_build_shapes.restype = ctypes.c_char_p
     _library = library
@@ -272,6 +274,16 @@ class NativeNode:
     def mode(self) -> int:
         """CTRL_MODE of the node."""
         return int(self._lib.ecu_node_mode())
+
+    def save_timing(self, file: str | Path) -> None:
+        """Write the node's timing record (``firmware_sim.timing``'s .npz).
+
+        Raises:
+            ConfigError: the file cannot be written.
+        """
+        error = ctypes.create_string_buffer(_ERROR_BYTES)
+        if self._lib.ecu_node_save_timing(str(file).encode(), error, _ERROR_BYTES) != 0:
+            raise ConfigError(error.value.decode(errors="replace"))
 
 
 def e2e_crc(frame_id: int, data: bytes) -> int:

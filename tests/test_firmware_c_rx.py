@@ -146,3 +146,25 @@ def core_on_dlc(native):
     core = native.NativeController("lmpc")
     core.load_path_file(Path(__file__).resolve().parent.parent / "hil" / "paths" / "dlc.csv")
     return core
+
+
+def test_timing_record_keeps_the_last_tasks_oldest_first(native, core_on_dlc, tmp_path: Path) -> None:
+    """More control tasks than the record holds (65,536): the .npz keeps the newest, oldest
+    first (the ring is unrolled in place), and counts them all."""
+    import numpy as np
+
+    from can_defs.codec import encode
+    from can_defs.frames import HilSync
+    from firmware_sim.timing import load_timing
+
+    node = native.NativeNode()
+    node.receive(FrameId.HIL_SYNC, encode(HilSync(0xFFFFFFFF)))
+    tasks = 65_536 + 1_000
+    for k in range(tasks):
+        node.receive(FrameId.HIL_SYNC, encode(HilSync(25 * k)))
+    node.save_timing(tmp_path / "timing.npz")
+    record = load_timing(tmp_path / "timing.npz")
+    start = record.columns["start_time"]
+    assert record.count == tasks and start.size == 65_536
+    np.testing.assert_allclose(start, 0.025 * np.arange(tasks - 65_536, tasks))
+    assert np.all(np.isnan(record.columns["release_jitter"]))  # lockstep: no release time

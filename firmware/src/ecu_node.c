@@ -555,18 +555,32 @@ void ecu_node_close(void) {
   mode = saved;
 }
 
+/* Reverse the rows lo..hi-1 of a ring (row_len doubles each), in place. */
+static void reverse_rows(double *base, int row_len, int64_t lo, int64_t hi) {
+  double tmp[N_TIMING_FIELDS];
+  for (hi--; lo < hi; lo++, hi--) {
+    memcpy(tmp, base + lo * row_len, (size_t)row_len * sizeof(double));
+    memcpy(base + lo * row_len, base + hi * row_len, (size_t)row_len * sizeof(double));
+    memcpy(base + hi * row_len, tmp, (size_t)row_len * sizeof(double));
+  }
+}
+
 int ecu_node_save_timing(const char *path, char *err, size_t err_len) {
-  /* Oldest first, as TimingRecorder.rows(): unroll the ring into the output arrays. */
-  static double rows[TIMING_CAPACITY][N_TIMING_FIELDS], context[TIMING_CAPACITY][2];
   static const char fields[N_TIMING_FIELDS][16] = {"release_jitter", "task_time", "solve_time", "input_age",
                                                    "rx_to_tx_latency", "overruns"};
   static const char context_fields[2][10] = {"start_time", "mode"};
   static uint32_t field_text[N_TIMING_FIELDS][16], context_text[2][10]; /* numpy '<U': UTF-32 */
   int64_t n = timing_count < TIMING_CAPACITY ? timing_count : TIMING_CAPACITY;
   int64_t first = timing_count < TIMING_CAPACITY ? 0 : timing_count % TIMING_CAPACITY;
-  for (int64_t k = 0; k < n; k++) {
-    memcpy(rows[k], timing_rows[(first + k) % TIMING_CAPACITY], sizeof rows[k]);
-    memcpy(context[k], timing_context[(first + k) % TIMING_CAPACITY], sizeof context[k]);
+  /* Oldest first, as TimingRecorder.rows(): rotate the full ring in place (three
+   * reversals), so no second buffer is needed; the record is written once, at exit. */
+  if (first) {
+    reverse_rows(&timing_rows[0][0], N_TIMING_FIELDS, 0, first);
+    reverse_rows(&timing_rows[0][0], N_TIMING_FIELDS, first, n);
+    reverse_rows(&timing_rows[0][0], N_TIMING_FIELDS, 0, n);
+    reverse_rows(&timing_context[0][0], 2, 0, first);
+    reverse_rows(&timing_context[0][0], 2, first, n);
+    reverse_rows(&timing_context[0][0], 2, 0, n);
   }
   for (int f = 0; f < N_TIMING_FIELDS; f++)
     for (int c = 0; c < 16; c++) field_text[f][c] = (uint8_t)fields[f][c];
@@ -577,8 +591,8 @@ int ecu_node_save_timing(const char *path, char *err, size_t err_len) {
   snprintf(context_shape, sizeof context_shape, "(%lld, 2)", (long long)n);
   int64_t count = timing_count;
   const npz_array_t arrays[] = {
-    {"rows", "<f8", rows_shape, rows, (size_t)n * sizeof rows[0]},
-    {"context", "<f8", context_shape, context, (size_t)n * sizeof context[0]},
+    {"rows", "<f8", rows_shape, timing_rows, (size_t)n * sizeof timing_rows[0]},
+    {"context", "<f8", context_shape, timing_context, (size_t)n * sizeof timing_context[0]},
     {"fields", "<U16", "(6,)", field_text, sizeof field_text},
     {"context_fields", "<U10", "(2,)", context_text, sizeof context_text},
     {"count", "<i8", "()", &count, sizeof count},
