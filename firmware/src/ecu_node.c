@@ -113,6 +113,8 @@ void ecu_node_init(ecu_send_fn send, const char *error) {
   send_frame = send;
   load_error = error;
   synchronised = 0;
+  timing_count = 0; /* a new node, a new record (the handshake keeps it, as in Python) */
+  realtime = warned_sync = release_started = 0;
   last_tick.set = 0;
   reset_run();
 }
