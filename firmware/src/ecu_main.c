@@ -164,7 +164,14 @@ static int run_bus(const char *interface, const char *channel, const char *host,
         }
         fprintf(stderr, "error: bus still lost; reopening failed: %s\n", err);
       }
-      os_sleep_until_ns(now + RECV_TIMEOUT_NS < next_reopen ? now + RECV_TIMEOUT_NS : next_reopen);
+      /* Real time: the tasks keep running on their releases (the inputs time out:
+       * DEGRADED, SAFE_STOP, STANDBY; nothing can be sent); lockstep: no tick, nothing. */
+      int64_t wake = now + RECV_TIMEOUT_NS < next_reopen ? now + RECV_TIMEOUT_NS : next_reopen;
+      if (realtime) {
+        int64_t next = ecu_node_poll(now);
+        wake = next < wake ? next : wake;
+      }
+      os_sleep_until_ns(wake);
       continue;
     }
     int64_t wait = RECV_TIMEOUT_NS;
