@@ -203,11 +203,27 @@ def record_drive(log: Path) -> dict[str, Any]:
             "log_sha256": hashlib.sha256(log.read_bytes()).hexdigest()}
 
 
-def identify(log: Path, model_dir: Path, epochs: int | None) -> None:
-    """``python -m models.koopman_train --logs LOG --out DIR`` in this process."""
+def weighed_vehicle_file(work: Path) -> Path:
+    """The vehicle file an owner of the changed plant would write: the nominal file with
+    the mass weighed (+300 kg). The bicycle takes mass and geometry from it; the fit finds
+    the tyres and the inertia."""
+    from models.vehicle_params import DEFAULT_PARAMS_PATH, load_vehicle_params
+
+    text = DEFAULT_PARAMS_PATH.read_text()
+    mass = load_vehicle_params().mass + CHANGED_MASS_OFFSET_KG
+    lines = [f"mass = {mass}" if line.split("=")[0].strip() == "mass" else line for line in text.splitlines()]
+    out = work / "vehicle_changed.toml"
+    out.write_text("\n".join(lines) + "\n")
+    if load_vehicle_params(out).mass != mass:
+        raise SystemExit(f"error: {out}: the mass line of {DEFAULT_PARAMS_PATH} was not found")
+    return out
+
+
+def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path) -> None:
+    """``python -m models.koopman_train --logs LOG --out DIR --vehicle FILE`` in this process."""
     from models import koopman_train  # torch: only here
 
-    argv = ["--logs", str(log), "--out", str(model_dir), "--no-progress"]
+    argv = ["--logs", str(log), "--out", str(model_dir), "--no-progress", "--vehicle", str(vehicle_file)]
     if epochs is not None:
         argv += ["--epochs", str(epochs)]
     if koopman_train.main(argv) != 0:
@@ -254,31 +270,34 @@ def _label(plant_kind: str, controller: str, identified: bool) -> str:
 
 
 def bicycle_comparison(model_dir: Path) -> dict[str, Any]:
-    """The fitted bicycle's parameters against the nominal ones."""
+    """The fitted bicycle's parameters against the nominal ones (the mass: the vehicle
+    file's, as given to the fit)."""
     from models.bicycle import nominal_model_params
 
     fitted = json.loads((model_dir / "bicycle.json").read_text())
     nominal = nominal_model_params()
     return {name: {"nominal": getattr(nominal, name), "fitted": fitted[name],
                    "change_percent": round(100.0 * (fitted[name] / getattr(nominal, name) - 1.0), 2)}
-            for name in ("cornering_stiffness_front", "cornering_stiffness_rear", "yaw_inertia")}
+            for name in ("mass", "cornering_stiffness_front", "cornering_stiffness_rear", "yaw_inertia")}
 
 
 def tables_markdown(runs: Sequence[dict[str, Any]], summary: dict[str, Any]) -> str:
     """Tables II and III of the changed plant, with what was identified and the times."""
-    from studies.report import tracking_table
+    from studies.report import display_name, tracking_table
 
     bicycle = summary["bicycle"]
     lines = ["# Identification of a changed plant from its own CAN log", "",
              f"Changed plant: mass +{CHANGED_MASS_OFFSET_KG:.0f} kg, steering actuator lag "
              f"x{CHANGED_LAG_FACTOR:g} (the rear tyres' -20 % cornering stiffness of issue 20 is not "
              "applied: the plant has one cornering-stiffness factor for all four tyres). "
-             f"Identification drive: {summary['drive']['controller']} with the "
+             f"Identification drive: {display_name(summary['drive']['controller'])} with the "
              f"`{summary['drive']['excitation']}` excitation on `hil/scenarios/identification/drive.toml` "
              f"(612 s, 3-30 m/s), {summary['drive']['frames_logged']} frames recorded; models identified "
              "from that log alone (`python -m models.koopman_train --logs`).", "",
-             "Fitted bicycle against the nominal one (mass and geometry from models/vehicle.toml, "
-             "so the extra mass shows in the fitted stiffnesses and inertia):", "",
+             "Fitted bicycle against the nominal one (mass and geometry from the vehicle file: "
+             "models/vehicle.toml with the changed plant's weighed mass; the plant's yaw inertia "
+             f"and tyres are the nominal ones, its steering lags x{CHANGED_LAG_FACTOR:g}, the fit "
+             "uses the measured wheel angle):", "",
              "| parameter | nominal | fitted | change |", "|---|---|---|---|"]
     for name, row in bicycle.items():
         lines.append(f"| {name} | {row['nominal']:.0f} | {row['fitted']:.0f} | {row['change_percent']:+.1f} % |")
@@ -286,9 +305,9 @@ def tables_markdown(runs: Sequence[dict[str, Any]], summary: dict[str, Any]) -> 
     for scenario, title in TABLE_SCENARIOS.items():
         lines.append(tracking_table(title, [r for r in runs if r["scenario"] == scenario], scenario))
     times = summary["seconds"]
-    lines += ["", f"Stage times on this machine ({summary['machine']}): drive over CAN "
-                  f"{times['drive']:.0f} s, training {times['training']:.0f} s, tables {times['tables']:.0f} s, "
-                  f"total {sum(times.values()):.0f} s.", ""]
+    lines += ["", f"Stage times on this machine ({summary['machine']}, shared with other work): drive "
+                  f"over CAN {times['drive']:.0f} s, training {times['training']:.0f} s, tables "
+                  f"{times['tables']:.0f} s, total {sum(times.values()):.0f} s.", ""]
     return "\n".join(lines)
 
 
@@ -306,11 +325,12 @@ def run_study(out: Path, work: Path, epochs: int | None, reuse_log: bool) -> lis
     else:
         log.unlink(missing_ok=True)
         drive = record_drive(log)
+        drive["seconds"] = round(time.perf_counter() - started, 1)
         (work / "drive.json").write_text(json.dumps(drive, indent=1))
-    seconds["drive"] = time.perf_counter() - started
+    seconds["drive"] = drive.get("seconds", math.nan)  # the recording's, also when reused
     started = time.perf_counter()
     model_dir = work / "model"
-    identify(log, model_dir, epochs)
+    identify(log, model_dir, epochs, weighed_vehicle_file(work))
     seconds["training"] = time.perf_counter() - started
     started = time.perf_counter()
     runs = table_runs(model_dir)

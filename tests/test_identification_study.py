@@ -9,7 +9,7 @@ import pytest
 from hil.scenario import load_scenario
 from models.bicycle import nominal_model_params
 from studies.identification import (CHANGED_LAG_FACTOR, CHANGED_MASS_OFFSET_KG, bicycle_comparison,
-                                    changed_params, tables_markdown)
+                                    changed_params, tables_markdown, weighed_vehicle_file)
 
 
 def test_changed_plant_is_heavier_and_its_steering_lags_three_times():
@@ -24,11 +24,13 @@ def test_changed_plant_is_heavier_and_its_steering_lags_three_times():
 def test_report_compares_the_fitted_bicycle_and_lists_every_run(tmp_path):
     nominal = nominal_model_params()
     (tmp_path / "bicycle.json").write_text(json.dumps({
-        "kind": "linear_bicycle", "cornering_stiffness_front": 0.9 * nominal.cornering_stiffness_front,
+        "kind": "linear_bicycle", "mass": nominal.mass + 300.0,
+        "cornering_stiffness_front": 0.9 * nominal.cornering_stiffness_front,
         "cornering_stiffness_rear": nominal.cornering_stiffness_rear, "yaw_inertia": 1.1 * nominal.yaw_inertia}))
     bicycle = bicycle_comparison(tmp_path)
     assert bicycle["cornering_stiffness_front"]["change_percent"] == pytest.approx(-10.0)
     assert bicycle["yaw_inertia"]["change_percent"] == pytest.approx(10.0)
+    assert bicycle["mass"]["fitted"] == nominal.mass + 300.0
     tracking = {"lateral_error_m": {"max_abs": 0.1, "mean_abs": 0.02, "rmse": 0.03},
                 "heading_error_rad": {"max_abs": 0.01, "mean_abs": 0.002, "rmse": 0.003}}
     runs = [{"scenario": s, "controller": "LMPC, fitted bicycle, changed plant", "completed": True,
@@ -41,3 +43,12 @@ def test_report_compares_the_fitted_bicycle_and_lists_every_run(tmp_path):
     assert "| cornering_stiffness_front |" in text and "-10.0 %" in text
     assert text.count("| LMPC, fitted bicycle, changed plant | yes | 0.100 / 0.020 / 0.030 |") == 2
     assert "total 660 s" in text and "not applied" in text
+
+
+def test_the_weighed_vehicle_file_differs_from_the_nominal_one_in_the_mass_only(tmp_path):
+    from models.vehicle_params import load_vehicle_params, params_as_dict
+
+    nominal = params_as_dict(load_vehicle_params())
+    weighed = params_as_dict(load_vehicle_params(weighed_vehicle_file(tmp_path)))
+    assert {k for k in nominal if nominal[k] != weighed[k]} == {"mass"}
+    assert weighed["mass"] == nominal["mass"] + CHANGED_MASS_OFFSET_KG
