@@ -296,3 +296,29 @@ def test_koopman_train_logs_bad_input_is_one_error_line(tmp_path, capsys):
     err = capsys.readouterr().err
     print(err)
     assert status == 2 and err.startswith("error: ") and str(path) in err and "Traceback" not in err
+
+
+def test_named_csv_trains_a_study_model_that_the_ecu_refuses(tmp_path, capsys):
+    from firmware_sim.cli import model_controller_factory
+    from firmware_sim.errors import ConfigError
+    from models import koopman_train
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 90.0, 0.025)
+    throttle = np.repeat(rng.uniform(0, 1, size=len(t) // 40 + 1), 40)[: len(t)]
+    vx = 10.0 + np.cumsum(0.025 * (2.0 * throttle - 1.0))
+    data = tmp_path / "export.csv"
+    data.write_text("t,v,thr\n" + "".join(f"{a:.3f},{b:.5f},{c:.4f}\n" for a, b, c in zip(t, vx, throttle)))
+    mapping = tmp_path / "map.toml"
+    mapping.write_text('sample_time_s = 0.025\ntime_column = "t"\n[states]\nvx = "v"\n[inputs]\nthrottle = "thr"\n')
+    out = tmp_path / "study"
+    status = koopman_train.main(["--logs", str(data), "--mapping", str(mapping), "--out", str(out),
+                                 "--epochs", "1", "--steps-per-epoch", "3", "--no-progress",
+                                 "--speed-knots", "5,20"])
+    print(capsys.readouterr().out[-600:])
+    assert status == 0
+    report = json.loads((out / "report.json").read_text())
+    assert list(report["prediction_errors"]) == ["Koopman, identified from the data"]
+    assert not (out / "bicycle.json").exists()
+    with pytest.raises(ConfigError, match="for study only"):
+        model_controller_factory("eso-dkmpc", out / "koopman")
