@@ -222,7 +222,7 @@ static void lift(const ecu_sample_t *sample, double z[NZ]) {
       default: z[ECU_NX + i] = vx * vx / 100.0; break;
     }
   }
-  (void)vy;
+  (void)vy; /* read only by a dictionary (none in some builds) */
   (void)r;
   for (int layer = 0; layer < ECU_N_LAYERS; layer++) {
     const double *w = cfg.weights + cfg.weight_at[layer], *b = cfg.biases + cfg.bias_at[layer];
