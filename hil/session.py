@@ -9,6 +9,12 @@ Where the ECU runs depends on the bus:
   process through its CLI (``eso-ecu``: ``python -m firmware_sim ...``), stopped with SIGTERM at the
   end. Only CAN frames pass between the two, as on a vehicle.
 
+``RunOptions.ecu`` "c" runs the C ECU executable (``build/firmware/ecu``, ``make
+firmware``; docs/firmware.md) as that process instead. It speaks SocketCAN and socketcand
+only, so on the ``virtual`` interface the run moves to a socketcand hub of its own on TCP
+loopback (``hil.timing.hub``, as the firmware's bus tests): every node of this process and
+the executable are its clients.
+
 Results: the plant's true time series (5 ms ticks), the ECU's frames per control cycle,
 the tracking metrics of hil/metrics.py on the true pose at the control instants (every
 25 ms, as studies/closed_loop.py computes them), and the frame log of the recorder.
@@ -49,6 +55,14 @@ CONTROL_PERIOD_MS = 25
 ECU_STOP_TIMEOUT_S = 5.0
 #: Root of the checkout (the ECU process runs from here).
 REPO_ROOT = Path(__file__).resolve().parent.parent
+#: The C ECU executable (``make firmware``), for ``RunOptions.ecu`` "c".
+C_ECU_EXECUTABLE = REPO_ROOT / "build" / "firmware" / "ecu"
+#: ECU implementations a run can use: firmware_sim (Python) and the C executable.
+ECU_IMPLEMENTATIONS = ("python", "c")
+#: Controllers the C ECU has (firmware_sim.native.NATIVE_CONTROLLERS).
+C_ECU_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
+#: Channel name on a run's own socketcand hub (the hub routes by channel name only).
+HUB_CHANNEL = "vcan0"
 
 
 class SessionError(HilError):
@@ -86,6 +100,9 @@ class RunOptions:
     #: excitation program), passed to the in-process ECU or to the ECU process alike.
     model: Path | None = None
     excite: str | None = None
+    #: Which ECU: "python" (firmware_sim) or "c" (the executable ``C_ECU_EXECUTABLE``, a
+    #: process; on the virtual interface the run uses a loopback socketcand hub).
+    ecu: str = "python"
 
 
 @dataclass
@@ -228,14 +245,75 @@ def _program_argument(excite: str) -> str:
     return str(Path(excite).resolve()) if Path(excite).suffix.lower() in (".toml", ".csv") else excite
 
 
+def c_ecu_command(scenario: Scenario, options: RunOptions, hub_port: int | None = None) -> list[str]:
+    """Command line of the C ECU executable for this run (its CLI is firmware_sim's;
+    docs/firmware.md). ``hub_port``: the run's own socketcand hub on loopback.
+
+    Raises:
+        SessionError: the executable is not built, or the run asks for what the C ECU
+            does not have (another controller, ``--excite``, a controller factory), or
+            ``options.model`` does not convert to its data file.
+    """
+    if not C_ECU_EXECUTABLE.is_file():
+        raise SessionError(f"the C ECU {C_ECU_EXECUTABLE} is not built: run make firmware")
+    if options.controller not in C_ECU_CONTROLLERS:
+        raise SessionError(f"the C ECU has no controller '{options.controller}' (it has "
+                           f"{', '.join(C_ECU_CONTROLLERS)}); use the Python ECU")
+    if options.excite is not None:
+        raise SessionError("the C ECU has no --excite (identification excitation): use the Python ECU")
+    if options.controller_factory is not None:
+        raise SessionError("a controller factory needs the Python ECU in-process, not the C ECU")
+    if hub_port is not None:
+        bus = ["--interface", "socketcand", "--channel", HUB_CHANNEL, "--host", "127.0.0.1",
+               "--port", str(hub_port)]
+    elif options.bus.interface in ("socketcan", "socketcand"):
+        bus = ["--interface", options.bus.interface, "--channel", options.bus.channel,
+               *_socketcand_address(options.bus)]
+    else:
+        raise SessionError(f"the C ECU speaks socketcan and socketcand only, not {options.bus.interface}")
+    return [str(C_ECU_EXECUTABLE), *bus, "--controller", options.controller,
+            "--path", f"{scenario.path_id}={Path(scenario.path_file).resolve()}",
+            "--data", str(_c_ecu_data_file(options)),
+            "--lockstep" if options.lockstep else "--realtime", *options.ecu_extra_args]
+
+
+def _c_ecu_data_file(options: RunOptions) -> Path:
+    """The C ECU's data file: the build's, or ``options.model`` converted once by
+    firmware/tools/ecu_data.py (``firmware_sim.native.data_file_for_model``)."""
+    from firmware_sim.errors import ConfigError
+    from firmware_sim.native import DEFAULT_DATA, data_file_for_model
+
+    if options.model is None:
+        return DEFAULT_DATA
+    if options.controller == "lmpc":
+        raise SessionError(f"--model {options.model}: the C ECU has no fitted bicycle yet "
+                           "(lmpc uses the nominal one); use the Python ECU")
+    try:
+        return data_file_for_model(Path(options.model).resolve())
+    except (ConfigError, OSError) as e:
+        raise SessionError(f"the C ECU's data file: {e}") from e
+
+
+def _socketcand_address(bus: BusConfig) -> list[str]:
+    """``--host`` / ``--port`` of a socketcand bus from python-can's configuration."""
+    if bus.interface != "socketcand":
+        return []
+    import can
+
+    config = can.util.load_config(config={"interface": bus.interface, "channel": bus.channel})
+    return [*(["--host", str(config["host"])] if config.get("host") else []),
+            *(["--port", str(config["port"])] if config.get("port") else [])]
+
+
 class EcuProcess(_EcuRunner):
     """The ECU as a separate process through its CLI; stopped with SIGTERM."""
 
-    def __init__(self, scenario: Scenario, options: RunOptions) -> None:
+    def __init__(self, scenario: Scenario, options: RunOptions, command: list[str] | None = None) -> None:
+        """``command``: another ECU's command line (the C ECU's); default firmware_sim's."""
         if options.controller_factory is not None:
             raise SessionError("a controller factory needs the ECU in-process (virtual bus); "
                                f"the ECU process on {options.bus.describe()} builds its own")
-        self.command = ecu_command(scenario, options)
+        self.command = command or ecu_command(scenario, options)
         if options.ecu_output is not None:
             self.output_path = options.ecu_output
         else:
@@ -288,6 +366,8 @@ def run_hil(scenario: Scenario, options: RunOptions,
         SessionError: the ECU could not start or stopped.
         hil.bus.BusOpenError, hil.recorder.RecorderError, hil.time_master.TimeMasterError.
     """
+    if options.ecu not in ECU_IMPLEMENTATIONS:
+        raise SessionError(f"unknown ECU '{options.ecu}' (one of {', '.join(ECU_IMPLEMENTATIONS)})")
     injector = None
     if options.faults is not None:
         from hil.faults import FaultInjector
@@ -299,14 +379,30 @@ def run_hil(scenario: Scenario, options: RunOptions,
     monitor = EcuFrameMonitor()
     recorder = None
     ecu: _EcuRunner | None = None
-    master_bus = open_bus(options.bus)
+    hub, open_run_bus = _run_bus(options)
+    try:
+        master_bus = open_run_bus()
+    except BaseException:
+        if hub is not None:
+            hub.close()
+        raise
     started = time.monotonic()
     try:
         if options.log_path is not None:
-            recorder = BusRecorder(open_bus(options.bus), options.log_path,
+            recorder = BusRecorder(open_run_bus(), options.log_path,
                                    virtual_time=options.lockstep)
-        ecu = InProcessEcu(scenario, options) if options.bus.is_virtual \
-            else EcuProcess(scenario, options)
+        if options.ecu == "c":
+            ecu = EcuProcess(scenario, options, c_ecu_command(scenario, options, hub and hub.port))
+        elif options.bus.is_virtual:
+            ecu = InProcessEcu(scenario, options)
+        else:
+            ecu = EcuProcess(scenario, options)
+        if hub is not None:
+            from hil.timing.hub import READY_DELAY_S
+
+            # the hub delivers to a client from READY_DELAY_S after its handshake on; in
+            # real time there is no handshake to wait for the executable's start-up
+            time.sleep(2 * READY_DELAY_S if options.lockstep else 0.5)
         nodes = [plant, planner, monitor]
         if options.lockstep:
             master: LockstepMaster | RealTimeMaster = LockstepMaster(
@@ -329,7 +425,7 @@ def run_hil(scenario: Scenario, options: RunOptions,
                 # a separate ECU's last frame crosses another process (and a hub): wait
                 # for a longer quiet spell so the log keeps it
                 # (and on an interrupted run the recorder may still be catching up)
-                recorder.stop(settle_s=0.1 if options.bus.is_virtual else 0.3, max_wait_s=5.0)
+                recorder.stop(settle_s=0.1 if isinstance(ecu, InProcessEcu) else 0.3, max_wait_s=5.0)
                 # Sidecar so `eso-hil replay LOG` needs no flags.
                 write_sidecar(options.log_path, LogMetadata(
                     controller=options.controller,
@@ -338,10 +434,13 @@ def run_hil(scenario: Scenario, options: RunOptions,
                     scenario=scenario.name, wall_start=recorder.wall_start,
                     wall_end=recorder.wall_end))
             master_bus.shutdown()
+            if hub is not None:
+                hub.close()
     wall = time.monotonic() - started
     plant_trace = plant.trace()
     return HilRunResult(
-        scenario=scenario.name, controller=options.controller, bus=options.bus.describe(),
+        scenario=scenario.name, controller=options.controller,
+        bus=f"socketcand:{HUB_CHANNEL} (loopback hub)" if hub is not None else options.bus.describe(),
         mode="lockstep" if options.lockstep else "realtime",
         plant_trace=plant_trace, ecu_trace=monitor.trace(),
         tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
@@ -349,9 +448,24 @@ def run_hil(scenario: Scenario, options: RunOptions,
         log_path=options.log_path, frames_logged=recorder.count if recorder else 0,
         extra={"plant_commands_rejected": plant.commands_rejected,
                "ecu_frames_undecodable": monitor.undecodable,
-               "ecu_frames_raw": monitor.raw,
+               "ecu_frames_raw": monitor.raw, "ecu": options.ecu,
                **({"injector": injector} if injector is not None else {})},
     )
+
+
+def _run_bus(options: RunOptions) -> tuple[Any, Callable[[], Any]]:
+    """(the run's own socketcand hub or None, a function opening one bus object for a node).
+
+    The C ECU on the virtual interface gets a hub on loopback (it cannot join python-can's
+    in-process bus); everything else opens ``options.bus``.
+    """
+    if options.ecu != "c" or not options.bus.is_virtual:
+        return None, lambda: open_bus(options.bus)
+    from hil.timing.hub import LOOPBACK, LoopbackCanHub
+
+    hub = LoopbackCanHub(port=0).start()
+    config = BusConfig("socketcand", HUB_CHANNEL)
+    return hub, lambda: open_bus(config, host=LOOPBACK, port=hub.port, tcp_tune=True)
 
 
 def reference_path(scenario: Scenario) -> Any:

@@ -128,18 +128,24 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m studies.run_all", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
-    parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS))
+    parser.add_argument("--controllers", nargs="+", default=None,
+                        help="default: all four; with --ecu c the three the C ECU has (no NMPC)")
     parser.add_argument("--interface", default=None, help="default $CAN_INTERFACE, else virtual")
     parser.add_argument("--channel", default=None, help="default $CAN_CHANNEL, else vcan0")
     parser.add_argument("--out", type=Path, default=Path("results"))
     parser.add_argument("--logs", type=Path, default=None, help="default OUT/logs")
     parser.add_argument("--duration", type=float, default=None,
                         help="cut every scenario to this many seconds (quick checks)")
+    parser.add_argument("--ecu", choices=("python", "c"), default="python",
+                        help="the ECU: python (firmware_sim) or c (build/firmware/ecu, make firmware)")
     args = parser.parse_args(argv)
 
     from studies.report import plot_scenario, tracking_table
     from hil.scenario import load_scenario
-    from hil.session import RunOptions, reference_path, run_hil
+    from hil.session import C_ECU_CONTROLLERS, RunOptions, reference_path, run_hil
+
+    if args.controllers is None:
+        args.controllers = [c for c in CONTROLLERS if args.ecu == "python" or c in C_ECU_CONTROLLERS]
 
     try:
         scenarios = [load_scenario(name) for name in args.scenarios]
@@ -166,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
             # again for the next run; the logs then name the configured channel (vcan0).
             options = RunOptions(controller=controller, bus=bus, lockstep=True,
                                  log_path=logs / f"{scenario.name}__{controller}.log",
-                                 ecu_output=logs / f"{scenario.name}__{controller}.ecu.txt")
+                                 ecu_output=logs / f"{scenario.name}__{controller}.ecu.txt",
+                                 ecu=args.ecu)
             try:
                 result = run_hil(scenario, options)
             except Exception as e:  # noqa: BLE001 - one failed run must not stop the others
@@ -181,16 +188,17 @@ def main(argv: list[str] | None = None) -> int:
                 result, reference_path(scenario), scenario.target_speed)
 
     written = []
+    bus_label = bus.describe() + (", C ECU" if args.ecu == "c" else "")
     for scenario in scenarios:
         table, figure, title = _outputs(scenario.name)
         scenario_runs = [r for r in runs if r["scenario"] == scenario.name]
         (args.out / table).write_text(
-            tracking_table(f"{title} ({bus.describe()}, lockstep)", scenario_runs, scenario.name))
+            tracking_table(f"{title} ({bus_label}, lockstep)", scenario_runs, scenario.name))
         path_xy = scenario.path_points()[:, :2]
-        plot_scenario(traces.get(scenario.name, {}), path_xy, f"{title}, {bus.describe()}",
+        plot_scenario(traces.get(scenario.name, {}), path_xy, f"{title}, {bus_label}",
                       args.out / figure)
         written += [args.out / table, args.out / figure]
-    (args.out / "run_metrics.json").write_text(json.dumps({"bus": bus.describe(), "runs": runs},
+    (args.out / "run_metrics.json").write_text(json.dumps({"bus": bus.describe(), "ecu": args.ecu, "runs": runs},
                                                           indent=2) + "\n")
     written.append(args.out / "run_metrics.json")
     print()

@@ -242,3 +242,38 @@ def test_timing_record_reads_as_the_python_ecus(native, tmp_path: Path) -> None:
     assert active.sum() >= 60 and np.all(np.isfinite(record.columns["input_age"][active]))
     print(f"C ECU task time p50 {np.median(task) * 1e6:.0f} us, p99 {np.percentile(task, 99) * 1e6:.0f} us "
           f"over {record.count} tasks")
+
+
+@pytest.mark.parametrize("controller", ["eso-dkmpc"])
+def test_hil_run_with_the_c_ecu_equals_the_python_ecu(native, controller: str, tmp_path: Path, capsys) -> None:
+    """``hil run --ecu c``: the C executable as the run's ECU process (on the virtual
+    interface through the run's own loopback hub) sends the Python ECU's frames on
+    dlc_smoke, and the frame log it records holds them."""
+    from hil.__main__ import main
+    from hil.logio import read_log
+    from hil.scenario import load_scenario
+    from hil.session import default_options, run_hil
+
+    python_run = run_hil(load_scenario("dlc_smoke"), default_options(controller))
+    log = tmp_path / "c.log"
+    assert main(["run", "--scenario", "dlc_smoke", "--controller", controller, "--ecu", "c",
+                 "--log", str(log), "--out", str(tmp_path / "out")]) == 0
+    assert '"bus": "socketcand:vcan0 (loopback hub)"' in capsys.readouterr().out
+    c_run = run_hil(load_scenario("dlc_smoke"), default_options(controller, ecu="c"))
+    (ours, our_diags), (theirs, their_diags) = (commands_and_diags(python_run.extra["ecu_frames_raw"]),
+                                                commands_and_diags(c_run.extra["ecu_frames_raw"]))
+    assert len(ours) == 160 and theirs == ours and their_diags == our_diags
+    assert c_run.tracking.lateral.rmse == python_run.tracking.lateral.rmse
+    logged = [bytes(m.data) for m in read_log(log).messages if m.arbitration_id == FrameId.STEER_TORQUE_CMD]
+    assert logged[:len(ours)] == [d for _, d in ours]
+
+
+def test_hil_run_refuses_a_c_ecu_that_is_not_built(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Without build/firmware/ecu: one error line naming make firmware, nothing run."""
+    import hil.session
+    from hil.__main__ import main
+
+    monkeypatch.setattr(hil.session, "C_ECU_EXECUTABLE", tmp_path / "ecu")
+    assert main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ecu", "c"]) != 0
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error[-1].startswith("error: the C ECU ") and error[-1].endswith("is not built: run make firmware")

@@ -2,7 +2,10 @@
 
 On the ``virtual`` interface (the default) everything runs in this process; on any other
 interface (``--interface socketcan --channel vcan0``) the ECU is a separate process
-started through ``eso-ecu`` (``python -m firmware_sim``). Prints the tracking metrics as
+started through ``eso-ecu`` (``python -m firmware_sim``). ``--ecu c`` runs the C ECU
+executable (``build/firmware/ecu``, ``make firmware``) as that process instead, on the
+virtual interface through a socketcand hub of the run's own on loopback (hil/session.py);
+``--model`` is then converted to its data file first. Prints the tracking metrics as
 JSON, alone on stdout (``wrote`` lines and notes go to stderr); ``--out`` writes
 the time series (``plant.csv``, ``ecu.csv``) and ``summary.json``; ``--log`` records every
 frame (format by suffix: ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ``.db``, ``.trc``,
@@ -63,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--excite", default=None, metavar="PROGRAM",
                         help="the ECU's --excite: identification excitation (chirp, prbs, steps, "
                              "prbs-torque or a program file; docs/identification.md)")
+    parser.add_argument("--ecu", choices=("python", "c"), default="python", type=str.lower,
+                        help="the ECU: python (firmware_sim, default) or c (the C executable "
+                             "build/firmware/ecu of make firmware; eso-dkmpc, dkmpc, lmpc)")
     parser.add_argument("--handshake-timeout", type=float, default=None, metavar="S",
                         help="seconds to wait for the ECU's lockstep handshake (default 60)")
     parser.add_argument("--ack-timeout", type=float, default=None, metavar="S",
@@ -96,7 +102,7 @@ def main(args: argparse.Namespace) -> int:
         ack_timeout_s=args.ack_timeout or DEFAULT_ACK_TIMEOUT_S,
         ecu_output=args.out / "ecu_output.txt" if args.out is not None else None,
         faults=scenario_fault_spec(scenario) if args.faults else None,
-        model=args.model, excite=args.excite,
+        model=args.model, excite=args.excite, ecu=args.ecu,
     )
     result = run_hil(scenario, options)
     summary = result.summary()
