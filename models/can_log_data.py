@@ -267,7 +267,11 @@ class _CounterClock:
         time, last_counter, last_stamp = self.last
         step = (counter - last_counter) % 16
         periods = (timestamp - last_stamp) / self.period_s
-        wraps = max(0, round((periods - step) / 16.0))
+        # A late frame of a stalled sender keeps its counter sequence, 16 lost frames do
+        # not announce themselves: a gap counts as a wrap only when it is at least 12
+        # periods longer than the counter step says (stalls of up to 11 periods are late
+        # frames, not lost ones).
+        wraps = max(0, math.floor((periods - step) / 16.0 + 0.25))
         time += (step + 16 * wraps) * self.period_s
         self.last = (time, counter, timestamp)
         return time

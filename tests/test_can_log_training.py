@@ -126,7 +126,10 @@ def test_lockstep_log_gives_grid_samples_equal_to_the_plant(sim70, lockstep_log)
 
 
 def test_counter_time_base_without_hil_sync_matches_the_lockstep_one(sim70, lockstep_log, tmp_path):
-    log = write_candump(tmp_path / "realtime.log", frames(sim70, lockstep=False, jitter_s=0.003))
+    traffic = frames(sim70, lockstep=False, jitter_s=0.003)
+    # a stalled recorder: 90 ms late from frame 5000 on (counters go on; nothing was lost)
+    traffic = [(stamp + (0.09 if i >= 5000 else 0.0), fid, data) for i, (stamp, fid, data) in enumerate(traffic)]
+    log = write_candump(tmp_path / "realtime.log", traffic)
     lockstep = load_logs([lockstep_log])
     counters = load_logs([log])
     print(counters.counts[str(log)].as_dict())
@@ -322,3 +325,19 @@ def test_named_csv_trains_a_study_model_that_the_ecu_refuses(tmp_path, capsys):
     assert not (out / "bicycle.json").exists()
     with pytest.raises(ConfigError, match="for study only"):
         model_controller_factory("eso-dkmpc", out / "koopman")
+
+
+def test_lost_frames_on_a_counter_time_base_are_a_gap_of_the_right_length(sim70, tmp_path):
+    from models.can_log_data import LogCounts, _decode_streams
+
+    plant = {int(FrameId.VEH_DYN), int(FrameId.VEH_POSE_XY), int(FrameId.VEH_POSE_YAW)}
+    traffic = frames(sim70, lockstep=False, jitter_s=0.002)
+    start = traffic[0][0]
+    # 21 plant samples (210 ms) lost at 30 s: the counter steps by 22 mod 16 = 6
+    kept = [f for f in traffic if not (f[1] in plant and 30.0 <= f[0] - start < 30.21)]
+    frames_read, _ = read_frames(write_candump(tmp_path / "lost.log", kept))
+    stretch = _decode_streams(frames_read, LogCounts())[0]
+    steps = np.diff(stretch.sample_time)
+    print("largest step between samples", steps.max())
+    assert steps.max() == pytest.approx(0.22, abs=1e-6)
+    assert np.sum(steps > 0.011) == 1
