@@ -78,6 +78,16 @@ def test_replay_equals_python_controller(native, name: str, tmp_path: Path) -> N
      "error: --timing-out no/such/folder/t.npz: folder no/such/folder does not exist"),
     (["--interface", "socketcan", "--channel", "nosuchcan0", "--controller", "lmpc", "--path",
       "1=hil/paths/dlc.csv", "--lockstep"], "error: cannot open CAN bus (interface=socketcan, channel=nosuchcan0)"),
+    (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--dbc", "no/such.dbc", "--lockstep"],
+     "error: --dbc no/such.dbc: cannot read: No such file or directory"),
+    (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--model", "models/artifacts/dk_d5.npz", "--lockstep"],
+     "error: --model models/artifacts/dk_d5.npz: the C ECU reads the data file of a model, not its artefact: "
+     "write it with 'python firmware/tools/ecu_data.py --model models/artifacts/dk_d5.npz --out FILE.bin'"),
+    (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--model", "a.bin", "--data", "b.bin"],
+     "error: give --data or --model (a data file), not both"),
+    (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--bitrate", "fast", "--lockstep"],
+     "error: --bitrate: expected a bit rate in 1..8000000 bit/s, got 'fast'"),
+    (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--bitrate"], "error: --bitrate needs a value"),
 ])
 def test_bad_start_up_is_one_error_line(native, args: list[str], message: str) -> None:
     """One error line; exit 1 for a bus that cannot be opened, 2 for the rest (as the
@@ -126,3 +136,49 @@ def test_bad_path_files_refused_with_pythons_message(native, case: str, tmp_path
     with pytest.raises(ConfigError) as c_error:
         core.load_path_file(file)
     assert str(c_error.value) == str(python_error.value)
+
+
+def test_dbc_other_than_the_builds_is_refused_naming_both_hashes(native, tmp_path: Path) -> None:
+    """--dbc: the build's DBC passes (--debug says so); any other file - one byte more -
+    is one error line with its SHA-256 and the build's, exit 2, before anything runs."""
+    import hashlib
+
+    dbc = ROOT / "can_defs" / "vehicle.dbc"
+    other = tmp_path / "other.dbc"
+    other.write_bytes(dbc.read_bytes() + b"\n")
+    result = run_ecu("--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--dbc", str(other), "--lockstep")
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"error: --dbc {other}: SHA-256 {hashlib.sha256(other.read_bytes()).hexdigest()} differs from the DBC "
+        f"this build's codecs were generated from (can_defs/vehicle.dbc, SHA-256 "
+        f"{hashlib.sha256(dbc.read_bytes()).hexdigest()}); rebuild with make firmware for another CAN matrix"]
+    # the hash itself on lengths around SHA-256's padding boundary (55, 56, 64 bytes)
+    for size in (0, 55, 56, 63, 64, 65, 119, 120):
+        other.write_bytes(bytes(range(size)))
+        result = run_ecu("--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--dbc", str(other), "--lockstep")
+        assert hashlib.sha256(bytes(range(size))).hexdigest() in result.stderr, size
+    accepted = run_ecu("--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--dbc", str(dbc), "--debug",
+                       "--replay", "/dev/null")
+    assert f"debug: --dbc {dbc}: the build's DBC (SHA-256 equal)" in accepted.stderr
+    assert accepted.stderr.strip().splitlines()[-1] == "error: --replay: empty samples file"
+
+
+def test_model_takes_a_data_file_and_bitrate_is_a_note(native, tmp_path: Path) -> None:
+    """--model FILE.bin is the data file (the replay equals --data's); --bitrate on
+    socketcand is accepted with a note; --debug prints what was loaded."""
+    from studies.bench import record_samples
+
+    samples, _, _ = record_samples(scenario_name="dlc_smoke", driver="lmpc")
+    rows = [",".join(repr(float(getattr(s, f))) for f in SAMPLE_FIELDS) for s in samples[:40]]
+    (tmp_path / "samples.csv").write_text(",".join(SAMPLE_FIELDS) + "\n" + "\n".join(rows) + "\n")
+    data = str(ROOT / "build" / "firmware" / "ecu_data.bin")
+    common = ("--controller", "eso-dkmpc", "--path", "1=hil/paths/dlc.csv", "--replay", str(tmp_path / "samples.csv"))
+    by_data, by_model = run_ecu(*common, "--data", data), run_ecu(*common, "--model", data, "--debug")
+    assert by_data.returncode == by_model.returncode == 0, by_model.stderr
+    assert by_model.stdout.splitlines()[1:] and [r.split(",")[:5] for r in by_model.stdout.splitlines()] == \
+        [r.split(",")[:5] for r in by_data.stdout.splitlines()]
+    assert f"debug: controller eso-dkmpc, data file {data}" in by_model.stderr
+    result = run_ecu("--interface", "socketcand", "--channel", "vcan0", "--port", "1", "--controller", "lmpc",
+                     "--path", "1=hil/paths/dlc.csv", "--lockstep", "--bitrate", "500000")
+    assert result.returncode == 1  # no hub on port 1: the note came before the bus was opened
+    assert result.stderr.splitlines()[0] == "note: --bitrate 500000 ignored: socketcand's daemon sets its bus's bit rate"

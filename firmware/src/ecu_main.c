@@ -6,6 +6,7 @@
  *       --path ID=FILE.csv [--path ...] [--data FILE] (--lockstep | --realtime) [--cpu N]
  *       [--rt-priority P]     (pin to a CPU, SCHED_FIFO; skipped with a warning where refused)
  *       [--timing-out FILE.npz [--replace]]   (firmware_sim.timing's record, written on exit)
+ *       [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--log-level L]
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
  *       --replay SAMPLES.csv [--realtime]
  *
@@ -18,6 +19,14 @@
  * step to stdout; --realtime paces the steps on absolute 25 ms deadlines and counts
  * overruns on stderr. Bad arguments are one "error: ..." line on stderr and exit status 2
  * (1: the bus cannot be opened).
+ *
+ * Options of python -m firmware_sim, as far as they mean something here: --model takes a
+ * data file (firmware/tools/ecu_data.py --model ARTEFACT --out FILE.bin writes it; hil
+ * run --ecu c --model does so itself), a Koopman artefact (.npz/.json) is refused with
+ * that command; --dbc must be the DBC the codecs were generated from (SHA-256 compared
+ * with the build's); --bitrate is accepted and ignored with a note (SocketCAN sets the bit
+ * rate on the interface, socketcand's daemon on its bus); --debug (or --log-level debug)
+ * prints what was loaded at start-up.
  */
 #define _POSIX_C_SOURCE 200809L /* access, stat */
 
@@ -31,6 +40,7 @@
 
 #include "ecu_core.h"
 #include "ecu_node.h"
+#include "ecu_sha256.h"
 #include "os.h"
 
 #define EXIT_USAGE 2
@@ -47,6 +57,7 @@ static const char *const USAGE =
   "       ecu --interface socketcan|socketcand --channel C [--host H] [--port P] --controller NAME\n"
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
   "           [--cpu N] [--rt-priority P] [--timing-out FILE.npz [--replace]] [--log-level L]\n"
+  "           [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -136,6 +147,42 @@ static const char *check_output_file(const char *file, int replace, char *messag
   return NULL;
 }
 
+/* --dbc: the file must be the DBC the codecs were generated from (its SHA-256 is the
+ * ".dbc" line of ecu_version()). NULL when it is, else the message. */
+static const char *check_dbc(const char *file, char *message, size_t len) {
+  char given[65], built[65] = "", built_name[200] = "";
+  if (ecu_sha256_file(file, given) != 0) {
+    snprintf(message, len, "--dbc %s: cannot read: %s", file, strerror(errno));
+    return message;
+  }
+  for (const char *line = ecu_version(); *line;) {
+    const char *end = strchr(line, '\n');
+    size_t n = end ? (size_t)(end - line) : strlen(line);
+    if (n > 70 && n < 64 + 2 + sizeof built_name && strncmp(line + n - 4, ".dbc", 4) == 0) {
+      snprintf(built, sizeof built, "%.64s", line);
+      snprintf(built_name, sizeof built_name, "%.*s", (int)(n - 66), line + 66);
+    }
+    line += end ? n + 1 : n;
+  }
+  if (strcmp(given, built) == 0) return NULL;
+  snprintf(message, len, "--dbc %s: SHA-256 %s differs from the DBC this build's codecs were generated from "
+           "(%s, SHA-256 %s); rebuild with make firmware for another CAN matrix", file, given, built_name, built);
+  return message;
+}
+
+/* --model: the data file ecu_data.py writes; a Koopman artefact is refused with the
+ * command that converts it. NULL when usable, else the message. */
+static const char *check_model(const char *file, char *message, size_t len) {
+  const char *dot = strrchr(file, '.');
+  if (dot && (strcmp(dot, ".npz") == 0 || strcmp(dot, ".json") == 0)) {
+    snprintf(message, len, "--model %s: the C ECU reads the data file of a model, not its artefact: write it with "
+             "'python firmware/tools/ecu_data.py --model %s --out FILE.bin', then give --model FILE.bin "
+             "(hil run --ecu c --model does this)", file, file);
+    return message;
+  }
+  return NULL;
+}
+
 static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os_can_send(id, data, length); }
 
 /* The node on the bus until a stop signal; the bus is reopened every second while lost. */
@@ -202,10 +249,11 @@ static int run_bus(const char *interface, const char *channel, const char *host,
 int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
-  const char *timing_out = NULL;
+  const char *timing_out = NULL, *dbc = NULL, *model = NULL;
+  int debug = 0, bitrate = 0;
   int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0;
   const char *path_files[MAX_PATHS];
-  int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0;
+  int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0, data_given = 0;
   char err[600], message[800];
   for (int i = 1; i < argc; i++) {
     const char *arg = argv[i], *value = i + 1 < argc ? argv[i + 1] : NULL;
@@ -218,13 +266,16 @@ int main(int argc, char **argv) {
       lockstep = 1;
     } else if (strcmp(arg, "--replace") == 0) {
       replace = 1;
+    } else if (strcmp(arg, "--debug") == 0) {
+      debug = 1;
     } else if (!value && (strcmp(arg, "--controller") == 0 || strcmp(arg, "--path") == 0 ||
                           strcmp(arg, "--data") == 0 || strcmp(arg, "--replay") == 0 ||
                           strcmp(arg, "--path-id") == 0 || strcmp(arg, "--interface") == 0 ||
                           strcmp(arg, "--channel") == 0 || strcmp(arg, "--host") == 0 ||
                           strcmp(arg, "--port") == 0 || strcmp(arg, "--cpu") == 0 ||
                           strcmp(arg, "--rt-priority") == 0 || strcmp(arg, "--timing-out") == 0 ||
-                          strcmp(arg, "--log-level") == 0)) {
+                          strcmp(arg, "--log-level") == 0 || strcmp(arg, "--dbc") == 0 ||
+                          strcmp(arg, "--model") == 0 || strcmp(arg, "--bitrate") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
@@ -260,8 +311,22 @@ int main(int argc, char **argv) {
         snprintf(message, sizeof message, "--log-level: '%s' is not one of debug, info, warning, error", level);
         return fail(message);
       }
+      if (strcmp(level, "debug") == 0) debug = 1;
+    } else if (strcmp(arg, "--dbc") == 0) {
+      dbc = argv[++i];
+    } else if (strcmp(arg, "--model") == 0) {
+      model = argv[++i];
+    } else if (strcmp(arg, "--bitrate") == 0) {
+      char *end;
+      long value = strtol(argv[++i], &end, 10);
+      if (*end != '\0' || value < 1 || value > 8000000) {
+        snprintf(message, sizeof message, "--bitrate: expected a bit rate in 1..8000000 bit/s, got '%s'", argv[i]);
+        return fail(message);
+      }
+      bitrate = (int)value;
     } else if (strcmp(arg, "--data") == 0) {
       data = argv[++i];
+      data_given = 1;
     } else if (strcmp(arg, "--replay") == 0) {
       samples_file = argv[++i];
     } else if (strcmp(arg, "--path-id") == 0) {
@@ -296,12 +361,27 @@ int main(int argc, char **argv) {
     fputs(USAGE, stderr);
     return fail("--controller and at least one --path are required");
   }
+  if (model) {
+    if (data_given) return fail("give --data or --model (a data file), not both");
+    if (check_model(model, message, sizeof message)) return fail(message);
+    data = model;
+  }
+  if (dbc && check_dbc(dbc, message, sizeof message)) return fail(message);
+  if (debug) {
+    fprintf(stderr, "debug: controller %s, data file %s, build shapes: %s\n", controller, data, ecu_build_shapes());
+    for (int k = 0; k < n_paths; k++) fprintf(stderr, "debug: PATH_ID %d: %s\n", path_ids[k], path_files[k]);
+    if (dbc) fprintf(stderr, "debug: --dbc %s: the build's DBC (SHA-256 equal)\n", dbc);
+  }
   if (interface || channel || lockstep) {
     static char load_error[700];
     if (!interface || !channel) return fail("--interface and --channel are required on the bus");
     if (samples_file) return fail("--replay runs without a bus: give no --interface / --channel");
     if (lockstep == realtime) return fail("exactly one of --lockstep or --realtime is required");
     if (timing_out && check_output_file(timing_out, replace, message, sizeof message)) return fail(message);
+    if (bitrate)
+      fprintf(stderr, "note: --bitrate %d ignored: %s\n", bitrate, strcmp(interface, "socketcand") == 0
+              ? "socketcand's daemon sets its bus's bit rate"
+              : "SocketCAN sets it on the interface (ip link set CHANNEL type can bitrate N; vcan has none)");
     for (int k = 0; k < n_paths; k++) {
       FILE *probe = fopen(path_files[k], "r");
       if (!probe) {
@@ -325,6 +405,8 @@ int main(int argc, char **argv) {
       }
     }
     if (failure) fprintf(stderr, "error: FAULT latched: %s\n", failure);
+    else if (debug) fprintf(stderr, "debug: controller %s and %d path(s) loaded; opening %s %s\n", controller,
+                            n_paths, interface, channel);
     if (cpu >= 0 || fifo_priority) {
       char note[300];
       if (os_realtime_policy(cpu, fifo_priority, note, sizeof note, err, sizeof err) != 0) return fail(err);

@@ -1,0 +1,14 @@
+/*
+ * SHA-256 (FIPS 180-4) of a file, for the executable's --dbc check: the CAN matrix a user
+ * names must be the one the codecs were generated from (its hash is in ecu_version()).
+ */
+#ifndef ECU_SHA256_H
+#define ECU_SHA256_H
+
+#include <stddef.h>
+
+/* The file's SHA-256 as 64 lower-case hex digits and a NUL in hex (65 bytes).
+ * 0, or -1 when the file cannot be read (errno set). */
+int ecu_sha256_file(const char *path, char hex[65]);
+
+#endif
