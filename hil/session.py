@@ -281,7 +281,7 @@ def _c_ecu_data_file(options: RunOptions) -> Path:
     """The C ECU's data file: the build's, or ``options.model`` converted once by
     firmware/tools/ecu_data.py (``firmware_sim.native.data_file_for_model``)."""
     from firmware_sim.errors import ConfigError
-    from firmware_sim.native import DEFAULT_DATA, data_file_for_model
+    from firmware_sim.native import DEFAULT_DATA, NativeController, data_file_for_model
 
     if options.model is None:
         return DEFAULT_DATA
@@ -289,9 +289,12 @@ def _c_ecu_data_file(options: RunOptions) -> Path:
         raise SessionError(f"--model {options.model}: the C ECU has no fitted bicycle yet "
                            "(lmpc uses the nominal one); use the Python ECU")
     try:
-        return data_file_for_model(Path(options.model).resolve())
+        data = data_file_for_model(Path(options.model).resolve())
+        # the executable would latch FAULT on a model of another shape: say so before the run
+        NativeController(options.controller, data)
     except (ConfigError, OSError) as e:
         raise SessionError(f"the C ECU's data file: {e}") from e
+    return data
 
 
 def _socketcand_address(bus: BusConfig) -> list[str]:

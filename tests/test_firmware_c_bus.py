@@ -277,3 +277,20 @@ def test_hil_run_refuses_a_c_ecu_that_is_not_built(tmp_path: Path, monkeypatch, 
     assert main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ecu", "c"]) != 0
     error = capsys.readouterr().err.strip().splitlines()
     assert error[-1].startswith("error: the C ECU ") and error[-1].endswith("is not built: run make firmware")
+
+
+def test_hil_run_converts_the_model_for_the_c_ecu_and_refuses_another_shape(native, capsys) -> None:
+    """``hil run --ecu c --model``: the artefact is written to its data file
+    (firmware/tools/ecu_data.py) and checked against the build before the run; a model of
+    another shape is one error line naming both shapes."""
+    from hil.__main__ import main
+
+    assert main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ecu", "c",
+                 "--model", "models/artifacts/dk_paper_nominal.npz"]) != 0
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.startswith("error: --model models/artifacts/dk_paper_nominal.npz: the C ECU has no fitted bicycle")
+    assert main(["run", "--scenario", "dlc_smoke", "--controller", "eso-dkmpc", "--ecu", "c",
+                 "--model", "models/artifacts/dk_paper_nominal.npz"]) != 0
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.startswith("error: the C ECU's data file: ") and "the model's shape (form linear" in error \
+        and "differs from this build's (form scheduled" in error
