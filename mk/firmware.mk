@@ -38,8 +38,10 @@ FW_PACKAGES := gcc cmake
 ## build the C control core build/firmware/libecu.so, the executable ecu and the data file
 firmware: firmware-deps $(FW_DIR)/libecu.so $(FW_DIR)/ecu $(FW_DIR)/ecu_data.bin
 
-# make test builds the firmware first (its tests load libecu.so).
+# make test builds the firmware first (its tests load libecu.so); make bench times the C
+# core's step beside the Python controllers (the "NAME (C)" rows of studies/bench.py).
 test: firmware
+bench: firmware
 
 ## install gcc and cmake (as root, with apt-get) where they are missing
 firmware-deps:

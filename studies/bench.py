@@ -17,7 +17,13 @@
    ``t_wall_total``) comes from ``StepDebug.solve_time_s``. Each controller's first step
    (one-off set-up) is left out. Open loop: the commands are not applied, so every
    controller sees exactly the same inputs.
-3. ECU overhead: the ECU (`firmware_sim.ecu.Ecu`) with a one-line scripted law, in
+3. The C core (issue 18, ``make firmware``): each controller the C firmware has is fed
+   the same samples once more, alternately with its Python twin (one C core per process,
+   so one at a time: ``studies.bench_native.c_step_timing``, also ``make bench-native``'s
+   measurement); its row "NAME (C)" gives ``ecu_step``'s own wall time inside libecu.so and
+   the thread CPU time of the call through ctypes. Left out with ``--no-c``, or with a
+   note when libecu.so is not built.
+4. ECU overhead: the ECU (`firmware_sim.ecu.Ecu`) with a one-line scripted law, in
    lockstep on a private python-can virtual bus, fed the recorded samples as plant frames:
    its control task time (mode logic, guard, encode and TX of two frames) is what the ECU
    adds to a controller's step.
@@ -275,7 +281,8 @@ def _ratio(value: float, baseline: float | None) -> str:
 
 
 def bench_table(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] | None) -> list[str]:
-    """The Markdown table: one row per controller, then the ECU overhead's row."""
+    """The Markdown table: one row per controller (the C core's rows "NAME (C)" among them),
+    then the ECU overhead's row."""
     base = timings.get(BASELINE)
     lines = ["| controller | step wall p50 / p99 / max (ms) | step CPU p50 / p99 (ms) "
              "| solver p50 / p99 (ms) | solver share | iterations p50 / max | not solved / fallback "
@@ -298,6 +305,26 @@ def bench_table(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, 
         lines.append(f"| {ECU_OVERHEAD_ROW} | {task.p50_ms:.3f} / {task.p99_ms:.3f} / "
                      f"{task.max_ms:.3f} | - | - | - | - | - | - | - | - | - |")
     return lines
+
+
+def c_core_timings(names: Sequence[str], samples: Sequence[VehicleSample],
+                   path: ReferencePath) -> tuple[dict[str, ControllerTiming], str | None]:
+    """The C core's rows ("NAME (C)") for the controllers of ``names`` it has, and a note
+    when it could not be timed (libecu.so not built, its data file refused)."""
+    from firmware_sim.errors import EcuError
+    from firmware_sim.native import DEFAULT_LIBRARY, NATIVE_CONTROLLERS
+    from studies.bench_native import c_step_timing
+
+    if not DEFAULT_LIBRARY.is_file() and not os.environ.get("ECU_LIB"):
+        return {}, f"C core: not timed, {DEFAULT_LIBRARY.name} is not built (make firmware)"
+    rows = {}
+    try:
+        for name in (n for n in names if n in NATIVE_CONTROLLERS):
+            _, core, _ = c_step_timing(name, samples, path)
+            rows[core.name] = core
+    except EcuError as e:
+        return rows, f"C core: not timed ({e})"
+    return rows, None
 
 
 def goal_line(timings: Mapping[str, ControllerTiming]) -> str | None:
@@ -326,17 +353,20 @@ def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float,
 
 def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] | None,
            recording: str, command: str, load_start: tuple[float, float, float],
-           load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None) -> str:
+           load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None,
+           c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None) -> str:
     """The whole Markdown file: header, the table, how to read it (and the controllers
-    that could not be built, with why)."""
+    that could not be built, with why; the C core's rows ``c_rows`` or why there are none)."""
     lines = ["# Controller compute time per step (`make bench`)", "",
              f"`{command}`, one process, one run.", "",
              *machine_lines(load_start, load_end),
              f"- Inputs: {recording}; every controller fed the same samples in turn (order "
              "rotated per sample), open loop; each controller's first step (set-up) left out.",
-             "", *bench_table(timings, overhead), ""]
+             "", *bench_table({**timings, **(c_rows or {})}, overhead), ""]
     for name, error in (not_built or {}).items():
         lines += [f"{name}: not built ({error}).", ""]
+    if c_note:
+        lines += [f"{c_note}.", ""]
     goal = goal_line(timings)
     if goal:
         lines += [goal, ""]
@@ -345,6 +375,13 @@ def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] 
               "solver share: the solver's time summed over the steps / the step wall time summed. Not solved: steps whose "
               "status was not SOLVED. Paper: average per step (MATLAB, CasADi / IPOPT, Intel i7 "
               "at 1.10 GHz)."]
+    if c_rows:
+        lines += ["", "NAME (C): the C firmware's control step (libecu.so, `make firmware`; "
+                  "docs/firmware.md) on the same samples, timed alternately with its Python twin in a "
+                  "second pass (one C core per process); step wall: `ecu_step`'s own time measured inside "
+                  "the C core (monotonic clock), without the Python call; step CPU: the thread CPU time of "
+                  "the call through ctypes (an upper bound). `make bench-native` has the same measurement "
+                  "with the call's wall time and the control task in real time."]
     if overhead is not None:
         tick = overhead["tick"]
         lines += ["", f"{ECU_OVERHEAD_ROW}: the ECU's control task with a one-line scripted law "
@@ -360,8 +397,10 @@ def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] 
 
 def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] | None,
             recording: str, command: str, load_start: tuple[float, float, float],
-            load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """Every figure of the report, JSON-ready (times in ms)."""
+            load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None,
+            c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None) -> dict[str, Any]:
+    """Every figure of the report, JSON-ready (times in ms); the C core's rows under
+    ``c_core`` (``note``: why some or all are missing)."""
     return {
         "command": command, "machine": machine_description(), "node": platform.node(),
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
@@ -369,6 +408,7 @@ def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any]
         "recording": recording, "baseline": BASELINE,
         "controllers": {name: dataclasses.asdict(t) for name, t in timings.items()},
         "not_built": dict(not_built or {}),
+        "c_core": {"rows": {name: dataclasses.asdict(t) for name, t in (c_rows or {}).items()}, "note": c_note},
         "ecu_overhead": None if overhead is None else
         {key: dataclasses.asdict(value) if isinstance(value, Percentiles) else value
          for key, value in overhead.items()},
@@ -405,6 +445,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--controllers", default=None,
                         help="comma-separated names (default: every name in the registry)")
     parser.add_argument("--no-ecu", action="store_true", help="leave out the ECU overhead")
+    parser.add_argument("--no-c", action="store_true", help="leave out the C core's rows (make firmware)")
     parser.add_argument("--profile", metavar="NAME", default=None,
                         help="also print a cProfile of NAME's steps on the same samples")
     parser.add_argument("--out", type=Path, default=Path("results/bench.md"))
@@ -419,13 +460,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     command = "python -m studies.bench" + (f" --steps {args.steps}" if args.steps else "") + \
         (f" --controllers {','.join(names)}" if args.controllers else "") + \
-        (" --no-ecu" if args.no_ecu else "")
+        (" --no-ecu" if args.no_ecu else "") + (" --no-c" if args.no_c else "")
     load_start = load_average()
     not_built: dict[str, str] = {}
     try:
         samples, path, recording = record_samples(args.steps)
         controllers, not_built = build_controllers(names)
         timings = time_controllers(controllers, samples, path)
+        c_rows, c_note = ({}, None) if args.no_c else c_core_timings(list(controllers), samples, path)
         overhead = None if args.no_ecu else measure_ecu_overhead(samples)
     except BenchError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -434,14 +476,14 @@ def main(argv: list[str] | None = None) -> int:
         for name, error in not_built.items():
             print(f"error: {name} not built: {error}", file=sys.stderr)
     load_end = load_average()
-    text = report(timings, overhead, recording, command, load_start, load_end, not_built)
+    text = report(timings, overhead, recording, command, load_start, load_end, not_built, c_rows, c_note)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     written = [args.out]
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(as_json(timings, overhead, recording, command, load_start,
-                                                load_end, not_built), indent=2) + "\n")
+                                                load_end, not_built, c_rows, c_note), indent=2) + "\n")
         written.append(args.json)
     print(text)
     if args.profile:

@@ -29,6 +29,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402 (after the BLAS setting on purpose)
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import signal  # noqa: E402
 import subprocess  # noqa: E402
@@ -45,7 +46,8 @@ from controller.base import Command, Controller, StepDebug, VehicleSample  # noq
 from controller.reference import ReferencePath  # noqa: E402
 from firmware_sim.errors import EcuError  # noqa: E402
 from firmware_sim.native import NATIVE_CONTROLLERS, NativeController  # noqa: E402
-from studies.bench import BenchError, record_samples, time_controllers  # noqa: E402
+from studies.bench import (BenchError, ControllerTiming, Percentiles, record_samples,  # noqa: E402
+                           time_controllers)
 from studies.machine import load_average, machine_description  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,13 +62,14 @@ TARGET_P99_US = 100.0
 
 
 class _Recorded(Controller):
-    """Passes every call to ``inner``; keeps each step's command and, for the C core, its
-    own step time (s)."""
+    """Passes every call to ``inner``; keeps each step's command and solver time and, for
+    the C core, its own step time (s)."""
 
     def __init__(self, inner: Controller) -> None:
         self.inner, self.name = inner, inner.name
         self.commands: list[Command] = []
         self.step_times_s: list[float] = []
+        self.solve_times_s: list[float] = []
 
     def set_path(self, path: ReferencePath) -> None:
         self.inner.set_path(path)
@@ -78,6 +81,7 @@ class _Recorded(Controller):
         command, debug = self.inner.step(sample)
         self.commands.append(command)
         self.step_times_s.append(getattr(self.inner, "last_step_time_s", float("nan")))
+        self.solve_times_s.append(debug.solve_time_s)
         return command, debug
 
 
@@ -147,17 +151,36 @@ def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_
     return monitor.raw, tracking, status, log.read_text()
 
 
-def bench_one(name: str, samples: Sequence[VehicleSample], path: ReferencePath) -> dict[str, float]:
-    """Python and C steps of controller ``name`` on ``samples``, figures in us."""
+def c_step_timing(name: str, samples: Sequence[VehicleSample],
+                  path: ReferencePath) -> tuple[dict[str, ControllerTiming], ControllerTiming, float]:
+    """The Python controller ``name`` and its C core (libecu.so) fed ``samples`` alternately
+    (``time_controllers``; one C core per process, so one controller at a time).
+
+    Returns: the timings of both calls ("python", "c": the call through ctypes), the C
+    core's own step as a ``ControllerTiming`` (wall: ``ecu_step``'s own time, the first
+    step left out; CPU: the call's thread CPU time, an upper bound; solver share of its own
+    time), and the largest steer difference C - Python (rad).
+
+    Raises:
+        firmware_sim.errors.EcuError: libecu.so or its data file is missing or refused.
+    """
     from controller.registry import create_controller
 
     python = _Recorded(create_controller(name))
     native = _Recorded(NativeController(name))
     timings = time_controllers({"python": python, "c": native}, samples, path)
-    own = np.array(native.step_times_s[1:]) * 1e6
+    own = np.array(native.step_times_s[1:])
+    core = dataclasses.replace(timings["c"], name=f"{name} (C)", wall=Percentiles.of(own),
+                               solver_share=float(np.sum(native.solve_times_s[1:]) / own.sum()))
     steer_difference = max(abs(a.steer_angle - b.steer_angle) for a, b in zip(python.commands, native.commands))
-    return {"c_p50_us": float(np.percentile(own, 50)), "c_p99_us": float(np.percentile(own, 99)),
-            "c_max_us": float(own.max()),
+    return timings, core, steer_difference
+
+
+def bench_one(name: str, samples: Sequence[VehicleSample], path: ReferencePath) -> dict[str, float]:
+    """Python and C steps of controller ``name`` on ``samples``, figures in us."""
+    timings, core, steer_difference = c_step_timing(name, samples, path)
+    return {"c_p50_us": core.wall.p50_ms * 1e3, "c_p99_us": core.wall.p99_ms * 1e3,
+            "c_max_us": core.wall.max_ms * 1e3,
             "c_call_p50_us": timings["c"].wall.p50_ms * 1e3, "c_call_p99_us": timings["c"].wall.p99_ms * 1e3,
             "c_solver_p50_us": timings["c"].solver.p50_ms * 1e3,
             "c_call_cpu_p50_us": timings["c"].cpu.p50_ms * 1e3, "c_call_cpu_p99_us": timings["c"].cpu.p99_ms * 1e3,

@@ -1,6 +1,7 @@
 """`make bench` (studies/bench.py) on a few recorded samples: the table has a row for every
-controller of the registry (read at run time) and the ECU overhead, every figure finite and
-positive. Speeds are not asserted: they depend on the machine and its load."""
+controller of the registry (read at run time), the C core's rows (issue 18: "NAME (C)", when
+libecu.so is built) and the ECU overhead, every figure finite and positive. Speeds are not
+asserted: they depend on the machine and its load."""
 from __future__ import annotations
 
 import json
@@ -10,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from controller import registry
+from firmware_sim.native import DEFAULT_LIBRARY, NATIVE_CONTROLLERS
 from studies import bench
 
 STEPS = 6
@@ -31,7 +33,10 @@ def test_bench_times_every_registered_controller_on_the_same_samples(tmp_path: P
     text = out.read_text()
     print(text)
     rows = _rows(text)
-    assert set(rows) == set(registry.CONTROLLERS) | {bench.ECU_OVERHEAD_ROW}
+    c_rows = {f"{name} (C)" for name in NATIVE_CONTROLLERS if name in registry.CONTROLLERS}
+    built = DEFAULT_LIBRARY.is_file()
+    assert set(rows) == set(registry.CONTROLLERS) | {bench.ECU_OVERHEAD_ROW} | (c_rows if built else set())
+    assert ("is not built (make firmware)" in text) != built
     assert "Load average (1 / 5 / 15 min)" in text and "OPENBLAS_NUM_THREADS=1" in text
     assert f"{STEPS} samples of `{bench.RECORDING_SCENARIO}`" in text
 
@@ -47,6 +52,11 @@ def test_bench_times_every_registered_controller_on_the_same_samples(tmp_path: P
             assert figures["p50_ms"] <= figures["p99_ms"] <= figures["max_ms"]
         assert 0 < timing["solver_share"] <= 1.0, name
         assert timing["solver"]["p50_ms"] > 0, name
+    assert set(document["c_core"]["rows"]) == (c_rows if built else set())
+    for name, timing in document["c_core"]["rows"].items():  # ecu_step's own time, the set-up step left out
+        assert timing["wall"]["n"] == STEPS - 1 and 0 < timing["wall"]["p50_ms"] <= timing["wall"]["max_ms"], name
+        assert 0 < timing["solver_share"] <= 1.0 and timing["cpu"]["p50_ms"] > 0, name
+        assert float(rows[name][6]) > 0, name  # its ratio to LMPC's (Python) step
     lmpc = rows[bench.BASELINE]
     assert lmpc[6:8] == ["1.00", "1.00"]  # p50 / p99 ratios of the baseline to itself
     for name in registry.CONTROLLERS:
@@ -65,10 +75,25 @@ def test_bench_reads_the_registry_at_run_time(tmp_path: Path, monkeypatch: pytes
     table = {name: registry.CONTROLLERS[name] for name in ("lmpc", "dkmpc")}
     monkeypatch.setattr(registry, "CONTROLLERS", {**table, "broken": ("controller.no_such_module", "X")})
     out = tmp_path / "bench.md"
-    assert bench.main(["--steps", "3", "--no-ecu", "--out", str(out)]) == 1
+    assert bench.main(["--steps", "3", "--no-ecu", "--no-c", "--out", str(out)]) == 1
     text = out.read_text()
     assert set(_rows(text)) == {"lmpc", "dkmpc"}
     assert "broken: not built (ModuleNotFoundError" in text
+
+
+def test_bench_says_when_the_c_core_is_not_built(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without libecu.so the table has no C rows and says why (make firmware); with --no-c
+    it has none and says nothing."""
+    import firmware_sim.native
+
+    monkeypatch.setattr(firmware_sim.native, "DEFAULT_LIBRARY", tmp_path / "libecu.so")
+    monkeypatch.delenv("ECU_LIB", raising=False)
+    out = tmp_path / "bench.md"
+    assert bench.main(["--steps", "3", "--no-ecu", "--controllers", "lmpc", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert set(_rows(text)) == {"lmpc"} and "C core: not timed, libecu.so is not built (make firmware)." in text
+    assert bench.main(["--steps", "3", "--no-ecu", "--no-c", "--controllers", "lmpc", "--out", str(out)]) == 0
+    assert "C core" not in out.read_text()
 
 
 def test_bench_refuses_unknown_controllers_and_too_few_steps(tmp_path: Path,
