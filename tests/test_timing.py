@@ -53,3 +53,34 @@ def test_eso_dkmpc_meets_25_ms_in_real_time_against_the_plant_process(tmp_path):
     assert figures.commands_received >= figures.cycles
     assert figures.stats["task_time"][1] < HALF_PERIOD_MS
     assert figures.lateral_error_max_m < 0.5   # it was really controlling the car
+
+
+@pytest.mark.timing
+def test_the_c_ecu_runs_in_the_timing_study(tmp_path):
+    """`make timing`'s runner with the C ECU executable (issue 18): started with the Python
+    ECU's options, ready line awaited, pinned as asked, its --timing-out record read as the
+    Python ECU's. A few seconds with generous margins on a busy machine: most cycles ACTIVE,
+    the commands reach the plant; deadlines are the long study's (make timing)."""
+    import math
+
+    from firmware_sim.native import DEFAULT_LIBRARY
+    from studies.timing.runner import C_ECU_EXECUTABLE
+
+    if not C_ECU_EXECUTABLE.is_file() or not DEFAULT_LIBRARY.is_file():
+        pytest.skip("the C ECU is not built (make firmware; make test builds it)")
+    seconds = 4.0
+    run = run_timing("eso-dkmpc", seconds, tmp_path, ecu="c")
+    figures = run_figures(run, "idle")
+    print(f"\nscheduling: {run.scheduling}")
+    print("\n".join(summary_table([figures]) + percentile_table([figures])))
+    assert run.controller == figures.controller == "eso-dkmpc (C)"
+    assert "SCHED_" in run.scheduling["ecu"]  # the executable's "scheduling:" line was read
+    assert "ready: controller eso-dkmpc" in run.ecu_log
+    expected_cycles = (seconds - 1.0) / 0.025
+    assert figures.cycles >= 0.8 * expected_cycles
+    assert figures.modes.get("ACTIVE", 0) + figures.modes.get("DEGRADED", 0) >= 0.8 * figures.cycles, figures.modes
+    assert figures.commands_received >= 0.8 * figures.cycles and figures.command_e2e_errors == 0
+    assert figures.plant_commands_rejected == 0
+    task_p50, task_p99 = figures.stats["task_time"][:2]
+    assert 0 < task_p50 <= task_p99 < 25.0 and math.isfinite(figures.stats["release_jitter"][1])
+    assert figures.lateral_error_max_m < 0.5

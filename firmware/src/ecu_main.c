@@ -26,7 +26,9 @@
  * that command; --dbc must be the DBC the codecs were generated from (SHA-256 compared
  * with the build's); --bitrate is accepted and ignored with a note (SocketCAN sets the bit
  * rate on the interface, socketcand's daemon on its bus); --debug (or --log-level debug)
- * prints what was loaded at start-up.
+ * prints what was loaded at start-up. --log-level info (or debug) also prints the
+ * scheduling obtained and, once the bus is open, one "ready: controller ..." line (as the
+ * Python ECU: the timing study waits for it).
  */
 #define _POSIX_C_SOURCE 200809L /* access, stat */
 
@@ -187,12 +189,16 @@ static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os
 
 /* The node on the bus until a stop signal; the bus is reopened every second while lost. */
 static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error,
-                   int realtime, const char *timing_out) {
+                   int realtime, const char *timing_out, const char *ready) {
   char err[300];
   os_can_frame_t frame;
   if (os_can_open(interface, channel, host, port, err, sizeof err) != 0) {
     fprintf(stderr, "error: %s\n", err);
     return EXIT_BUS;
+  }
+  if (ready) {
+    fprintf(stderr, "info: ready: %s\n", ready);
+    fflush(stderr);
   }
   ecu_node_init(send_on_bus, load_error);
   if (realtime) ecu_node_set_realtime();
@@ -250,7 +256,7 @@ int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
   const char *timing_out = NULL, *dbc = NULL, *model = NULL;
-  int debug = 0, bitrate = 0;
+  int debug = 0, info = 0, bitrate = 0;
   int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0;
   const char *path_files[MAX_PATHS];
   int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0, data_given = 0;
@@ -267,7 +273,7 @@ int main(int argc, char **argv) {
     } else if (strcmp(arg, "--replace") == 0) {
       replace = 1;
     } else if (strcmp(arg, "--debug") == 0) {
-      debug = 1;
+      debug = info = 1;
     } else if (!value && (strcmp(arg, "--controller") == 0 || strcmp(arg, "--path") == 0 ||
                           strcmp(arg, "--data") == 0 || strcmp(arg, "--replay") == 0 ||
                           strcmp(arg, "--path-id") == 0 || strcmp(arg, "--interface") == 0 ||
@@ -312,6 +318,7 @@ int main(int argc, char **argv) {
         return fail(message);
       }
       if (strcmp(level, "debug") == 0) debug = 1;
+      if (strcmp(level, "debug") == 0 || strcmp(level, "info") == 0) info = 1;
     } else if (strcmp(arg, "--dbc") == 0) {
       dbc = argv[++i];
     } else if (strcmp(arg, "--model") == 0) {
@@ -411,8 +418,14 @@ int main(int argc, char **argv) {
       char note[300];
       if (os_realtime_policy(cpu, fifo_priority, note, sizeof note, err, sizeof err) != 0) return fail(err);
       if (note[0]) fprintf(stderr, "warning: %s\n", note);
+      if (info)
+        fprintf(stderr, "info: scheduling: cpu %d, %s%.0d%s%s%s\n", cpu, fifo_priority ? "SCHED_FIFO " : "SCHED_OTHER",
+                fifo_priority, note[0] ? " (" : "", note, note[0] ? ")" : "");
     }
-    return run_bus(interface, channel, host, port, failure, realtime, timing_out);
+    static char ready[200];
+    snprintf(ready, sizeof ready, "controller %s, %d path(s), %s, %s", controller, n_paths,
+             realtime ? "real time" : "lockstep", failure ? "FAULT" : "loaded");
+    return run_bus(interface, channel, host, port, failure, realtime, timing_out, info ? ready : NULL);
   }
   if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);
   /* Every path file is checked at start-up; the selected one is loaded last. */

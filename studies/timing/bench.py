@@ -1,7 +1,8 @@
 """``make timing``: the ECU's deadlines, jitter and latency, as on a vehicle (issue 9).
 
     python -m studies.timing.bench [--seconds 120] [--nmpc-seconds 30]
-        [--controllers eso-dkmpc,dkmpc,lmpc,nmpc] [--conditions idle,stress]
+        [--controllers eso-dkmpc,dkmpc,lmpc,nmpc] [--c-controllers eso-dkmpc,dkmpc,lmpc]
+        [--conditions idle,stress]
         [--scheduling rt|normal] [--out results/timing.md] [--work build/timing]
 
 For each load condition (``idle``; ``stress``: a busy loop pinned to each core, see
@@ -9,6 +10,8 @@ For each load condition (``idle``; ``stress``: a busy loop pinned to each core, 
 (CPU 0, SCHED_FIFO 50) against the plant (CPU 1, SCHED_FIFO 40) over the loopback CAN
 hub, 40 Hz control for ``--seconds`` (default ``TIMING_SECONDS`` from the environment,
 else 120 s); NMPC for ``--nmpc-seconds`` only, as it does not keep up with 25 ms.
+Then the C ECU executable (issue 18, ``make firmware``) with each of ``--c-controllers``
+under the same conditions and options, rows "NAME (C)" (``--c-controllers none``: left out).
 Writes the Markdown report, one histogram PNG per condition (``<out stem>_<condition>.png``)
 and ``summary.json`` plus each run's raw files under ``--work``.
 """
@@ -28,11 +31,13 @@ from pathlib import Path  # noqa: E402
 from hil.errors import HilError  # noqa: E402
 from studies.timing.report import (SETTLE_S, RunFigures, as_json, goal_lines,  # noqa: E402
                                percentile_table, plot_histograms, run_figures, summary_table)
-from studies.timing.runner import Placement, run_timing  # noqa: E402
+from studies.timing.runner import Placement, ecu_label, run_timing  # noqa: E402
 from studies.timing.stress import BUSY_LOOP, StressLoad  # noqa: E402
 
 CONDITIONS = ("idle", "stress")
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
+#: The controllers of the C ECU executable (no NMPC).
+C_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
 
 
 def default_seconds() -> float:
@@ -69,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--nmpc-seconds", type=float, default=30.0,
                         help="run length for nmpc (at most --seconds)")
     parser.add_argument("--controllers", default=",".join(CONTROLLERS))
+    parser.add_argument("--c-controllers", default=",".join(C_CONTROLLERS),
+                        help="controllers of the C ECU executable (make firmware) to run as well; "
+                             "none: only the Python ECU")
     parser.add_argument("--conditions", default=",".join(CONDITIONS))
     parser.add_argument("--scheduling", choices=("rt", "normal"), default="rt",
                         help="rt: ECU and plant pinned to separate cores under SCHED_FIFO "
@@ -79,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         seconds = args.seconds if args.seconds is not None else default_seconds()
         controllers = _names(args.controllers, CONTROLLERS, "controllers")
+        c_controllers = [] if args.c_controllers.strip() == "none" else \
+            _names(args.c_controllers, C_CONTROLLERS, "c-controllers")
         conditions = _names(args.conditions, CONDITIONS, "conditions")
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -94,14 +104,15 @@ def main(argv: list[str] | None = None) -> int:
         load_before = os.getloadavg()
         with StressLoad(cpus if condition == "stress" else ()) as stress:
             stress_pinning = stress_pinning or stress.pinned
-            for controller in controllers:
+            for controller, ecu in [*((c, "python") for c in controllers), *((c, "c") for c in c_controllers)]:
                 run_seconds = min(seconds, args.nmpc_seconds) if controller == "nmpc" else seconds
-                print(f"{condition} / {controller}: {run_seconds:g} s ...", flush=True)
+                label = ecu_label(controller, ecu)
+                print(f"{condition} / {label}: {run_seconds:g} s ...", flush=True)
                 try:
-                    run = run_timing(controller, run_seconds,
-                                     args.work / f"{condition}__{controller}", placement)
+                    run = run_timing(controller, run_seconds, args.work /
+                                     f"{condition}__{controller}{'_c' if ecu == 'c' else ''}", placement, ecu)
                 except HilError as e:
-                    print(f"error: {condition} / {controller}: {e}", file=sys.stderr)
+                    print(f"error: {condition} / {label}: {e}", file=sys.stderr)
                     return 1
                 figures.append(run_figures(run, condition))
                 print("\n".join(summary_table(figures[-1:])[2:]), flush=True)
@@ -125,7 +136,8 @@ def _report(figures: list[RunFigures], seconds: float, args: argparse.Namespace,
     scheduling = figures[0].scheduling if figures else {}
     lines = [
         "# ECU timing (issue 9)", "",
-        f"`python -m studies.timing.bench --seconds {seconds:g} --nmpc-seconds {args.nmpc_seconds:g}` "
+        f"`python -m studies.timing.bench --seconds {seconds:g} --nmpc-seconds {args.nmpc_seconds:g}"
+        f"{'' if args.c_controllers == ','.join(C_CONTROLLERS) else f' --c-controllers {args.c_controllers}'}` "
         f"(`make timing`), started {started} on `{platform.node()}` "
         f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs).", "",
         "- Transport: python-can's `socketcand` interface (TCP_NODELAY) to `hil.timing.hub`, a "
@@ -138,6 +150,9 @@ def _report(figures: list[RunFigures], seconds: float, args: argparse.Namespace,
         f"(`{BUSY_LOOP.strip().splitlines()[-1].strip()}` forever, SCHED_OTHER nice 0, "
         f"pinned: {', '.join(stress_pinning) or 'n/a'}).",
         *(f"- {condition}: {text}" for condition, text in loads.items()),
+        "- ECUs: rows NAME are the Python ECU (`python -m firmware_sim`), rows NAME (C) the C ECU "
+        "executable (`build/firmware/ecu`, docs/firmware.md), both started with the same options "
+        "and writing the same per-cycle record.",
         f"- Plant: four-wheel model, 5 ms ticks on absolute deadlines, frames every 10 ms; "
         f"35 km/h, mu 0.85, repeated double lane changes. Window: from {SETTLE_S:g} s after the "
         "plant started to its end (the ECU's own CLOCK_MONOTONIC stamps).",

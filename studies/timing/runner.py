@@ -6,7 +6,9 @@ Processes (all on 127.0.0.1, CLOCK_MONOTONIC shared):
   SCHED_FIFO ``hub_priority`` (above the plant, so a frame is forwarded at once);
 - the ECU: ``python -m firmware_sim --interface socketcand --realtime --cpu ECU_CPU
   --rt-priority P --timing-out FILE.npz`` (its own CLI), started first; the run waits for
-  its ``ready:`` line (controller and path loaded);
+  its ``ready:`` line (controller and path loaded); with ``ecu="c"`` the C ECU executable
+  (``build/firmware/ecu``, ``make firmware``; issue 18) with the same options, which writes
+  the same record;
 - the plant: `hil.timing.plant_side` on ``plant_cpu``, SCHED_FIFO ``plant_priority``, for
   the scenario's duration (35 km/h, mu 0.85, repeated double lane changes).
 
@@ -31,6 +33,8 @@ from hil.timing.plant_side import CHANNEL
 from studies.timing.stress import die_with_parent
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+#: The C ECU executable (make firmware).
+C_ECU_EXECUTABLE = REPO_ROOT / "build" / "firmware" / "ecu"
 SPEED_KMH = 35.0
 ECU_READY_TIMEOUT_S = 120.0
 _STOP_TIMEOUT_S = 10.0
@@ -63,7 +67,7 @@ class Placement:
 @dataclass
 class TimingRun:
     """Outcome of one run: the ECU's record, the plant side's result and how each
-    process was scheduled."""
+    process was scheduled. ``controller`` is the row's label: "NAME (C)" for the C ECU."""
 
     controller: str
     seconds: float
@@ -129,13 +133,24 @@ def _stop(process: subprocess.Popen[Any], timeout_s: float = _STOP_TIMEOUT_S) ->
     return process.returncode
 
 
+def ecu_label(controller: str, ecu: str = "python") -> str:
+    """A run's name in the tables: the controller, "NAME (C)" on the C ECU."""
+    return f"{controller} (C)" if ecu == "c" else controller
+
+
 def run_timing(controller: str, seconds: float, work_dir: Path,
-               placement: Placement | None = None) -> TimingRun:
-    """Run the ECU with ``controller`` against the plant for ``seconds`` (see module doc).
+               placement: Placement | None = None, ecu: str = "python") -> TimingRun:
+    """Run the ECU with ``controller`` against the plant for ``seconds`` (see module doc);
+    ``ecu`` "python" (firmware_sim) or "c" (the executable ``C_ECU_EXECUTABLE``).
 
     Raises:
-        TimingRunError: the hub, the ECU or the plant process failed (with its output).
+        TimingRunError: the C ECU is not built; the hub, the ECU or the plant process
+            failed (with its output).
     """
+    label = ecu_label(controller, ecu)
+    c_ecu = ecu == "c"  # (the name ecu is the process below)
+    if c_ecu and not C_ECU_EXECUTABLE.is_file():
+        raise TimingRunError(f"the C ECU {C_ECU_EXECUTABLE} is not built: run make firmware")
     placement = placement or Placement.for_this_machine()
     work_dir.mkdir(parents=True, exist_ok=True)
     scenario = write_scenario(work_dir, seconds)
@@ -157,7 +172,11 @@ def run_timing(controller: str, seconds: float, work_dir: Path,
         scheduling["hub"] = apply_realtime_policy(placement.plant_cpu, placement.hub_priority,
                                                   pid=hub.pid).describe()
         env = _env(port)
-        ecu_command = [python, "-m", "firmware_sim", "--interface", "socketcand",
+        # both ECUs take the same options; the executable gets the hub's address as options
+        # (python-can reads it from CAN_CONFIG)
+        program = [str(C_ECU_EXECUTABLE), "--host", "127.0.0.1", "--port", str(port)] if c_ecu \
+            else [python, "-m", "firmware_sim"]
+        ecu_command = [*program, "--interface", "socketcand",
                        "--channel", CHANNEL, "--controller", controller,
                        "--path", f"1={work_dir / 'path.csv'}", "--realtime",
                        "--timing-out", str(timing_file), "--log-level", "info"]
@@ -203,7 +222,7 @@ def run_timing(controller: str, seconds: float, work_dir: Path,
     scheduling["ecu"] = next((ln.split("scheduling: ", 1)[1] for ln in log_text.splitlines()
                               if "scheduling: " in ln), "not requested")
     scheduling["plant"] = plant.get("scheduling", "")
-    return TimingRun(controller, seconds, load_timing(timing_file), plant, scheduling, log_text)
+    return TimingRun(label, seconds, load_timing(timing_file), plant, scheduling, log_text)
 
 
 def _wait_for_ready(ecu: subprocess.Popen[Any], log: Path) -> None:
