@@ -11,7 +11,8 @@
 #   make firmware-asan   - the same tests on an -fsanitize=address,undefined build (build/firmware-asan)
 #   make firmware-cross  - the aarch64 cross build, replayed under qemu against the host build
 #   make bench-native    - C step vs Python step on the same recorded inputs (JSON last line)
-.PHONY: firmware firmware-deps firmware-test firmware-equivalence firmware-conformance firmware-asan \
+#   make firmware-footprint - text/data/bss of the executable, stack per function -> results/firmware_footprint.md
+.PHONY: firmware-footprint firmware firmware-deps firmware-test firmware-equivalence firmware-conformance firmware-asan \
 	firmware-cross firmware-vcan bench-native
 
 FW_DIR := build/firmware
@@ -29,7 +30,8 @@ FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/can -I$(FW_GEN)/qp -I$(FW_
 # The library: every source but the executable's main.
 FW_SOURCES := $(filter-out firmware/src/ecu_main.c,$(wildcard firmware/src/*.c))
 FW_HEADERS := $(wildcard firmware/src/*.h)
-FW_TOOLS := $(wildcard firmware/tools/*.py)
+# The generators (firmware/tools/footprint.py only reports on the build).
+FW_TOOLS := firmware/tools/ecu_data.py firmware/tools/generate.py
 # Generator inputs: a change of any regenerates (their hashes are in ecu_version()).
 FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py models/vehicle.toml can_defs/vehicle.dbc \
 	models/artifacts/dk_d5.npz models/artifacts/dk_d5.json
@@ -65,7 +67,7 @@ $(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) | $(STAMP)
 $(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS)
 	@mkdir -p $(FW_DIR)/obj
 	for f in $(FW_GEN)/qp/src/*.c $(FW_GEN)/qp/*_workspace.c; do \
-		$(FW_CC) $(FW_GEN_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -c $$f -o $(FW_DIR)/obj/$$(basename $$f .c).o || exit 1; \
+		$(FW_CC) $(FW_GEN_CFLAGS) $(FW_EXTRA_CFLAGS) -fstack-usage $(FW_INCLUDES) -c $$f -o $(FW_DIR)/obj/$$(basename $$f .c).o || exit 1; \
 	done
 	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -shared -o $@ $(FW_SOURCES) $(FW_GEN)/ecu_version.c \
 		$(FW_GEN)/can/vehicle.c \
@@ -110,3 +112,13 @@ firmware-cross: firmware
 ## C control step vs the Python controller step on the same recorded inputs (last line JSON)
 bench-native: firmware
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.bench_native
+
+# The executable's sections (binutils size) and every function's own stack frame
+# (-fstack-usage of our sources, cantools' codecs and the generated OSQP sources).
+## text/data/bss of build/firmware/ecu and stack use per function -> results/firmware_footprint.md
+firmware-footprint: firmware
+	$(PY) firmware/tools/footprint.py --exe $(FW_DIR)/ecu --su $(FW_DIR)/obj-ecu --su $(FW_DIR)/obj \
+		--out results/firmware_footprint.md
+	$(PROVENANCE_STAMP) results/firmware_footprint.md --command "make firmware-footprint" \
+		--inputs $(sort $(wildcard firmware/src/*.c firmware/src/*.h)) $(FW_GEN_INPUTS) mk/firmware.mk
+	@$(MAKE) --no-print-directory readme  # README.md includes its summary

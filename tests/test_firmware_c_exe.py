@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -182,3 +183,28 @@ def test_model_takes_a_data_file_and_bitrate_is_a_note(native, tmp_path: Path) -
                      "--path", "1=hil/paths/dlc.csv", "--lockstep", "--bitrate", "500000")
     assert result.returncode == 1  # no hub on port 1: the note came before the bus was opened
     assert result.stderr.splitlines()[0] == "note: --bitrate 500000 ignored: socketcand's daemon sets its bus's bit rate"
+
+
+def test_footprint_report_reads_the_build(native, tmp_path: Path) -> None:
+    """firmware/tools/footprint.py (make firmware-footprint): the executable's sections as
+    binutils' size gives them, the report's largest frame is the largest of every .su line
+    (our sources and the generated OSQP ones), and a missing build is one error line."""
+    tool = ROOT / "firmware" / "tools" / "footprint.py"
+    out = tmp_path / "footprint.md"
+    folders = [ROOT / "build" / "firmware" / "obj-ecu", ROOT / "build" / "firmware" / "obj"]
+    result = subprocess.run([sys.executable, str(tool), "--exe", str(ECU), *(f"--su={f}" for f in folders),
+                             "--out", str(out)], capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stderr
+    text = out.read_text()
+    frames = [(int(line.split("\t")[1]), line.split("\t")[0].rsplit(":", 1)[1])
+              for folder in folders for su in folder.glob("*.su") for line in su.read_text().splitlines()]
+    assert any(name.startswith("osqp_") for _, name in frames)  # the generated solver is counted
+    largest, name = max(frames)
+    assert f"stack (gcc `-fstack-usage`, {len(frames)} functions): largest own frames `{name}` {largest:,} B" in text
+    text_b, data_b, bss_b = (int(v) for v in subprocess.run(["size", str(ECU)], capture_output=True, text=True,
+                                                            check=True).stdout.splitlines()[1].split()[:3])
+    assert f"text {text_b:,} B, data {data_b:,} B, bss {bss_b:,} B" in text and bss_b > 6_000_000
+    missing = subprocess.run([sys.executable, str(tool), "--exe", str(tmp_path / "ecu"), "--out", str(out)],
+                             capture_output=True, text=True, check=False)
+    assert missing.returncode == 1
+    assert missing.stderr.strip().splitlines() == [f"error: {tmp_path / 'ecu'}: no such executable (run make firmware)"]

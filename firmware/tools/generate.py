@@ -118,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     generate_qps(args.tuning, args.out / "qp")
     generate_codecs(args.dbc, args.out / "can")
     (args.out / "ecu_build.h").write_text(build_header(args.tuning, args.model))
-    tools = sorted(Path(__file__).resolve().parent.glob("*.py"))
+    # the generators themselves (footprint.py, a report tool, changes nothing in the build)
+    tools = [Path(__file__).resolve().parent / name for name in ("ecu_data.py", "generate.py")]
     inputs = [args.tuning, args.model.with_suffix(".npz"), args.model.with_suffix(".json"),
               ROOT / "controller" / "steering_qp.py", ROOT / "models" / "vehicle.toml", args.dbc, *tools]
     (args.out / "ecu_version.c").write_text(version_source(inputs))
