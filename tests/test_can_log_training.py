@@ -341,3 +341,19 @@ def test_lost_frames_on_a_counter_time_base_are_a_gap_of_the_right_length(sim70,
     print("largest step between samples", steps.max())
     assert steps.max() == pytest.approx(0.22, abs=1e-6)
     assert np.sum(steps > 0.011) == 1
+
+
+def test_measured_inputs_come_from_veh_pose_yaw_and_leave_the_state(sim70, lockstep_log, tmp_path):
+    traffic = [f for f in frames(sim70) if f[1] != FrameId.STEER_TORQUE_CMD]  # no ECU recorded
+    log = write_candump(tmp_path / "plant_only.log", traffic)
+    with pytest.raises(LogDataError, match="no STEER_TORQUE_CMD"):
+        load_logs([log])
+    dataset = load_logs([log], input_source="measured")
+    run = dataset.trajectories[0]
+    assert run.state_names == ("vx", "vy", "yaw_rate") and run.input_names == ("torque", "steer")
+    grid_ms = np.arange(len(run)) * 25
+    sample_instants = slice(0, None, 2)  # every 50 ms: a plant sample, no interpolation
+    wheel_error = np.abs(run.inputs[sample_instants, 1] - sim70["wheel"][grid_ms][sample_instants]).max()
+    torque_error = np.abs(run.inputs[sample_instants, 0] - sim70["torque"][grid_ms][sample_instants]).max()
+    print("measured wheel angle / torque against the plant", wheel_error, torque_error)
+    assert wheel_error <= 0.00005 + 1e-9 and torque_error <= 0.05 + 1e-9
