@@ -245,14 +245,13 @@ def _program_argument(excite: str) -> str:
     return str(Path(excite).resolve()) if Path(excite).suffix.lower() in (".toml", ".csv") else excite
 
 
-def c_ecu_command(scenario: Scenario, options: RunOptions, hub_port: int | None = None) -> list[str]:
-    """Command line of the C ECU executable for this run (its CLI is firmware_sim's;
-    docs/firmware.md). ``hub_port``: the run's own socketcand hub on loopback.
+def check_c_ecu(options: RunOptions) -> None:
+    """Whether the C ECU can run ``options`` (before anything is opened or written).
 
     Raises:
         SessionError: the executable is not built, or the run asks for what the C ECU
-            does not have (another controller, ``--excite``, a controller factory), or
-            ``options.model`` does not convert to its data file.
+            does not have (another controller, ``--excite``, a controller factory, an
+            interface other than virtual, socketcan, socketcand).
     """
     if not C_ECU_EXECUTABLE.is_file():
         raise SessionError(f"the C ECU {C_ECU_EXECUTABLE} is not built: run make firmware")
@@ -263,14 +262,25 @@ def c_ecu_command(scenario: Scenario, options: RunOptions, hub_port: int | None 
         raise SessionError("the C ECU has no --excite (identification excitation): use the Python ECU")
     if options.controller_factory is not None:
         raise SessionError("a controller factory needs the Python ECU in-process, not the C ECU")
+    if not options.bus.is_virtual and options.bus.interface not in ("socketcan", "socketcand"):
+        raise SessionError(f"the C ECU speaks socketcan and socketcand only, not {options.bus.interface}")
+
+
+def c_ecu_command(scenario: Scenario, options: RunOptions, hub_port: int | None = None) -> list[str]:
+    """Command line of the C ECU executable for this run (its CLI is firmware_sim's;
+    docs/firmware.md). ``hub_port``: the run's own socketcand hub on loopback.
+
+    Raises:
+        SessionError: as `check_c_ecu`; ``options.model`` does not convert to its data
+            file, or is of another shape than the build's.
+    """
+    check_c_ecu(options)
     if hub_port is not None:
         bus = ["--interface", "socketcand", "--channel", HUB_CHANNEL, "--host", "127.0.0.1",
                "--port", str(hub_port)]
-    elif options.bus.interface in ("socketcan", "socketcand"):
+    else:
         bus = ["--interface", options.bus.interface, "--channel", options.bus.channel,
                *_socketcand_address(options.bus)]
-    else:
-        raise SessionError(f"the C ECU speaks socketcan and socketcand only, not {options.bus.interface}")
     return [str(C_ECU_EXECUTABLE), *bus, "--controller", options.controller,
             "--path", f"{scenario.path_id}={Path(scenario.path_file).resolve()}",
             "--data", str(_c_ecu_data_file(options)),

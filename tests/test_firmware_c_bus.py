@@ -269,14 +269,22 @@ def test_hil_run_with_the_c_ecu_equals_the_python_ecu(native, controller: str, t
 
 
 def test_hil_run_refuses_a_c_ecu_that_is_not_built(tmp_path: Path, monkeypatch, capsys) -> None:
-    """Without build/firmware/ecu: one error line naming make firmware, nothing run."""
+    """Without build/firmware/ecu: one error line naming make firmware, nothing run or
+    written (no --out folder); NMPC, which the C ECU does not have, likewise."""
     import hil.session
     from hil.__main__ import main
 
     monkeypatch.setattr(hil.session, "C_ECU_EXECUTABLE", tmp_path / "ecu")
-    assert main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ecu", "c"]) != 0
+    out = tmp_path / "out"
+    assert main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ecu", "c", "--out", str(out)]) != 0
     error = capsys.readouterr().err.strip().splitlines()
-    assert error[-1].startswith("error: the C ECU ") and error[-1].endswith("is not built: run make firmware")
+    assert error == [f"error: the C ECU {tmp_path / 'ecu'} is not built: run make firmware"]
+    assert not out.exists()
+    monkeypatch.undo()
+    assert main(["run", "--scenario", "dlc_smoke", "--controller", "NMPC", "--ecu", "c", "--out", str(out)]) != 0
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: the C ECU has no controller 'nmpc' (it has eso-dkmpc, dkmpc, lmpc); use the Python ECU"]
+    assert not out.exists()
 
 
 def test_hil_run_converts_the_model_for_the_c_ecu_and_refuses_another_shape(native, capsys) -> None:

@@ -81,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
     from hil.errors import HilError
     from hil.faults import scenario_fault_spec
     from hil.scenario import load_scenario
-    from hil.session import RunOptions, run_hil
+    from hil.session import RunOptions, check_c_ecu, run_hil
     from hil.time_master import DEFAULT_ACK_TIMEOUT_S, DEFAULT_HANDSHAKE_TIMEOUT_S
 
     for name in ("handshake_timeout", "ack_timeout"):
@@ -91,8 +91,6 @@ def main(args: argparse.Namespace) -> int:
     args.controller = controller_name(args.controller)
     scenario = load_scenario(args.scenario)
     check_run_paths(scenario, args.log, args.out, args.replace)
-    if args.out is not None:
-        args.out.mkdir(exist_ok=True)
     options = RunOptions(
         controller=args.controller,
         bus=resolve_bus_config(args.interface, args.channel),
@@ -104,6 +102,10 @@ def main(args: argparse.Namespace) -> int:
         faults=scenario_fault_spec(scenario) if args.faults else None,
         model=args.model, excite=args.excite, ecu=args.ecu,
     )
+    if args.ecu == "c":
+        check_c_ecu(options)  # an executable not built, NMPC, --excite: before --out is made
+    if args.out is not None:
+        args.out.mkdir(exist_ok=True)
     result = run_hil(scenario, options)
     summary = result.summary()
     if args.out is not None:
