@@ -357,3 +357,12 @@ def test_measured_inputs_come_from_veh_pose_yaw_and_leave_the_state(sim70, locks
     torque_error = np.abs(run.inputs[sample_instants, 0] - sim70["torque"][grid_ms][sample_instants]).max()
     print("measured wheel angle / torque against the plant", wheel_error, torque_error)
     assert wheel_error <= 0.00005 + 1e-9 and torque_error <= 0.05 + 1e-9
+
+
+def test_a_dbc_without_the_contract_frames_is_named(lockstep_log, tmp_path):
+    other = tmp_path / "other.dbc"
+    other.write_text('VERSION ""\n\nBU_: A B\n\nBO_ 256 OTHER: 8 A\n SG_ X : 0|8@1+ (1,0) [0|255] "" B\n')
+    with pytest.raises(LogDataError) as info:
+        load_logs([lockstep_log], dbc=other)
+    print(info.value)
+    assert str(other) in str(info.value) and "DBC has no frame" in str(info.value)
