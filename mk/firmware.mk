@@ -43,9 +43,9 @@ firmware: firmware-deps $(FW_DIR)/libecu.so $(FW_DIR)/ecu $(FW_DIR)/ecu_data.bin
 # make test builds the firmware first (its tests load libecu.so); make bench times the C
 # core's step beside the Python controllers and make timing runs the C ECU executable
 # beside the Python ECU (the "NAME (C)" rows of studies/bench.py and studies/timing/).
-test: firmware
-bench: firmware
-timing: firmware
+# (through a variable, so make help keeps bench's and timing's own help lines)
+FW_USERS := bench timing
+test $(FW_USERS): firmware
 
 ## install gcc and cmake (as root, with apt-get) where they are missing
 firmware-deps:
