@@ -120,5 +120,5 @@ firmware-footprint: firmware
 	$(PY) firmware/tools/footprint.py --exe $(FW_DIR)/ecu --su $(FW_DIR)/obj-ecu --su $(FW_DIR)/obj \
 		--out results/firmware_footprint.md
 	$(PROVENANCE_STAMP) results/firmware_footprint.md --command "make firmware-footprint" \
-		--inputs $(sort $(wildcard firmware/src/*.c firmware/src/*.h)) $(FW_GEN_INPUTS) mk/firmware.mk
+		--inputs $(sort $(wildcard firmware/src/*.c firmware/src/*.h)) $(FW_GEN_INPUTS) firmware/tools/footprint.py mk/firmware.mk
 	@$(MAKE) --no-print-directory readme  # README.md includes its summary

@@ -107,6 +107,7 @@ def report(exe: Path, sizes: tuple[int, int, int], frames: list[Frame]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Write the report; 0, or 1 with one ``error:`` line (no build, no ``.su`` files)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--exe", type=Path, default=Path("build/firmware/ecu"))
     parser.add_argument("--su", type=Path, action="append", default=None,
