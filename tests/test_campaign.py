@@ -7,9 +7,12 @@ import csv
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -201,6 +204,19 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _stop_session(process: subprocess.Popen) -> None:
+    """SIGTERM to ``process``'s session (``ray start --block`` then stops what it started),
+    SIGKILL to what is left after 60 s."""
+    try:
+        os.killpg(process.pid, signal.SIGTERM)
+        process.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait(timeout=30)
+    except ProcessLookupError:
+        pass
+
+
 @pytest.mark.slow
 def test_a_grid_on_a_ray_cluster_started_as_processes(tmp_path):
     pytest.importorskip("ray", reason="Ray is not installed (make setup installs the campaign extra)")
@@ -217,11 +233,23 @@ name = "cluster"
 controller = ["lmpc", "dkmpc"]
 scenario = ["dlc_smoke"]
 """)
+    # A short folder of its own: Ray's socket paths under it must stay within 107 bytes.
+    ray_dir = tempfile.mkdtemp(prefix="ray-test-", dir="/tmp")
+    # `ray start --block` in a session of its own, stopped by a signal to that session at
+    # the end: `ray stop` would stop every Ray of this machine's user (a campaign running
+    # beside the tests included), not only this test's cluster.
+    head = subprocess.Popen([str(ray_cli), "start", "--head", "--block", "--node-ip-address=127.0.0.1",
+                             f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+                             "--disable-usage-stats", f"--temp-dir={ray_dir}"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
     try:
-        subprocess.run([str(ray_cli), "start", "--head", "--node-ip-address=127.0.0.1",
-                        f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
-                        "--disable-usage-stats"], env=env, check=True, capture_output=True,
-                       timeout=180)
+        deadline = time.monotonic() + 180
+        while subprocess.run([str(ray_cli), "status", f"--address=127.0.0.1:{port}"], env=env,
+                             capture_output=True, timeout=60).returncode != 0:
+            assert head.poll() is None, "ray start --head exited"
+            assert time.monotonic() < deadline, "the Ray head did not come up within 180 s"
+            time.sleep(1.0)
         run = subprocess.run([sys.executable, "-m", "studies.campaign", str(grid), "--out",
                               str(tmp_path / "out"), "--address", f"127.0.0.1:{port}",
                               "--no-progress"], cwd=ROOT, env=env, capture_output=True,
@@ -236,4 +264,5 @@ scenario = ["dlc_smoke"]
             assert row["error"] == "" and row["completed"] == "1"
             assert 0.0 < float(row["e_y_rmse"]) < 0.1
     finally:
-        subprocess.run([str(ray_cli), "stop", "--force"], env=env, capture_output=True, timeout=120)
+        _stop_session(head)
+        shutil.rmtree(ray_dir, ignore_errors=True)
