@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from hil.vcan import REPO_ROOT, UML_SAFE_ENV, run_in_uml
+from hil.vcan import REPO_ROOT
 from test_firmware_c_core import native  # noqa: F401 (the fixture: the firmware built)
-from test_vcan import _backend, _ecu_frames
+from test_vcan import _backend, _ecu_frames, run_with_candump
 
 pytestmark = pytest.mark.vcan
 CONTROLLER = "lmpc"
@@ -67,16 +67,7 @@ def test_c_ecu_on_vcan0_equals_the_python_ecu_bit_for_bit(native, tmp_path: Path
     driver.write_text(DRIVER)
     python = shlex.quote(sys.executable)
     run = f"{python} {driver} {scenario} {ECU} {CONTROLLER}"
-    command = (f"candump -L vcan0,200:7FE > {tmp_path / 'candump.log'} & CANDUMP=$!; sleep 0.5; "
-               f"{run}; status=$?; sleep 0.5; kill $CANDUMP; wait $CANDUMP; exit $status")
-    if backend == "uml":
-        result = run_in_uml(command, workdir=REPO_ROOT, timeout_s=300)
-        status, output, env = result.returncode, result.output, UML_SAFE_ENV
-        print(f"user-mode Linux: {result.wall_s:.1f} s")
-    else:
-        done = subprocess.run(["/bin/sh", "-c", command], cwd=REPO_ROOT, capture_output=True, text=True,
-                              timeout=300)
-        status, output, env = done.returncode, done.stdout + done.stderr, {}
+    status, output, env = run_with_candump(run, backend, tmp_path / "candump.log")
     assert status == 0, f"the C ECU run on vcan0 failed with status {status}: {output[-1500:]}"
     # The Python ECU on python-can's virtual bus, the plant on the same numeric paths (env).
     reference = subprocess.run(

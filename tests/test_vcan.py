@@ -65,6 +65,22 @@ def _short_scenario(tmp_path: Path) -> Path:
     return scenario
 
 
+def run_with_candump(run: str, backend: str, candump_log: Path) -> tuple[int, str, dict]:
+    """``run`` (a shell command line) on vcan0 with candump recording the contract's IDs
+    into ``candump_log``, on the host or inside user-mode Linux (``backend``).
+
+    Returns (exit status, output, the environment the plant's numeric paths need)."""
+    command = (f"candump -L vcan0,200:7FE > {candump_log} & CANDUMP=$!; sleep 0.5; "
+               f"{run}; status=$?; sleep 0.5; kill $CANDUMP; wait $CANDUMP; exit $status")
+    if backend == "uml":
+        result = run_in_uml(command, workdir=REPO_ROOT, timeout_s=300)
+        print(f"user-mode Linux: {result.wall_s:.1f} s")
+        return result.returncode, result.output, UML_SAFE_ENV
+    done = subprocess.run(["/bin/sh", "-c", command], cwd=REPO_ROOT, capture_output=True,
+                          text=True, timeout=300)
+    return done.returncode, done.stdout + done.stderr, {}
+
+
 def _ecu_frames(log: Path) -> list[tuple[int, bytes]]:
     """The ECU's STEER_TORQUE_CMD and CTRL_DIAG payloads in order; CTRL_DIAG with CRC,
     SOLVE_TIME_US, CYCLE_TIME_US and OVERRUNS zeroed (wall-clock measurements)."""
@@ -89,16 +105,7 @@ def test_ecu_over_socketcan_vcan0_equals_the_virtual_bus_bit_for_bit(tmp_path):
     run = (f"{python} -m hil run --scenario {scenario} --controller {CONTROLLER} "
            f"--interface socketcan --channel vcan0 --lockstep --handshake-timeout 120 "
            f"--ack-timeout 30 --out {tmp_path / 'out'}")
-    command = (f"candump -L vcan0,200:7FE > {tmp_path / 'candump.log'} & CANDUMP=$!; sleep 0.5; "
-               f"{run}; status=$?; sleep 0.5; kill $CANDUMP; wait $CANDUMP; exit $status")
-    if backend == "uml":
-        result = run_in_uml(command, workdir=REPO_ROOT, timeout_s=300)
-        status, output, env = result.returncode, result.output, UML_SAFE_ENV
-        print(f"user-mode Linux: {result.wall_s:.1f} s")
-    else:
-        done = subprocess.run(["/bin/sh", "-c", command], cwd=REPO_ROOT, capture_output=True,
-                              text=True, timeout=300)
-        status, output, env = done.returncode, done.stdout + done.stderr, {}
+    status, output, env = run_with_candump(run, backend, tmp_path / "candump.log")
     print(output[-1500:])
     assert status == 0, f"the run on vcan0 failed with status {status}"
 
