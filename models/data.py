@@ -38,6 +38,7 @@ import sys
 import time as wallclock
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -62,6 +63,14 @@ LONG_MODE_WEIGHTS = (0.6, 0.2, 0.2)
 #: P gain of the speed-hold controller (1/s) and the target speed rate limit (m/s^2).
 SPEED_GAIN = 0.8
 TARGET_RATE = 2.5
+
+
+def speed_hold_torque(params: VehicleParams, drag_factor: float, vx: Any, target: Any) -> Any:
+    """Drive torque (N m) of the speed-hold P controller: the driving resistance at ``vx``
+    plus SPEED_GAIN times the speed error, as a force at the wheel radius. ``vx`` and
+    ``target`` (m/s) are floats or arrays of one shape; ``drag_factor`` is the plant's."""
+    resistance = drag_factor * vx * abs(vx) + params.rolling_resistance * params.mass * params.gravity
+    return params.radius * (params.mass * SPEED_GAIN * (target - vx) + resistance)
 
 
 class GeneratorError(ModelError):
@@ -246,9 +255,7 @@ class _Commander:
         wanted = np.where(self.recovering, floor + 3.0, wanted)
         step = TARGET_RATE * self.ts
         self.target = np.where(mode == 0, self.target + np.clip(wanted - self.target, -step, step), wanted)
-        resistance = (self.model.drag_factor * vx * np.abs(vx)
-                      + p.rolling_resistance * p.mass * p.gravity)
-        hold = p.radius * (p.mass * SPEED_GAIN * (self.target - vx) + resistance)
+        hold = speed_hold_torque(p, self.model.drag_factor, vx, self.target)
         torque = np.where(mode == 1, 0.0, np.where(mode == 2, self.long_value[:, k], hold))
         torque = np.where(self.recovering, hold, torque)
         torque = np.where(vx > high, -0.5 * p.max_brake_torque, torque)

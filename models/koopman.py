@@ -93,22 +93,25 @@ def _vx(state: np.ndarray) -> np.ndarray:
     return np.maximum(state[..., 0], DICTIONARY_MIN_SPEED)
 
 
-#: Fixed lifting functions of the state [vx, vy, yaw_rate] (name -> (..., 3) -> (...)).
+#: Fixed lifting functions of the state [vx, vy, yaw_rate] as f(vx, vy, r, vx_floored),
+#: on numpy arrays (...) and on Python floats alike (the single-state hot path stays scalar).
 #: A single-track model's accelerations are linear in these: slip angles ~ vy/vx, r/vx;
 #: the Coriolis term vx r; speed-dependent drag ~ vx^2 (scaled to keep magnitudes alike).
-DICTIONARY: dict[str, Any] = {
-    "vy/vx": lambda x: x[..., 1] / _vx(x),
-    "r/vx": lambda x: x[..., 2] / _vx(x),
-    "vx*r": lambda x: x[..., 0] * x[..., 2],
-    "vx^2/100": lambda x: x[..., 0] ** 2 / 100.0,
-}
-#: The same functions on Python floats (vx, vy, r, vx floored) for the single-state hot path.
-_SCALAR_DICTIONARY: dict[str, Any] = {
+_DICTIONARY_FORMULAS: dict[str, Any] = {
     "vy/vx": lambda vx, vy, r, vxf: vy / vxf,
     "r/vx": lambda vx, vy, r, vxf: r / vxf,
     "vx*r": lambda vx, vy, r, vxf: vx * r,
     "vx^2/100": lambda vx, vy, r, vxf: vx * vx / 100.0,
 }
+
+
+def _on_states(formula: Any) -> Any:
+    """A formula of _DICTIONARY_FORMULAS as a map of states (..., 3) -> (...)."""
+    return lambda x: formula(x[..., 0], x[..., 1], x[..., 2], _vx(x))
+
+
+#: The dictionary on state arrays: name -> ((..., 3) -> (...)).
+DICTIONARY: dict[str, Any] = {name: _on_states(f) for name, f in _DICTIONARY_FORMULAS.items()}
 #: State names the dictionary's formulas assume, in order.
 DICTIONARY_STATES = ("vx", "vy", "yaw_rate")
 
@@ -453,7 +456,7 @@ class KoopmanModel:
             # Scalar arithmetic: a few ns each, where numpy calls cost a microsecond.
             vx = max(float(x[0]), DICTIONARY_MIN_SPEED)
             for i, name in enumerate(self.dictionary):
-                z[self.n_x + i] = _SCALAR_DICTIONARY[name](float(x[0]), float(x[1]), float(x[2]), vx)
+                z[self.n_x + i] = _DICTIONARY_FORMULAS[name](float(x[0]), float(x[1]), float(x[2]), vx)
         h = x
         last = len(self._layers) - 1
         for i, ((w, b), out) in enumerate(zip(self._layers, self._hidden)):
@@ -474,9 +477,8 @@ class KoopmanModel:
         key = round(float(np.clip(speed, self.speed_knots[0], self.speed_knots[-1])) / SPEED_QUANTUM)
         model = self._at_speed.get(key)
         if model is None:
-            weights = knot_weights(self.speed_knots, key * SPEED_QUANTUM)
-            model = KoopmanModel(np.tensordot(weights, self.A_knots, 1), np.tensordot(weights, self.B_knots, 1),
-                                 weights @ self.offset_knots, self._layers, self.ts, self.state_names,
+            a, b, offset = self.matrices_for(np.asarray(key * SPEED_QUANTUM))
+            model = KoopmanModel(a, b, offset, self._layers, self.ts, self.state_names,
                                  self.input_names, self.metadata, dictionary=self.dictionary)
             if len(self._at_speed) > 2048:
                 self._at_speed.clear()

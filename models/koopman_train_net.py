@@ -168,6 +168,13 @@ def _mlp(n_in: int, hidden: Sequence[int], n_out: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _ridge_solve(X: np.ndarray, Y: np.ndarray, ridge: float) -> np.ndarray:
+    """coef (n_reg, n_out) of Y (n, n_out) ~ X (n, n_reg) coef, the ridge scaled by the Gram
+    matrix's mean diagonal so it means the same in any units."""
+    gram = X.T @ X
+    return np.linalg.solve(gram + ridge * np.trace(gram) / len(gram) * np.eye(len(gram)), X.T @ Y)
+
+
 def least_squares_start(known: Sequence[np.ndarray], inputs: Sequence[np.ndarray],
                         bilinear: bool, ridge: float = 1e-6,
                         knot_weights: Sequence[np.ndarray] | None = None) -> dict[str, np.ndarray]:
@@ -189,10 +196,8 @@ def least_squares_start(known: Sequence[np.ndarray], inputs: Sequence[np.ndarray
             parts.extend(u[:-1, j:j + 1] * z[:-1] for j in range(u.shape[1]))
         regressors.append(np.hstack(parts))
         targets.append(z[1:])
-    X, Y = np.concatenate(regressors), np.concatenate(targets)
-    gram = X.T @ X
-    coef = np.linalg.solve(gram + ridge * np.trace(gram) / len(gram) * np.eye(len(gram)), X.T @ Y)
-    k, n_u = Y.shape[1], inputs[0].shape[1]
+    coef = _ridge_solve(np.concatenate(regressors), np.concatenate(targets), ridge)
+    k, n_u = targets[0].shape[1], inputs[0].shape[1]
     fit = {"A": coef[:k].T, "B": coef[k:k + n_u].T}
     if bilinear:
         fit["c"] = coef[k + n_u]
@@ -209,10 +214,8 @@ def _scheduled_least_squares(known: Sequence[np.ndarray], inputs: Sequence[np.nd
         base = np.hstack([z[:-1], u[:-1], np.ones((len(z) - 1, 1))])  # (n, k + n_u + 1)
         regressors.append((w[:-1, :, None] * base[:, None, :]).reshape(len(base), -1))
         targets.append(z[1:])
-    X, Y = np.concatenate(regressors), np.concatenate(targets)
-    gram = X.T @ X
-    coef = np.linalg.solve(gram + ridge * np.trace(gram) / len(gram) * np.eye(len(gram)), X.T @ Y)
-    k, n_u, n_knots = Y.shape[1], inputs[0].shape[1], knot_weights[0].shape[1]
+    coef = _ridge_solve(np.concatenate(regressors), np.concatenate(targets), ridge)
+    k, n_u, n_knots = targets[0].shape[1], inputs[0].shape[1], knot_weights[0].shape[1]
     per_knot = coef.reshape(n_knots, k + n_u + 1, k)
     return {"A": per_knot[:, :k].transpose(0, 2, 1), "B": per_knot[:, k:k + n_u].transpose(0, 2, 1),
             "c": per_knot[:, k + n_u]}

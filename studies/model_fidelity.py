@@ -26,6 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from models.bicycle import LinearBicycle, nominal_model_params
+from models.data import speed_hold_torque
 from models.koopman import ARTIFACT_DIR, DEFAULT_ARTIFACT, KoopmanModel
 from models.koopman_metrics import open_loop_windows
 from models.koopman_train import load_trajectories
@@ -87,8 +88,7 @@ def plant_step_steer(speed: float) -> tuple[np.ndarray, np.ndarray]:
     states, commands = [], []
     out = vehicle.outputs()
     for k in range(lead + steps):
-        resistance = drag * out.vx * abs(out.vx) + p.rolling_resistance * p.mass * p.gravity
-        torque = p.radius * (p.mass * 0.8 * (speed - out.vx) + resistance)  # hold the speed
+        torque = speed_hold_torque(p, drag, out.vx, speed)
         steer = STEP_STEER if k >= lead else 0.0
         if k >= lead:
             states.append([out.vx, out.vy, out.yaw_rate, out.steer_angle])
