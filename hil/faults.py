@@ -7,7 +7,7 @@ through it before it reaches the bus; it may drop, hold back (delay, reorder), d
 corrupt or rewrite frames and add frames of a babbling node. HIL_SYNC is the master's own
 and is never touched (lockstep would just stop). Vehicle faults change the plant that the
 injector builds (`FaultInjector.vehicle`): mass, an offset and extra lag of the steering
-actuator; sensor bias / noise on VY and YAW_RATE is a rewrite of VEH_DYN on the bus (the
+actuator, the rear tyres' cornering stiffness; sensor bias / noise on VY and YAW_RATE is a rewrite of VEH_DYN on the bus (the
 plant's measurement, not its state). The road friction step stays the plant's own
 (``[faults] mu_step``, hil/plant_node.py).
 
@@ -20,6 +20,7 @@ A fault spec comes from a scenario's ``[faults]`` table (or the CLI, hil/command
     mass_offset_kg = 200.0                     # added to the scenario's mass
     steer_offset_rad = 0.02                    # actual wheel angle = command + offset
     steer_extra_lag_s = 0.1                    # added to the actuator's time constant
+    cornering_stiffness_rear_scale = 0.8       # rear tyres' cornering stiffness x 0.8
     [faults.sensor]                            # on VEH_DYN from start_s on
     start_s = 0.0
     vy_bias = 0.05                             # m/s
@@ -110,6 +111,8 @@ LOOKALIKE_KINDS = {"fd": "is_fd", "extended": "is_extended_id", "remote": "is_re
                    "error": "is_error_frame"}
 #: Largest lockstep TICK (32 bits).
 MAX_TICK = 0xFFFFFFFF
+#: Largest factor on the rear tyres' cornering stiffness (VehicleParams' own bound).
+MAX_REAR_STIFFNESS_SCALE = 2.0
 _COMMON = {"kind", "sender", "ids", "start_s", "duration_s"}
 
 
@@ -145,11 +148,14 @@ class BusFault:
 
 @dataclass(frozen=True)
 class VehicleFaults:
-    """Plant changes: mass offset (kg), steering actuator offset (rad) and extra lag (s)."""
+    """Plant changes: mass offset (kg), steering actuator offset (rad) and extra lag (s),
+    factor on the rear tyres' cornering stiffness (times the scenario plant's own
+    ``VehicleParams.cornering_stiffness_rear_scale``; 1.0: unchanged)."""
 
     mass_offset_kg: float = 0.0
     steer_offset_rad: float = 0.0
     steer_extra_lag_s: float = 0.0
+    cornering_stiffness_rear_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -200,6 +206,10 @@ class FaultSpec:
         sensor = SensorFaults(**_numbers(table.get("sensor", {}), SensorFaults, f"{source}: faults.sensor"))
         if vehicle.steer_extra_lag_s < 0 or sensor.vy_noise < 0 or sensor.yaw_rate_noise < 0:
             raise FaultSpecError(f"{source}: steer_extra_lag_s and the noise levels must be >= 0")
+        if not 0.0 < vehicle.cornering_stiffness_rear_scale <= MAX_REAR_STIFFNESS_SCALE:
+            raise FaultSpecError(f"{source}: faults.vehicle.cornering_stiffness_rear_scale = "
+                                 f"{vehicle.cornering_stiffness_rear_scale!r}: must be in "
+                                 f"(0, {MAX_REAR_STIFFNESS_SCALE:g}]")
         return cls(seed=seed, bus=bus, vehicle=vehicle, sensor=sensor)
 
 
@@ -557,11 +567,13 @@ class FaultInjector:
         """The plant's ``models.vehicle.FourWheelVehicle`` for ``scenario`` with the
         vehicle faults (None when there are none: the plant builds its own)."""
         v = self.spec.vehicle
-        if not any(dataclasses.astuple(v)):
+        if v == VehicleFaults():
             return None
         params = scenario.vehicle_params()
-        params = dataclasses.replace(params, mass=params.mass + v.mass_offset_kg,
-                                     steer_time_constant=params.steer_time_constant + v.steer_extra_lag_s)
+        params = dataclasses.replace(
+            params, mass=params.mass + v.mass_offset_kg,
+            steer_time_constant=params.steer_time_constant + v.steer_extra_lag_s,
+            cornering_stiffness_rear_scale=params.cornering_stiffness_rear_scale * v.cornering_stiffness_rear_scale)
         if v.steer_offset_rad == 0.0:
             return FourWheelVehicle(params)
         return OffsetSteeringVehicle(params, v.steer_offset_rad)

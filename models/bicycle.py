@@ -10,7 +10,9 @@ axle, the plant's own tyre function ``models.tyre.tyre_forces`` is evaluated at 
 wheel load, zero slip ratio and lateral slips tan(alpha) = +-1e-4 rad (far inside the
 linear range); the central difference is the tyre's slope at zero slip, and the axle's
 stiffness is twice that (two tyres). This is what a flat-track test at small slip would
-measure; the plant's degressive load sensitivity is thereby taken at the static loads.
+measure; the plant's degressive load sensitivity is thereby taken at the static loads, and
+the rear axle's tyres with their own ``cornering_stiffness_rear_scale`` (1.0 in
+models/vehicle.toml, so the nominal bicycle is the same with or without that factor).
 
 Linear bicycle (state [vy, yaw_rate], input front wheel angle delta, constant vx):
 
@@ -85,12 +87,14 @@ class NominalModelParams:
                                              - self.lf / self.cornering_stiffness_rear)
 
 
-def identify_axle_cornering_stiffness(axle_load: float, params: VehicleParams) -> float:
-    """Slope dFy/dalpha (N/rad) of one axle at zero slip, from the plant's tyre curve."""
+def identify_axle_cornering_stiffness(axle_load: float, params: VehicleParams,
+                                      stiffness_scale: float = 1.0) -> float:
+    """Slope dFy/dalpha (N/rad) of one axle at zero slip, from the plant's tyre curve
+    with the axle's factor ``stiffness_scale`` on the tyres' cornering stiffness."""
     wheel_load = np.array(axle_load / 2.0)
     eps = IDENTIFICATION_SLIP
-    _, fy_plus = tyre_forces(np.array(0.0), np.array(eps), wheel_load, params.mu, params)
-    _, fy_minus = tyre_forces(np.array(0.0), np.array(-eps), wheel_load, params.mu, params)
+    _, fy_plus = tyre_forces(np.array(0.0), np.array(eps), wheel_load, params.mu, params, stiffness_scale)
+    _, fy_minus = tyre_forces(np.array(0.0), np.array(-eps), wheel_load, params.mu, params, stiffness_scale)
     return 2.0 * float(fy_plus - fy_minus) / (2.0 * eps)
 
 
@@ -102,7 +106,7 @@ def nominal_model_params(params: VehicleParams | None = None) -> NominalModelPar
     return NominalModelParams(
         mass=p.mass, yaw_inertia=p.yaw_inertia, lf=p.lf, lr=p.lr, wheel_radius=p.radius, mu=p.mu,
         cornering_stiffness_front=identify_axle_cornering_stiffness(front_load, p),
-        cornering_stiffness_rear=identify_axle_cornering_stiffness(rear_load, p),
+        cornering_stiffness_rear=identify_axle_cornering_stiffness(rear_load, p, p.cornering_stiffness_rear_scale),
         mf_shape=p.shape_lateral, mf_curvature=p.curvature_lateral,
         peak_force_front=p.mu * front_load, peak_force_rear=p.mu * rear_load,
         drive_split_front=p.drive_split_front,

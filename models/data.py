@@ -217,7 +217,7 @@ def understeer_gradient(params: VehicleParams) -> float:
     front_load = params.mass * params.gravity * params.lr / params.wheelbase / 2
     rear_load = params.mass * params.gravity * params.lf / params.wheelbase / 2
     c_front = 2 * float(cornering_stiffness(np.array(front_load), params))
-    c_rear = 2 * float(cornering_stiffness(np.array(rear_load), params))
+    c_rear = 2 * float(cornering_stiffness(np.array(rear_load), params, params.cornering_stiffness_rear_scale))
     return params.mass / params.wheelbase * (params.lr / c_front - params.lf / c_rear)
 
 

@@ -7,7 +7,9 @@ Pure slip (Pacejka, "Tyre and Vehicle Dynamics", MF with D = mu Fz):
 with B = K / (C D) so that the slope at zero slip is the stiffness K. Lateral stiffness
 is load dependent (MF 5.2 form) K_a = p_ky1 Fz0 sin(2 atan(Fz / (p_ky2 Fz0))), which
 makes an axle lose stiffness under lateral load transfer; longitudinal stiffness is
-proportional to load, K_x = p_kx Fz.
+proportional to load, K_x = p_kx Fz. A per-tyre factor ``stiffness_scale`` multiplies K_a:
+the plant gives the rear tyres ``cornering_stiffness_rear_scale`` (1.0 nominal; x * 1.0 is
+exact, so the nominal car's forces are bit for bit those without the factor).
 
 Combined slip uses the normalised slip vector rho = (B_x kappa, B_y tan(alpha)): each
 direction gets D (rho_i / |rho|) times its own pure-slip curve evaluated at |rho|, so
@@ -38,24 +40,35 @@ def mf_curve(rho: np.ndarray, shape: float, curvature: float,
     return sin(shape * atan(rho - curvature * (rho - atan(rho))))
 
 
-def cornering_stiffness(normal_load: np.ndarray, params: VehicleParams) -> np.ndarray:
-    """Cornering stiffness K_a (N/rad) of one tyre at ``normal_load`` (N), any shape."""
+def cornering_stiffness(normal_load: np.ndarray, params: VehicleParams,
+                        stiffness_scale: float | np.ndarray = 1.0) -> np.ndarray:
+    """Cornering stiffness K_a (N/rad) of one tyre at ``normal_load`` (N), any shape,
+    times ``stiffness_scale`` (broadcasts with the load: e.g. (4,) per wheel)."""
     fz0 = params.nominal_load
     return (params.cornering_stiffness_factor * fz0
-            * np.sin(2.0 * np.arctan(normal_load / (params.cornering_stiffness_load_factor * fz0))))
+            * np.sin(2.0 * np.arctan(normal_load / (params.cornering_stiffness_load_factor * fz0)))
+            * stiffness_scale)
+
+
+def wheel_stiffness_scale(params: VehicleParams, is_front: np.ndarray) -> np.ndarray:
+    """Per-wheel factor on the cornering stiffness: 1 at the front wheels,
+    ``cornering_stiffness_rear_scale`` at the rear; ``is_front`` (n,) of 1.0 / 0.0 -> (n,)."""
+    return np.where(np.asarray(is_front) > 0.5, 1.0, params.cornering_stiffness_rear_scale)
 
 
 def tyre_forces(slip_ratio: np.ndarray, lateral_slip: np.ndarray, normal_load: np.ndarray,
-                mu: float | np.ndarray, params: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+                mu: float | np.ndarray, params: VehicleParams,
+                stiffness_scale: float | np.ndarray = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Combined-slip tyre forces in the wheel frame.
 
     Args: ``slip_ratio`` kappa, ``lateral_slip`` tan(alpha) (see module docstring),
-    ``normal_load`` Fz > 0 (N), ``mu`` road friction; arrays broadcast together (e.g.
-    (n_batch, 4)). Returns (Fx, Fy) in N with the broadcast shape.
+    ``normal_load`` Fz > 0 (N), ``mu`` road friction, ``stiffness_scale`` the factor on
+    each tyre's cornering stiffness (``wheel_stiffness_scale``); arrays broadcast together
+    (e.g. (n_batch, 4) with a (4,) scale). Returns (Fx, Fy) in N with the broadcast shape.
     """
     peak = mu * normal_load
     b_long = params.slip_stiffness_factor / (params.shape_longitudinal * mu)
-    b_lat = cornering_stiffness(normal_load, params) / (params.shape_lateral * peak)
+    b_lat = cornering_stiffness(normal_load, params, stiffness_scale) / (params.shape_lateral * peak)
     rho_x = b_long * slip_ratio
     rho_y = b_lat * lateral_slip
     rho = np.sqrt(rho_x * rho_x + rho_y * rho_y + _RHO_EPS2)

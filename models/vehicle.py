@@ -6,7 +6,8 @@ Model (body frame at the CG, x forward, y left, yaw counter-clockwise):
   (the paper's numbering: 1 and 3 on the left, so their longitudinal forces give a
   negative yaw moment -w_B/2 F_x), plus aerodynamic drag and rolling resistance.
 - Tyre forces (eq. 17) from ``models.tyre`` with combined slip, road friction ``mu`` and
-  normal loads with static and dynamic (longitudinal and lateral) load transfer. The
+  normal loads with static and dynamic (longitudinal and lateral) load transfer; the rear
+  tyres' cornering stiffness times ``cornering_stiffness_rear_scale`` (1.0 nominal). The
   accelerations that drive the load transfer go through a first-order filter (suspension
   lag), which also removes the algebraic loop loads -> forces -> accelerations.
 - Wheel spin dynamics J dw/dt = T_i - R F_x,i driven by in-wheel motor torques: the total
@@ -45,7 +46,7 @@ import numpy as np
 
 from models.errors import VehicleCommandError, VehicleDivergedError
 from models.measurement import VehicleMeasurement, wrap_angle
-from models.tyre import tyre_forces
+from models.tyre import tyre_forces, wheel_stiffness_scale
 from models.vehicle_params import VehicleParams, load_vehicle_params
 
 # State layout of one vehicle (columns of the (n_batch, N_STATE) state array).
@@ -115,6 +116,8 @@ class PlantModel:
         self.wheel_x = np.array([p.lf, p.lf, -p.lr, -p.lr])
         self.wheel_y = np.array([half_track, -half_track, half_track, -half_track])
         self.is_front = np.array([1.0, 1.0, 0.0, 0.0])
+        # Factor on each tyre's cornering stiffness: the rear axle's own (1.0 nominal).
+        self.stiffness_scale = wheel_stiffness_scale(p, self.is_front)
         static_front = p.mass * p.gravity * p.lr / p.wheelbase / 2.0
         static_rear = p.mass * p.gravity * p.lf / p.wheelbase / 2.0
         self.static_load = np.array([static_front, static_front, static_rear, static_rear])
@@ -167,7 +170,7 @@ class PlantModel:
         # The tyre sees the damped slip kappa + t_d dkappa/dt (dkappa/dt = residual/sigma);
         # the damping goes through the Magic Formula, so the force stays within mu Fz.
         damped_slip = slip_ratio + (p.slip_damping_time / p.relaxation_length) * residual
-        fx, fy = tyre_forces(damped_slip, lateral_slip, fz, mu[:, None], p)
+        fx, fy = tyre_forces(damped_slip, lateral_slip, fz, mu[:, None], p, self.stiffness_scale)
         return _WheelForces(slip_ratio, lateral_slip, fx, fy, fz), residual, cos_w, sin_w
 
     def derivatives(self, state: np.ndarray, steer_cmd: np.ndarray, torque_cmd: np.ndarray,
@@ -256,7 +259,7 @@ class ScalarPlant:
         self.wheels = tuple(zip(model.wheel_x.tolist(), model.wheel_y.tolist(), model.is_front.tolist(),
                                 model.static_load.tolist(), model.load_per_ax.tolist(),
                                 model.load_per_ay.tolist(), model.drive_share.tolist(),
-                                model.brake_share.tolist()))
+                                model.brake_share.tolist(), model.stiffness_scale.tolist()))
         self.b_long_factor = p.slip_stiffness_factor / p.shape_longitudinal
         self.floor2 = p.slip_speed_floor ** 2
         self.damping_gain = p.slip_damping_time / p.relaxation_length
@@ -278,7 +281,8 @@ class ScalarPlant:
         slip_rate = [0.0] * 4
         drive = torque if torque > 0.0 else 0.0
         brake = torque if torque < 0.0 else 0.0
-        for i, (wx, wy, front, static, per_ax, per_ay, drive_share, brake_share) in enumerate(self.wheels):
+        for i, (wx, wy, front, static, per_ax, per_ay, drive_share, brake_share,
+                stiffness_scale) in enumerate(self.wheels):
             cw, sw = (cos_s, sin_s) if front else (1.0, 0.0)
             fz = static + ax_f * per_ax + ay_f * per_ay
             if fz < _MIN_NORMAL_LOAD:
@@ -294,7 +298,9 @@ class ScalarPlant:
             residual = wheel_speed * p.radius - v_long - v_ref * kappa
             damped = kappa + self.damping_gain * residual
             peak = mu * fz
-            k_lat = p.cornering_stiffness_factor * fz0 * sin(2.0 * atan(fz / (p.cornering_stiffness_load_factor * fz0)))
+            # models.tyre.cornering_stiffness, in the same order of operations.
+            k_lat = (p.cornering_stiffness_factor * fz0 * sin(2.0 * atan(fz / (p.cornering_stiffness_load_factor * fz0)))
+                     * stiffness_scale)
             rho_x = b_long * damped
             rho_y = k_lat / (c_lat * peak) * lateral_slip
             rho = sqrt(rho_x * rho_x + rho_y * rho_y + 1e-12)

@@ -4,13 +4,16 @@ The TOML groups values in sections ([body], [aero], [wheel], [tyre], [actuators]
 [simulation]); the dataclass is flat (field name = key name) so overrides read naturally:
 ``load_vehicle_params(mass=1848.0, mu=0.55)``. Every value is validated on load and a
 bad one raises ``VehicleParamsError`` naming the field and the value.
+
+Fields with a default (``cornering_stiffness_rear_scale``) may be left out of a file: a
+vehicle file written before they existed loads as the same car.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +48,11 @@ class VehicleParams:
     nominal_load: float
     cornering_stiffness_factor: float
     cornering_stiffness_load_factor: float
+    #: Factor on the REAR tyres' cornering stiffness (worn or other rear tyres; issue 20's
+    #: changed plant uses 0.8). 1.0 (the default, not in vehicle.toml) is the nominal car:
+    #: the stiffness is multiplied by it, and x * 1.0 == x exactly, so the default changes
+    #: no result. Keyword-only so that it can have a default among the required fields.
+    cornering_stiffness_rear_scale: float = field(default=1.0, kw_only=True)
     shape_lateral: float
     curvature_lateral: float
     slip_stiffness_factor: float
@@ -110,6 +118,7 @@ _BOUNDS: dict[str, tuple[float, float, bool]] = {
     "integration_step": (0.0, 0.001, True),
     "rolling_resistance": (0.0, 0.1, False),
     "slip_damping_time": (0.0, 1.0, False),
+    "cornering_stiffness_rear_scale": (0.0, 2.0, True),
 }
 
 
@@ -141,7 +150,8 @@ def _build(values: dict[str, Any], overrides: dict[str, float], source: str) -> 
     if unknown:
         raise VehicleParamsError(f"{source}: unknown parameter(s): {', '.join(unknown)}")
     values = {**values, **overrides}
-    missing = sorted(names - set(values))
+    optional = {f.name for f in dataclasses.fields(VehicleParams) if f.default is not dataclasses.MISSING}
+    missing = sorted(names - optional - set(values))
     if missing:
         raise VehicleParamsError(f"{source}: missing parameter(s): {', '.join(missing)}")
     return VehicleParams(**values)

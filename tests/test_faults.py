@@ -164,6 +164,8 @@ def test_random_faults_are_deterministic_for_a_seed():
     ({"bus": [{"kind": "silent", "rate": 1}]}, "unknown key(s) rate"),
     ({"vehicle": {"mass": 200}}, "faults.vehicle: unknown key(s) mass"),
     ({"sensor": {"vy_noise": -1}}, "noise levels must be >= 0"),
+    ({"vehicle": {"cornering_stiffness_rear_scale": 0.0}}, "faults.vehicle.cornering_stiffness_rear_scale = 0.0"),
+    ({"vehicle": {"cornering_stiffness_rear_scale": 2.5}}, "must be in (0, 2]"),
     ({"seed": -1}, "faults.seed"),
     ({"typo": 1}, "unknown key(s) typo"),
 ])
@@ -182,6 +184,10 @@ def test_vehicle_faults_change_the_plant():
     nominal = scenario.vehicle_params()
     assert heavy.params.mass == pytest.approx(nominal.mass + 200.0)
     assert heavy.params.steer_time_constant == pytest.approx(nominal.steer_time_constant + 0.1)
+    assert heavy.params.cornering_stiffness_rear_scale == 1.0
+    # The rear tyres alone (every other fault at its default) still make a changed plant.
+    worn = FaultInjector(FaultSpec.from_mapping({"vehicle": {"cornering_stiffness_rear_scale": 0.8}})).vehicle(scenario)
+    assert worn.params.cornering_stiffness_rear_scale == 0.8 and worn.params.mass == nominal.mass
     offset = FaultInjector(FaultSpec.from_mapping({"vehicle": {"steer_offset_rad": 0.02}})).vehicle(scenario)
     assert isinstance(offset, OffsetSteeringVehicle)
     from models.vehicle import VehicleCommand
@@ -217,12 +223,13 @@ def test_mode_sequence_starts_at_the_first_active():
 
 def test_cli_flags_build_the_faults_table():
     args = argparse.Namespace(bus=["kind=drop,rate=0.1,burst=3,ids=0x100/0x101,start_s=3"],
-                              mass_offset=200.0, steer_offset=None, steer_lag=0.1,
+                              mass_offset=200.0, steer_offset=None, steer_lag=0.1, rear_stiffness=0.8,
                               sensor="vy_bias=0.05", mu_step="3.0:0.5", seed=4)
     table = faults_table(args, {"bus": [{"kind": "silent"}]})
     assert table["bus"][1] == {"kind": "drop", "rate": 0.1, "burst": 3, "ids": [0x100, 0x101],
                                "start_s": 3}
-    assert table["vehicle"] == {"mass_offset_kg": 200.0, "steer_extra_lag_s": 0.1}
+    assert table["vehicle"] == {"mass_offset_kg": 200.0, "steer_extra_lag_s": 0.1,
+                                "cornering_stiffness_rear_scale": 0.8}
     assert table["mu_step"] == {"time_s": 3.0, "mu": 0.5} and table["seed"] == 4
     parsed = FaultSpec.from_mapping(table)
     assert len(parsed.bus) == 2 and parsed.sensor.vy_bias == 0.05

@@ -3,14 +3,19 @@ from __future__ import annotations
 
 import time
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from models.vehicle import N_STATE, FourWheelVehicle, PlantModel, ScalarPlant, VehicleBatch, VehicleCommand
 from models.vehicle_params import load_vehicle_params
 
 
-def test_scalar_derivative_equals_vectorised():
-    params = load_vehicle_params()
+@pytest.mark.parametrize("rear_scale", [1.0, 0.8])
+def test_scalar_derivative_equals_vectorised(rear_scale):
+    # 0.8: the rear tyres' own cornering-stiffness factor reaches both implementations.
+    params = dataclasses.replace(load_vehicle_params(), cornering_stiffness_rear_scale=rear_scale)
     model = PlantModel(params)
     scalar = ScalarPlant(model)
     rng = np.random.default_rng(0)
@@ -25,7 +30,8 @@ def test_scalar_derivative_equals_vectorised():
     for i in range(200):
         single = np.array(scalar.derivatives(states[i].tolist(), steer[i], torque[i], mu[i]))
         worst = max(worst, float(np.max(np.abs(single - batch[i]) / (1.0 + np.abs(batch[i])))))
-    print(f"scalar vs vectorised derivative: max relative difference {worst:.2e} over 200 states")
+    print(f"scalar vs vectorised derivative (rear stiffness x{rear_scale:g}): max relative "
+          f"difference {worst:.2e} over 200 states")
     assert worst < 1e-9
     assert len(single) == N_STATE
 

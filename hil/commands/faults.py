@@ -39,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steer-offset", type=float, default=None, metavar="RAD")
     parser.add_argument("--steer-lag", type=float, default=None, metavar="S",
                         help="extra steering actuator time constant")
+    parser.add_argument("--rear-stiffness", type=float, default=None, metavar="SCALE",
+                        help="factor on the rear tyres' cornering stiffness (e.g. 0.8: 20 %% less)")
     parser.add_argument("--sensor", default=None, metavar="K=V,...",
                         help="sensor fault, e.g. vy_bias=0.05,yaw_rate_noise=0.005")
     parser.add_argument("--seed", type=int, default=None, help="seed of the random faults")
@@ -98,7 +100,8 @@ def faults_table(args: argparse.Namespace, base: dict) -> dict:
     table["bus"] = list(table["bus"]) + [parse_pairs(b, "--bus") for b in args.bus]
     vehicle = dict(table.get("vehicle", {}))
     for key, value in (("mass_offset_kg", args.mass_offset), ("steer_offset_rad", args.steer_offset),
-                       ("steer_extra_lag_s", args.steer_lag)):
+                       ("steer_extra_lag_s", args.steer_lag),
+                       ("cornering_stiffness_rear_scale", args.rear_stiffness)):
         if value is not None:
             vehicle[key] = value
     if vehicle:
