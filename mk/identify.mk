@@ -1,6 +1,7 @@
 # Identification from the vehicle's own CAN logs (issue 20, docs/identification.md): the
 # identification drive (a circuit with speed steps 3-30 m/s, studies/identification.py)
-# and the study: a changed plant (mass +300 kg, steering lag x3) drives it with LMPC and
+# and the study: a changed plant (mass +300 kg, rear tyres' cornering stiffness -20 %,
+# steering lag x3) drives it with LMPC and
 # an excitation over CAN, the Koopman model and the bicycle are trained from the recorded
 # log alone, then Tables II/III run on the changed plant with nominal and identified models.
 .PHONY: identify identification-drive
