@@ -250,16 +250,14 @@ def check_c_ecu(options: RunOptions) -> None:
 
     Raises:
         SessionError: the executable is not built, or the run asks for what the C ECU
-            does not have (another controller, ``--excite``, a controller factory, an
-            interface other than virtual, socketcan, socketcand).
+            does not have (another controller, a controller factory, an interface other
+            than virtual, socketcan, socketcand).
     """
     if not C_ECU_EXECUTABLE.is_file():
         raise SessionError(f"the C ECU {C_ECU_EXECUTABLE} is not built: run make firmware")
     if options.controller not in C_ECU_CONTROLLERS:
         raise SessionError(f"the C ECU has no controller '{options.controller}' (it has "
                            f"{', '.join(C_ECU_CONTROLLERS)}); use the Python ECU")
-    if options.excite is not None:
-        raise SessionError("the C ECU has no --excite (identification excitation): use the Python ECU")
     if options.controller_factory is not None:
         raise SessionError("a controller factory needs the Python ECU in-process, not the C ECU")
     if not options.bus.is_virtual and options.bus.interface not in ("socketcan", "socketcand"):
@@ -284,7 +282,9 @@ def c_ecu_command(scenario: Scenario, options: RunOptions, hub_port: int | None 
     return [str(C_ECU_EXECUTABLE), *bus, "--controller", options.controller,
             "--path", f"{scenario.path_id}={Path(scenario.path_file).resolve()}",
             "--data", str(_c_ecu_data_file(options)),
-            "--lockstep" if options.lockstep else "--realtime", *options.ecu_extra_args]
+            "--lockstep" if options.lockstep else "--realtime",
+            *(["--excite", _program_argument(options.excite)] if options.excite is not None else []),
+            *options.ecu_extra_args]
 
 
 def _c_ecu_data_file(options: RunOptions) -> Path:

@@ -3,10 +3,14 @@
 #                 bus (43 runs, about 2 min here): results/faults.md, faults.json,
 #                 faults_vehicle.png (--replace: rewrites them); FAULTS_ARGS="--only NAME ..."
 #                 for a subset
+#   make faults-c the same cases against the C ECU executable (build/firmware/ecu, a process
+#                 on a loopback socketcand hub, as `hil run --ecu c`): results/faults_c.md,
+#                 faults_c.json, faults_c_vehicle.png, compared with results/faults.json;
+#                 the lost-bus case is reported not applicable (it needs the ECU in-process)
 #   make fuzz     the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000,
 #                 about 14 min here; no pytest timeout); `make test` runs the same test
 #                 with 10000 (about 1 min)
-.PHONY: faults fuzz faults-test
+.PHONY: faults faults-c fuzz faults-test
 
 FUZZ_EXAMPLES ?= 200000
 FAULTS_ARGS ?=
@@ -18,6 +22,14 @@ faults: setup
 		--command "$(call provenance_command,faults,FAULTS_ARGS)" \
 		--inputs $(PROVENANCE_HIL) --modules hil.commands.faults studies.fault_campaign
 	@$(MAKE) --no-print-directory readme  # README.md includes these results
+
+## the fault campaign against the C ECU executable -> results/faults_c.*, compared with faults.*
+faults-c: setup firmware
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.fault_campaign --ecu c --out results --replace $(FAULTS_ARGS)
+	$(PROVENANCE_STAMP) results/faults_c.md results/faults_c.json results/faults_c_vehicle.png \
+		--command "$(call provenance_command,faults-c,FAULTS_ARGS)" \
+		--inputs $(PROVENANCE_HIL) results/faults.json $(wildcard firmware/src/*.[ch]) \
+		--modules studies.fault_campaign
 
 ## the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000)
 fuzz: setup

@@ -23,6 +23,14 @@ Per run (`evaluate`):
 Bus faults run with ESO-DKMPC; vehicle faults with ESO-DKMPC and DKMPC (the observer is
 what should make them survivable). The full 13.5 s scenario every time (about 12-15 s of
 wall clock per run here); faults start at 3.0 s, in the first lane change (X ~ 29 m).
+
+``--ecu c`` (``make faults-c``) runs the same cases against the C ECU executable
+(``build/firmware/ecu``) as ``hil run --ecu c`` does: a separate process on a socketcand hub
+of its own on TCP loopback, the injector between this process's nodes and the hub. It
+writes results/faults_c.* and compares each verdict with the Python campaign's
+(results/faults.json). A case that needs the ECU in this process is reported as not
+applicable with the reason (`c_not_applicable`). A crash of the C ECU is the run raising
+(the process exited or stopped ACKing); it has no Python exceptions to count.
 """
 from __future__ import annotations
 
@@ -62,6 +70,17 @@ VALID_MODES = {int(CtrlMode.ACTIVE), int(CtrlMode.DEGRADED), int(CtrlMode.SAFE_S
 #: The campaign's scenario and the files it writes into its output folder.
 SCENARIO = "dlc_high_mu"
 RESULT_FILES = ("faults.md", "faults.json", "faults_vehicle.png")
+#: The ECU implementations the campaign can drive (``hil.session.ECU_IMPLEMENTATIONS``).
+ECUS = ("python", "c")
+#: Look-alike frame kinds the C ECU's loopback socketcand hub cannot carry as themselves.
+HUB_LOST_KINDS = ("fd", "remote", "error")
+
+
+def result_files(ecu: str = "python") -> tuple[str, ...]:
+    """The files the campaign writes for ``ecu``: faults.* (Python), faults_c.* (C)."""
+    if ecu == "python":
+        return RESULT_FILES
+    return tuple(name.replace("faults", f"faults_{ecu}", 1) for name in RESULT_FILES)
 
 
 @dataclass(frozen=True)
@@ -292,14 +311,19 @@ class Verdict:
     wall_s: float = 0.0
     e_y: list[float] = field(default_factory=list)
     time_s: list[float] = field(default_factory=list)
+    #: Which ECU ran ("python", "c").
+    ecu: str = "python"
+    #: Why this case cannot run against this ECU ("" when it ran): reported, not dropped.
+    not_applicable: str = ""
 
     @property
     def expects_met(self) -> bool:
         return all(e["met"] for e in self.expects)
 
     def passed(self) -> bool:
-        """No crash, no invalid command, outcome tracked or safe stop, expectations met."""
-        return (self.crashes == 0 and self.invalid_commands == 0
+        """No crash, no invalid command, outcome tracked or safe stop, expectations met
+        (False for a case that did not run: ``not_applicable``)."""
+        return (not self.not_applicable and self.crashes == 0 and self.invalid_commands == 0
                 and self.outcome in ("tracked", "safe stop") and self.expects_met)
 
 
@@ -479,16 +503,40 @@ class _EcuLogCounter(logging.Handler):
             self.controller += 1
 
 
+def c_not_applicable(case: FaultCase) -> str | None:
+    """Why ``case`` cannot run against the C ECU (a separate process), or None when it can."""
+    if case.ecu_fault is not None and case.ecu_fault["kind"] == "lost_bus":
+        return ("needs the ECU in this process: the bus object is swapped for one that fails "
+                "(LosableBus) and the probe reads the ECU's bus_lost / bus_reopened and its "
+                "thread's CPU time; the C ECU's lost bus (its socketcand hub closed and "
+                "reopened) is tests/test_firmware_c_bus.py::test_lost_bus_is_reopened")
+    kinds = sorted({f.get("frame_kind") for f in case.table.get("bus", ())
+                    if f.get("kind") == "lookalike"} & set(HUB_LOST_KINDS))
+    if kinds:
+        return (f"{' / '.join(kinds)} frames cannot reach a separate ECU process here: socketcand's "
+                "raw-mode protocol, which the loopback hub speaks, has no FD, remote or error flag "
+                "(python-can sends FD and error frames as classic data frames, which would be "
+                "contract frames, and refuses a remote frame without data); the C ECU's receive "
+                "path drops them by kind (tests/test_firmware_c_rx.py, the fuzz through libecu.so)")
+    return None
+
+
 def run_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
              duration_s: float | None = None, seed: int | None = None,
-             source: object | None = None) -> Verdict:
+             source: object | None = None, ecu: str = "python") -> Verdict:
     """Run one case with one controller on a private virtual bus and judge it
-    (``source`` names where the faults table came from in errors; default the case)."""
+    (``source`` names where the faults table came from in errors; default the case;
+    ``ecu`` "c": the C executable on a loopback hub, as ``hil run --ecu c``)."""
     from hil.scenario import load_scenario
     from hil.session import SessionError, default_options, reference_path, run_hil
     from hil.time_master import TimeMasterError
 
+    if ecu == "c" and (reason := c_not_applicable(case)) is not None:
+        return Verdict(case.name, case.group, controller, f"{case.name}: {case.note}",
+                       outcome="n/a", ecu=ecu, not_applicable=reason)
     if case.ecu_fault is not None:
+        if ecu == "c":
+            return run_c_time_jump(case, controller, scenario_name, duration_s)
         return run_ecu_case(case, controller, scenario_name, duration_s)
     scenario = load_scenario(scenario_name)
     table = dict(case.table)
@@ -511,15 +559,17 @@ def run_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
     logger.addHandler(counter)
     result, error = None, None
     try:
-        result = run_hil(scenario, default_options(controller, faults=spec))
+        result = run_hil(scenario, default_options(controller, faults=spec, ecu=ecu))
     except (TimeMasterError, SessionError) as e:
         # The ECU died or stopped ACKing: a crash is a result here, not the end. Anything
         # else is a fault of the harness and propagates.
         error = e
     finally:
         logger.removeHandler(counter)
-    return evaluate(case, controller, result, error, counter.unexpected, counter.controller,
-                    description, reference_path(scenario))
+    verdict = evaluate(case, controller, result, error, counter.unexpected, counter.controller,
+                       description, reference_path(scenario))
+    verdict.ecu = ecu
+    return verdict
 
 
 class _LogLines(logging.Handler):
@@ -685,13 +735,81 @@ def run_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO
                        f"{case.name}: {case.note}", reference_path(scenario), onset_ms=onset_ms,
                        frames_hit=frames_hit)
     if fault["kind"] == "time_jump":
-        tasks = sum(1 for tick, frame_id, _ in monitor.raw
-                    if tick == onset_ms and frame_id == FrameId.STEER_TORQUE_CMD)
-        verdict.expects.append({"expect": "<= 1 control task at the jump TICK",
-                                "why": "the skipped tasks are not run", "at_ms": None,
-                                "shown": f"{tasks} task(s)", "met": tasks <= 1})
+        verdict.expects.append(_jump_tasks_expect(monitor.raw, onset_ms))
     elif probe is not None:
         verdict.expects.extend(probe.expects())
+    return verdict
+
+
+def _jump_tasks_expect(raw: Sequence[tuple[int, int, bytes]], onset_ms: int) -> dict[str, Any]:
+    """The time jump's own row: at most one control task at the jump TICK."""
+    tasks = sum(1 for tick, frame_id, _ in raw
+                if tick == onset_ms and frame_id == FrameId.STEER_TORQUE_CMD)
+    return {"expect": "<= 1 control task at the jump TICK", "why": "the skipped tasks are not run",
+            "at_ms": None, "shown": f"{tasks} task(s)", "met": tasks <= 1}
+
+
+def run_c_time_jump(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
+                    duration_s: float | None = None) -> Verdict:
+    """The jump of virtual time against the C ECU: the executable on a loopback socketcand
+    hub of its own (as ``hil.session.run_hil`` starts it for ``--ecu c``), the time
+    master's bus wrapped in `TimeShiftingBus`; judged as `run_ecu_case` judges it."""
+    from hil.bus import BusConfig, open_bus
+    from hil.faults import TimeShiftingBus
+    from hil.planner_node import PlannerNode
+    from hil.plant_node import PlantNode
+    from hil.recorder import EcuFrameMonitor
+    from hil.scenario import load_scenario
+    from hil.session import (HUB_CHANNEL, EcuProcess, HilRunResult, SessionError, c_ecu_command,
+                             control_instant_metrics, default_options, reference_path)
+    from hil.time_master import LockstepMaster, TimeMasterError
+    from hil.timing.hub import LOOPBACK, READY_DELAY_S, LoopbackCanHub
+
+    fault = case.ecu_fault
+    assert fault is not None and fault["kind"] == "time_jump"
+    scenario = load_scenario(scenario_name)
+    if duration_s is not None:
+        scenario = dataclasses.replace(scenario, duration_s=duration_s)
+    onset_ms = round(fault["start_s"] * 1000)
+    options = default_options(controller, ecu="c")
+    hub = LoopbackCanHub(port=0).start()
+    ecu: Any = None
+    master_bus: Any = None
+    error, result = None, None
+    started = time.monotonic()
+    try:
+        master_bus = TimeShiftingBus(open_bus(BusConfig("socketcand", HUB_CHANNEL), host=LOOPBACK,
+                                              port=hub.port, tcp_tune=True), onset_ms, fault["ahead_ms"])
+        ecu = EcuProcess(scenario, options, c_ecu_command(scenario, options, hub.port))
+        time.sleep(2 * READY_DELAY_S)   # the hub delivers to a new client after READY_DELAY_S
+        plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
+        master = LockstepMaster(master_bus, [plant, planner, monitor], ack_timeout_s=options.ack_timeout_s,
+                                handshake_timeout_s=options.handshake_timeout_s,
+                                peer_alive=ecu.alive_problem)
+        stats = master.run(scenario.duration_s)
+        plant_trace = plant.trace()
+        result = HilRunResult(
+            scenario=scenario.name, controller=controller, bus=f"socketcand:{HUB_CHANNEL} (loopback hub)",
+            mode="lockstep", plant_trace=plant_trace, ecu_trace=monitor.trace(),
+            tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
+            stats=stats, wall_time_s=time.monotonic() - started,
+            extra={"ecu_frames_raw": monitor.raw, "ecu": "c"})
+    except (TimeMasterError, SessionError) as e:   # the ECU stalled or died: a result of the case
+        error = e
+    finally:
+        try:
+            if ecu is not None:
+                ecu.stop()
+        finally:
+            if master_bus is not None:
+                master_bus.shutdown()
+            hub.close()
+    frames_hit = master_bus.record.actions if master_bus is not None else 0
+    verdict = evaluate(case, controller, result, error, 0, 0, f"{case.name}: {case.note}",
+                       reference_path(scenario), onset_ms=onset_ms, frames_hit=frames_hit)
+    verdict.ecu = "c"
+    if result is not None:
+        verdict.expects.append(_jump_tasks_expect(result.extra["ecu_frames_raw"], onset_ms))
     return verdict
 
 
@@ -704,16 +822,17 @@ class FaultTask:
     case: FaultCase
     controller: str
     duration_s: float | None
+    ecu: str = "python"
 
 
 def run_fault_task(task: FaultTask) -> Verdict:
     """The executors' task: :func:`run_case` (a harness error propagates as the task's error)."""
-    return run_case(task.case, task.controller, duration_s=task.duration_s)
+    return run_case(task.case, task.controller, duration_s=task.duration_s, ecu=task.ecu)
 
 
 def run_campaign(cases: Sequence[FaultCase], controllers: Sequence[str] | None = None,
                  duration_s: float | None = None,
-                 executor_options: dict[str, Any] | None = None) -> list[Verdict]:
+                 executor_options: dict[str, Any] | None = None, ecu: str = "python") -> list[Verdict]:
     """Every (case, controller) run, verdicts in case order, with a tqdm progress bar.
 
     The runs are tasks of the campaigns' executors (``studies.campaign.executors``; default
@@ -721,12 +840,14 @@ def run_campaign(cases: Sequence[FaultCase], controllers: Sequence[str] | None =
     ``{"address": ...}`` for a cluster). The cases that measure the ECU's own wall-clock
     behaviour (:func:`ecu_cases`: a jump of virtual time, a lost bus) always run here,
     alone, after the others, so that no other run competes with them for the cores.
+    ``ecu`` "c": every run against the C executable (a case it cannot take comes back as
+    not applicable, `c_not_applicable`).
     """
     from tqdm import tqdm
 
     from studies.campaign.executors import open_executor
 
-    jobs = [FaultTask(f"{case.name} / {c}", i, case, c, duration_s)
+    jobs = [FaultTask(f"{case.name} / {c}", i, case, c, duration_s, ecu)
             for i, (case, c) in enumerate((case, c) for case in cases for c in case.controllers
                                           if controllers is None or c in controllers)]
     parallel = [job for job in jobs if job.case.ecu_fault is None]
@@ -757,11 +878,19 @@ def _ms(value: int | None) -> str:
     return "-" if value is None else f"{value}"
 
 
-def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
-    """results/faults.md."""
-    lines = ["# Fault injection campaign (`make faults`)", "",
-             f"Scenario `dlc_high_mu` (35 km/h, mu 0.85, 13.5 s), lockstep on python-can's "
-             f"virtual bus; faults start at {ONSET_S} s (first lane change, X ~ 29 m) unless "
+def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str, ecu: str = "python",
+             python_verdicts: Sequence[dict[str, Any]] | None = None) -> str:
+    """results/faults.md (``ecu`` "c": results/faults_c.md, with the comparison against the
+    Python campaign's verdicts ``python_verdicts``, rows of results/faults.json)."""
+    if ecu == "c":
+        title = "# Fault injection campaign against the C ECU (`make faults-c`)"
+        where = ("the C ECU executable (build/firmware/ecu) as a process on a socketcand hub of "
+                 "its own on TCP loopback, as `hil run --ecu c` runs it; lockstep")
+    else:
+        title, where = "# Fault injection campaign (`make faults`)", "lockstep on python-can's virtual bus"
+    lines = [title, "",
+             f"Scenario `dlc_high_mu` (35 km/h, mu 0.85, 13.5 s), {where}; faults start at "
+             f"{ONSET_S} s (first lane change, X ~ 29 m) unless "
              "said otherwise. Generated by `" + command + f"` in {wall_s / 60:.1f} min.", "",
              "Detect = first control cycle after the fault's first action with a mode other "
              "than ACTIVE or a new FAULTS bit (ms). Expected = the contract's reaction and its "
@@ -778,7 +907,7 @@ def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
              "so its bounds and figures are wall clock and vary from run to run).", ""]
     for group, title in (("bus", "Bus, frame-kind and time-base faults (ESO-DKMPC)"),
                          ("vehicle", "Vehicle faults (ESO-DKMPC against DKMPC)")):
-        rows = [v for v in verdicts if v.group == group]
+        rows = [v for v in verdicts if v.group == group and not v.not_applicable]
         if not rows:
             continue
         vehicle = group == "vehicle"
@@ -796,16 +925,70 @@ def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str) -> str:
                          f"{_ms(v.detect_ms)} | {expected} | {v.max_abs_ey_m:.3f} | {settled}"
                          f"{v.outcome} | {v.invalid_commands} / {v.commands_checked} | {crash} |")
         lines.append("")
-    total_invalid = sum(v.invalid_commands for v in verdicts)
-    total_crash = sum(v.crashes for v in verdicts)
-    failed = [f"{v.case} / {v.controller}" for v in verdicts if not v.passed()]
+    skipped = [v for v in verdicts if v.not_applicable]
+    if skipped:
+        lines += ["## Not applicable to this ECU", "", "| fault | controller | why |", "|---|---|---|"]
+        lines += [f"| {v.case} | {v.controller} | {v.not_applicable} |" for v in skipped]
+        lines.append("")
+    ran = [v for v in verdicts if not v.not_applicable]
+    total_invalid = sum(v.invalid_commands for v in ran)
+    total_crash = sum(v.crashes for v in ran)
+    failed = [f"{v.case} / {v.controller}" for v in ran if not v.passed()]
     lines += ["## Summary", "",
-              f"- runs: {len(verdicts)}; crashes: {total_crash}; invalid commands: "
-              f"{total_invalid} of {sum(v.commands_checked for v in verdicts)} checked",
+              f"- runs: {len(ran)}" + (f" (+ {len(skipped)} not applicable)" if skipped else "")
+              + f"; crashes: {total_crash}; invalid commands: "
+              f"{total_invalid} of {sum(v.commands_checked for v in ran)} checked",
+              f"- expectations met: {sum(e['met'] for v in ran for e in v.expects)} of "
+              f"{sum(len(v.expects) for v in ran)}",
               f"- controller exceptions turned into the guarded fallback: "
-              f"{sum(v.controller_errors for v in verdicts)}",
+              f"{sum(v.controller_errors for v in ran)}" + (" (the C ECU's QP fallback shows as "
+                                                             "FAULTS bit 2; it has no exceptions)"
+                                                             if ecu == "c" else ""),
               f"- runs not meeting every criterion: {', '.join(failed) if failed else 'none'}", ""]
+    if python_verdicts is not None:
+        lines += comparison(verdicts, python_verdicts)
     return "\n".join(lines)
+
+
+def _expects_summary(expects: Sequence[dict[str, Any]]) -> str:
+    return f"{sum(e['met'] for e in expects)}/{len(expects)}"
+
+
+def comparison(verdicts: Sequence[Verdict], python_verdicts: Sequence[dict[str, Any]]) -> list[str]:
+    """Markdown lines: each run's verdict beside the Python campaign's for the same case and
+    controller (``python_verdicts``: rows of results/faults.json): outcome, expectations met,
+    detect time, max |e_Y| and the mode sequence; a row is marked where they differ."""
+    theirs = {(row["case"], row["controller"]): row for row in python_verdicts}
+    lines = ["## Against the Python ECU's campaign (results/faults.json)", "",
+             "Same cases, controllers and judge; \"same\" = the same outcome, the same "
+             "expectations met, the same detect time and mode sequence.", "",
+             "| fault | controller | outcome C / Python | expectations met C / Python | "
+             "detect (ms) C / Python | max \\|e_Y\\| (m) C / Python | verdict |",
+             "|---|---|---|---|---|---|---|"]
+    counts = {"same": 0, "differs": 0, "no Python row": 0, "n/a": 0}
+    for v in verdicts:
+        row = theirs.get((v.case, v.controller))
+        if v.not_applicable:
+            counts["n/a"] += 1
+            continue
+        if row is None:
+            counts["no Python row"] += 1
+            lines.append(f"| {v.case} | {v.controller} | {v.outcome} / - | - | - | - | no Python row |")
+            continue
+        met = [e["met"] for e in v.expects]
+        same = (v.outcome == row["outcome"] and met == [e["met"] for e in row["expects"]]
+                and v.detect_ms == row["detect_ms"] and v.mode_sequence == row["mode_sequence"])
+        verdict = "same" if same else ("same outcome" if v.passed() == row["passed"] and
+                                       v.outcome == row["outcome"] else "DIFFERS")
+        counts["same" if same else "differs"] += 1
+        lines.append(f"| {v.case} | {v.controller} | {v.outcome} / {row['outcome']} | "
+                     f"{_expects_summary(v.expects)} / {_expects_summary(row['expects'])} | "
+                     f"{_ms(v.detect_ms)} / {_ms(row['detect_ms'])} | "
+                     f"{v.max_abs_ey_m:.3f} / {row['max_abs_ey_m']:.3f} | {verdict} |")
+    lines += ["", f"- identical verdicts: {counts['same']}; differing in some figure: "
+              f"{counts['differs']}; without a Python row: {counts['no Python row']}; "
+              f"not applicable here: {counts['n/a']}", ""]
+    return lines
 
 
 def figure(verdicts: Sequence[Verdict], path: Path, scenario_name: str = SCENARIO) -> Path:
@@ -840,7 +1023,7 @@ def figure(verdicts: Sequence[Verdict], path: Path, scenario_name: str = SCENARI
     return path
 
 
-def check_paths(out_dir: Path, replace: bool, scenario_name: str = SCENARIO) -> None:
+def check_paths(out_dir: Path, replace: bool, scenario_name: str = SCENARIO, ecu: str = "python") -> None:
     """Refuse an unusable output folder before any run: its parent missing, a file, not
     writable, holding an earlier campaign's results (without ``replace``) or where an
     input of the campaign (scenario, its path file, the DBC) would be overwritten.
@@ -856,16 +1039,38 @@ def check_paths(out_dir: Path, replace: bool, scenario_name: str = SCENARIO) -> 
     prepare()
     scenario = load_scenario(scenario_name)
     inputs = [Path(scenario.source), Path(scenario.path_file), DBC_PATH]
-    check_output_folder(out_dir, "--out", RESULT_FILES, replace=replace, inputs=inputs)
+    check_output_folder(out_dir, "--out", result_files(ecu), replace=replace, inputs=inputs)
 
 
-def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, command: str) -> list[Path]:
-    """results/faults.md, faults.json and faults_vehicle.png (``out_dir`` checked by
-    `check_paths`; created when missing, its parent never)."""
+def python_verdicts(out_dir: Path) -> list[dict[str, Any]] | None:
+    """The Python campaign's verdicts in ``out_dir`` (faults.json), None when there are none.
+
+    Raises:
+        HilError: the file is there but not the campaign's JSON.
+    """
+    path = out_dir / RESULT_FILES[1]
+    if not path.is_file():
+        return None
+    try:
+        rows = json.loads(path.read_text(encoding="utf-8"))
+        if not all(isinstance(r, dict) and {"case", "controller", "outcome", "expects"} <= r.keys() for r in rows):
+            raise ValueError("a row without case / controller / outcome / expects")
+    except (ValueError, TypeError) as e:
+        raise HilError(f"{path}: not the fault campaign's verdicts: {e}") from e
+    return rows
+
+
+def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, command: str,
+                  ecu: str = "python") -> list[Path]:
+    """results/faults.md, faults.json and faults_vehicle.png (``ecu`` "c": faults_c.*,
+    compared with the Python campaign's faults.json in ``out_dir`` when it is there;
+    ``out_dir`` checked by `check_paths`; created when missing, its parent never)."""
+    md_name, json_name, png_name = result_files(ecu)
+    reference = python_verdicts(out_dir) if ecu != "python" else None
     out_dir.mkdir(exist_ok=True)
-    md = out_dir / "faults.md"
-    md.write_text(markdown(verdicts, wall_s, command), encoding="utf-8")
-    js = out_dir / "faults.json"
+    md = out_dir / md_name
+    md.write_text(markdown(verdicts, wall_s, command, ecu, reference), encoding="utf-8")
+    js = out_dir / json_name
     rows = []
     for v in verdicts:
         row = dataclasses.asdict(v)
@@ -874,7 +1079,7 @@ def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, com
         row["passed"] = v.passed()
         rows.append(row)
     js.write_text(json.dumps(rows, indent=2) + "\n", encoding="utf-8")
-    png = figure(verdicts, out_dir / "faults_vehicle.png")
+    png = figure(verdicts, out_dir / png_name)
     return [md, js, png]
 
 
@@ -905,6 +1110,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="restrict to these controllers")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="shorten the scenario (s); default the full 13.5 s")
+    parser.add_argument("--ecu", choices=ECUS, default="python",
+                        help="the Python ECU (results faults.*) or the C executable build/firmware/ecu "
+                             "(results faults_c.*, compared with faults.*); default python")
     add_executor_arguments(parser, default_workers="none: without --workers or --address the runs "
                                                    "go to this process")
 
@@ -931,22 +1139,33 @@ def run_from_args(args: argparse.Namespace) -> int:
         cases = [c for c in cases if c.name in args.only]
     if args.duration is not None and not args.duration > 0:
         raise HilError(f"--duration must be > 0 s, got {args.duration}")
-    check_paths(args.out, args.replace)
+    ecu = getattr(args, "ecu", "python")   # `hil faults --campaign` has no --ecu
+    if ecu == "c":
+        from hil.session import check_c_ecu, default_options
+
+        for controller in {c for case in cases for c in case.controllers}:
+            if args.controllers is None or controller in args.controllers:
+                check_c_ecu(default_options(controller, ecu="c"))
+    check_paths(args.out, args.replace, ecu=ecu)
     started = time.monotonic()
-    verdicts = run_campaign(cases, args.controllers, args.duration, executor_options(args))
+    verdicts = run_campaign(cases, args.controllers, args.duration, executor_options(args), ecu)
     wall = time.monotonic() - started
-    command = "make faults" if not (args.only or args.controllers or args.duration) \
-        else "python -m hil faults --campaign " + " ".join(
+    target = "make faults" + ("-c" if ecu == "c" else "")
+    command = target if not (args.only or args.controllers or args.duration) \
+        else ("python -m hil faults --campaign " if ecu == "python"
+              else "python -m studies.fault_campaign ") + " ".join(
             f"--{k} {v if not isinstance(v, list) else ' '.join(map(str, v))}"
-            for k, v in (("only", args.only), ("controllers", args.controllers),
-                         ("duration", args.duration)) if v)
-    for path in write_results(verdicts, args.out, wall, command):
+            for k, v in (("ecu", ecu if ecu != "python" else None), ("only", args.only),
+                         ("controllers", args.controllers), ("duration", args.duration)) if v)
+    for path in write_results(verdicts, args.out, wall, command, ecu):
         print(f"wrote {path}")
-    bad = [v for v in verdicts if not v.passed()]
-    print(f"{len(verdicts)} runs, {sum(v.crashes for v in verdicts)} crashes, "
-          f"{sum(v.invalid_commands for v in verdicts)} invalid commands, "
+    ran = [v for v in verdicts if not v.not_applicable]
+    bad = [v for v in ran if not v.passed()]
+    print(f"{len(ran)} runs ({len(verdicts) - len(ran)} not applicable), "
+          f"{sum(v.crashes for v in ran)} crashes, "
+          f"{sum(v.invalid_commands for v in ran)} invalid commands, "
           f"{len(bad)} not meeting every criterion")
-    return 1 if any(v.crashes or v.invalid_commands for v in verdicts) else 0
+    return 1 if any(v.crashes or v.invalid_commands for v in ran) else 0
 
 
 if __name__ == "__main__":

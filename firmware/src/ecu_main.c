@@ -7,6 +7,8 @@
  *       [--rt-priority P]     (pin to a CPU, SCHED_FIFO; skipped with a warning where refused)
  *       [--timing-out FILE.npz [--replace]]   (firmware_sim.timing's record, written on exit)
  *       [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--log-level L]
+ *       [--excite PROGRAM]  (identification excitation while ACTIVE: chirp, prbs, steps,
+ *                            prbs-torque, or a .toml / .csv program file; ecu_excite.c)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
  *       --replay SAMPLES.csv [--realtime]
  *
@@ -41,6 +43,7 @@
 #include <string.h>
 
 #include "ecu_core.h"
+#include "ecu_excite.h"
 #include "ecu_node.h"
 #include "ecu_sha256.h"
 #include "os.h"
@@ -59,7 +62,7 @@ static const char *const USAGE =
   "       ecu --interface socketcan|socketcand --channel C [--host H] [--port P] --controller NAME\n"
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
   "           [--cpu N] [--rt-priority P] [--timing-out FILE.npz [--replace]] [--log-level L]\n"
-  "           [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug]\n"
+  "           [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--excite PROGRAM]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -255,7 +258,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
 int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
-  const char *timing_out = NULL, *dbc = NULL, *model = NULL;
+  const char *timing_out = NULL, *dbc = NULL, *model = NULL, *excite = NULL;
   int debug = 0, info = 0, bitrate = 0;
   int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0;
   const char *path_files[MAX_PATHS];
@@ -281,7 +284,8 @@ int main(int argc, char **argv) {
                           strcmp(arg, "--port") == 0 || strcmp(arg, "--cpu") == 0 ||
                           strcmp(arg, "--rt-priority") == 0 || strcmp(arg, "--timing-out") == 0 ||
                           strcmp(arg, "--log-level") == 0 || strcmp(arg, "--dbc") == 0 ||
-                          strcmp(arg, "--model") == 0 || strcmp(arg, "--bitrate") == 0)) {
+                          strcmp(arg, "--model") == 0 || strcmp(arg, "--bitrate") == 0 ||
+                          strcmp(arg, "--excite") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
@@ -323,6 +327,8 @@ int main(int argc, char **argv) {
       dbc = argv[++i];
     } else if (strcmp(arg, "--model") == 0) {
       model = argv[++i];
+    } else if (strcmp(arg, "--excite") == 0) {
+      excite = argv[++i];
     } else if (strcmp(arg, "--bitrate") == 0) {
       char *end;
       long value = strtol(argv[++i], &end, 10);
@@ -374,6 +380,10 @@ int main(int argc, char **argv) {
     data = model;
   }
   if (dbc && check_dbc(dbc, message, sizeof message)) return fail(message);
+  if (excite && !(interface || channel || lockstep))
+    return fail("--excite runs on the bus (the excitation is added while ACTIVE), not with --replay");
+  if (excite && ecu_excite_load(excite, message, sizeof message) != 0) return fail(message);
+  if (excite) fprintf(stderr, "warning: %s\n", ecu_excite_describe());
   if (debug) {
     fprintf(stderr, "debug: controller %s, data file %s, build shapes: %s\n", controller, data, ecu_build_shapes());
     for (int k = 0; k < n_paths; k++) fprintf(stderr, "debug: PATH_ID %d: %s\n", path_ids[k], path_files[k]);

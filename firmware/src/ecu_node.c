@@ -8,6 +8,7 @@
 #include <string.h>
 
 #include "ecu_node.h"
+#include "ecu_excite.h"
 #include "ecu_core.h"
 #include "ecu_npz.h"
 #include "ecu_rx.h"
@@ -338,7 +339,7 @@ typedef struct {
   int qp_status, iterations, faults;
 } request_t;
 
-static request_t make_request(int previous_mode, const events_t *e, int64_t sample_age) {
+static request_t make_request(int previous_mode, const events_t *e, int64_t sample_age, int64_t now_ns) {
   request_t r = {previous_valid_steer, 0.0, 0.0, ECU_NOT_RUN, 0, 0};
   char err[256];
   if (mode == SAFE_STOP) {
@@ -358,6 +359,7 @@ static request_t make_request(int previous_mode, const events_t *e, int64_t samp
       return r;
     }
     active_path_id = rx.planner_path_id;
+    ecu_excite_reset(active_path_id); /* a new engagement: the program starts again */
   }
   const measurement_t *m = &rx.sample;
   ecu_sample_t sample = {m->vx, m->vy, m->yaw_rate, m->x, m->y, m->yaw, m->steer_angle, m->drive_torque,
@@ -372,6 +374,9 @@ static request_t make_request(int previous_mode, const events_t *e, int64_t samp
   if (out.observer_reset) r.faults |= MODEL_RESET;
   r.steer = out.steer_angle;
   r.torque = out.drive_torque;
+  /* --excite: the identification excitation on the law's command (ACTIVE only) */
+  ecu_excite_step((double)now_ns / 1e9, mode == ACTIVE, m->vx, m->x, m->y, &r.steer, &r.torque, -STEER_LIMIT,
+                  STEER_LIMIT, -TORQUE_LIMIT, TORQUE_LIMIT);
   r.qp_status = out.status;
   r.iterations = out.iterations;
   r.solve_time_s = out.solve_time_s;
@@ -435,7 +440,7 @@ static void control_task(int64_t now_ns, double release_jitter_s, double started
     faults |= MODEL_RESET;
     pending_model_reset = 0;
   }
-  request_t r = make_request(previous_mode, &e, age);
+  request_t r = make_request(previous_mode, &e, age, now_ns);
   faults |= r.faults;
   /* guard.guard_command */
   double steer = r.steer, torque = r.torque;

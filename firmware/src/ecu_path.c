@@ -12,6 +12,7 @@
 #include <string.h>
 
 #include "ecu_core.h"
+#include "ecu_excite.h"
 
 #define PI 3.141592653589793
 #define TWO_PI 6.283185307179586
@@ -22,6 +23,8 @@
 #define POSITION_MIN (-8388.608)    /* m: the range of POS_X / POS_Y */
 #define POSITION_MAX 8388.607
 #define LINE_BYTES 4096
+#define WINDOW_AHEAD 6.0  /* m: PathTracker's search window around the last progress */
+#define WINDOW_BEHIND 2.0 /* m */
 
 static const char *const HEADER[3] = {"x", "y", "yaw"};
 /* The pool of every loaded path, one after the other (ECU_MAX_PATH_POINTS in all). The
@@ -276,4 +279,57 @@ int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
   ecu_path_pool_reset();
   if (ecu_path_pool_add(0, file, err, err_len) != 0) return -1;
   return ecu_path_pool_select(0, err, err_len);
+}
+
+/* numpy.searchsorted on s[0..n-1]: first index with s[i] > v (right) or >= v (left). */
+static int search_sorted(const double *s, int n, double v, int right) {
+  int lo = 0, hi = n;
+  while (lo < hi) {
+    int mid = (lo + hi) / 2;
+    if (right ? s[mid] <= v : s[mid] < v) lo = mid + 1;
+    else hi = mid;
+  }
+  return lo;
+}
+
+/* PathTracker.update on a pooled path (the excitation's e_Y: a tracker of its own, apart
+ * from the control core's): the nearest foot point on the segments around *progress. */
+int ecu_path_pool_track(int path_id, double x, double y, double *progress, int *has_progress,
+                        double *lateral_error) {
+  int slice = -1;
+  for (int k = n_slices - 1; k >= 0 && slice < 0; k--)
+    if (slices[k].id == path_id) slice = k;
+  if (slice < 0) return -1;
+  const double *sx = pool_x + slices[slice].first, *sy = pool_y + slices[slice].first;
+  const double *ss = pool_s + slices[slice].first;
+  int n = slices[slice].n, first = 0, last = n - 1;
+  if (*has_progress) {
+    first = search_sorted(ss, n, *progress - WINDOW_BEHIND, 1) - 1;
+    if (first < 0) first = 0;
+    last = search_sorted(ss, n, *progress + WINDOW_AHEAD, 0) + 1;
+    if (last > n - 1) last = n - 1;
+    if (last < first + 1) last = first + 1;
+  }
+  double best = INFINITY, best_t = 0.0, best_ex = 0.0, best_ey = 0.0;
+  int best_k = first;
+  for (int k = first; k < last; k++) {
+    double dx = sx[k + 1] - sx[k], dy = sy[k + 1] - sy[k];
+    double t = ((x - sx[k]) * dx + (y - sy[k]) * dy) / (dx * dx + dy * dy);
+    t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
+    double ex = x - (sx[k] + t * dx), ey = y - (sy[k] + t * dy), d = ex * ex + ey * ey;
+    if (d < best) {
+      best = d;
+      best_k = k;
+      best_t = t;
+      best_ex = ex;
+      best_ey = ey;
+    }
+  }
+  double dx = sx[best_k + 1] - sx[best_k], dy = sy[best_k + 1] - sy[best_k];
+  double length = sqrt(dx * dx + dy * dy);
+  /* cross product of the tangent with the offset: > 0 when the point is to the left */
+  *lateral_error = (dx * best_ey - dy * best_ex) / length;
+  *progress = ss[best_k] + best_t * length;
+  *has_progress = 1;
+  return 0;
 }
