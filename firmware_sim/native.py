@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import json
 import math
 import os
 import subprocess
@@ -132,18 +133,33 @@ def version() -> str:
     return load_library().ecu_version().decode()
 
 
+def is_bicycle_file(model: Path) -> bool:
+    """Whether ``model`` is a fitted bicycle (models/bicycle_fit.py's JSON, kind
+    linear_bicycle) rather than a Koopman artefact."""
+    if model.suffix.lower() != ".json":
+        return False
+    try:
+        content = json.loads(model.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(content, dict) and content.get("kind") == "linear_bicycle"
+
+
 def data_file_for_model(model: Path, out_dir: Path | None = None) -> Path:
-    """The C core's data file for Koopman artefact ``model`` (written once per content).
+    """The C core's data file for ``model`` (written once per content): a Koopman artefact
+    in place of the build's, or a fitted bicycle (``is_bicycle_file``) in place of the
+    nominal one (LMPC's; the build's Koopman model stays).
 
     Raises:
-        ConfigError: firmware/tools/ecu_data.py refused the artefact (its message).
+        ConfigError: firmware/tools/ecu_data.py refused the file (its message).
     """
-    digest = hashlib.sha256(model.with_suffix(".npz").read_bytes()
-                            + model.with_suffix(".json").read_bytes()).hexdigest()[:12]
+    bicycle = is_bicycle_file(model)
+    sources = [model] if bicycle else [model.with_suffix(".npz"), model.with_suffix(".json")]
+    digest = hashlib.sha256(b"".join(source.read_bytes() for source in sources)).hexdigest()[:12]
     out = (out_dir or DEFAULT_DATA.parent / "data") / f"{model.stem}-{digest}.bin"
     if not out.is_file():
         result = subprocess.run([sys.executable, str(ROOT / "firmware" / "tools" / "ecu_data.py"),
-                                 "--model", str(model), "--out", str(out)],
+                                 "--bicycle" if bicycle else "--model", str(model), "--out", str(out)],
                                 capture_output=True, text=True, check=False)
         if result.returncode != 0:
             lines = result.stderr.strip().splitlines() or ["ecu_data.py failed"]
@@ -304,11 +320,8 @@ def native_controller_factory(controller: str, model: Path | None = None):  # no
     opens, so a refused data file is an ``error:`` line at start-up.
 
     Raises:
-        ConfigError: as ``NativeController``; a ``--model`` for lmpc (fitted bicycles are
-            not in the C core's data file yet).
+        ConfigError: as ``NativeController`` or ``data_file_for_model``.
     """
-    if model is not None and controller == "lmpc":
-        raise ConfigError(f"--native --model {model}: the C core has no fitted bicycle yet (lmpc uses the nominal one)")
     data = data_file_for_model(model) if model is not None else None
     native = NativeController(controller, data)
     return lambda name: native

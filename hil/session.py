@@ -288,17 +288,19 @@ def c_ecu_command(scenario: Scenario, options: RunOptions, hub_port: int | None 
 
 
 def _c_ecu_data_file(options: RunOptions) -> Path:
-    """The C ECU's data file: the build's, or ``options.model`` converted once by
-    firmware/tools/ecu_data.py (``firmware_sim.native.data_file_for_model``)."""
+    """The C ECU's data file: the build's, or ``options.model`` (a Koopman artefact, or a
+    fitted bicycle for lmpc) converted once by firmware/tools/ecu_data.py
+    (``firmware_sim.native.data_file_for_model``)."""
+    from firmware_sim.cli import model_controller_factory
     from firmware_sim.errors import ConfigError
     from firmware_sim.native import DEFAULT_DATA, NativeController, data_file_for_model
 
     if options.model is None:
         return DEFAULT_DATA
-    if options.controller == "lmpc":
-        raise SessionError(f"--model {options.model}: the C ECU has no fitted bicycle yet "
-                           "(lmpc uses the nominal one); use the Python ECU")
     try:
+        # the Python ECU's checks of the file's kind (a Koopman artefact for eso-dkmpc /
+        # dkmpc, a fitted bicycle for lmpc), then its data file
+        model_controller_factory(options.controller, Path(options.model))
         data = data_file_for_model(Path(options.model).resolve())
         # the executable would latch FAULT on a model of another shape: say so before the run
         NativeController(options.controller, data)

@@ -23,9 +23,9 @@
  * (1: the bus cannot be opened).
  *
  * Options of python -m firmware_sim, as far as they mean something here: --model takes a
- * data file (firmware/tools/ecu_data.py --model ARTEFACT --out FILE.bin writes it; hil
- * run --ecu c --model does so itself), a Koopman artefact (.npz/.json) is refused with
- * that command; --dbc must be the DBC the codecs were generated from (SHA-256 compared
+ * data file (firmware/tools/ecu_data.py --model ARTEFACT --out FILE.bin writes it, and
+ * --bicycle FITTED.json one with a fitted bicycle for lmpc; hil run --ecu c --model does
+ * so itself), a Koopman artefact (.npz/.json) is refused with that command; --dbc must be the DBC the codecs were generated from (SHA-256 compared
  * with the build's); --bitrate is accepted and ignored with a note (SocketCAN sets the bit
  * rate on the interface, socketcand's daemon on its bus); --debug (or --log-level debug)
  * prints what was loaded at start-up. --log-level info (or debug) also prints the
@@ -180,9 +180,11 @@ static const char *check_dbc(const char *file, char *message, size_t len) {
 static const char *check_model(const char *file, char *message, size_t len) {
   const char *dot = strrchr(file, '.');
   if (dot && (strcmp(dot, ".npz") == 0 || strcmp(dot, ".json") == 0)) {
+    /* a .json is a Koopman artefact's metadata or a fitted bicycle (LMPC's) */
     snprintf(message, len, "--model %s: the C ECU reads the data file of a model, not its artefact: write it with "
-             "'python firmware/tools/ecu_data.py --model %s --out FILE.bin', then give --model FILE.bin "
-             "(hil run --ecu c --model does this)", file, file);
+             "'python firmware/tools/ecu_data.py %s %s --out FILE.bin'%s, then give --model FILE.bin "
+             "(hil run --ecu c --model does this)", file, strcmp(dot, ".json") == 0 ? "--bicycle" : "--model", file,
+             strcmp(dot, ".json") == 0 ? " (a fitted bicycle; --model for a Koopman artefact)" : "");
     return message;
   }
   return NULL;

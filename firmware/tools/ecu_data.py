@@ -11,7 +11,12 @@ float64 values in C order. The C loader (firmware/src/ecu_data.c) checks every r
 shape against the build's (build/firmware/gen/ecu_build.h) and names both on a mismatch.
 
     python firmware/tools/ecu_data.py --out build/firmware/ecu_data.bin \
-        [--tuning controller/tuning.toml] [--model models/artifacts/dk_d5.npz]
+        [--tuning controller/tuning.toml] [--model models/artifacts/dk_d5.npz] \
+        [--bicycle BICYCLE.json]
+
+``--bicycle``: a fitted bicycle (models/bicycle_fit.py's JSON, ``models.bicycle_fit.
+load_bicycle_params``) in the "bicycle" record instead of the nominal one, for LMPC; the
+file's nonlinear fields are not in the record (LMPC's linear bicycle does not use them).
 """
 from __future__ import annotations
 
@@ -25,7 +30,7 @@ import numpy as np
 from controller.errors import ControllerError
 from controller.lifted_mpc import MEASURED_STATES
 from controller.tuning import ControllerTuning, load_tuning
-from models.bicycle import nominal_model_params
+from models.bicycle import NominalModelParams, nominal_model_params
 from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 
@@ -85,11 +90,20 @@ def model_records(model: KoopmanModel) -> dict[str, np.ndarray]:
     return records
 
 
-def collect(tuning_path: Path | None, model_path: Path) -> dict[str, np.ndarray]:
-    """Every record of the data file, by name."""
+def bicycle_params(bicycle_path: Path | None) -> NominalModelParams:
+    """The nominal bicycle, or the fitted one of ``bicycle_path`` (BicycleFitError names
+    the file and the field)."""
+    if bicycle_path is None:
+        return nominal_model_params()
+    from models.bicycle_fit import load_bicycle_params
+    return load_bicycle_params(bicycle_path)
+
+
+def collect(tuning_path: Path | None, model_path: Path, bicycle_path: Path | None = None) -> dict[str, np.ndarray]:
+    """Every record of the data file, by name (``bicycle_path``: a fitted bicycle for LMPC)."""
     tuning = load_tuning(tuning_path)
     model = KoopmanModel.load(model_path)
-    bicycle = nominal_model_params()
+    bicycle = bicycle_params(bicycle_path)
     records: dict[str, np.ndarray] = {
         "ts": np.array([model.ts]),
         "longitudinal": np.array([tuning.longitudinal.speed_gain, tuning.longitudinal.torque_min,
@@ -123,9 +137,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="data file to write")
     parser.add_argument("--tuning", type=Path, default=None, help="tuning TOML (default controller/tuning.toml)")
     parser.add_argument("--model", type=Path, default=DEFAULT_ARTIFACT, help="Koopman artefact (.npz + .json)")
+    parser.add_argument("--bicycle", type=Path, default=None,
+                        help="fitted bicycle JSON (models/bicycle_fit.py) for LMPC; default the nominal one")
     args = parser.parse_args(argv)
     try:
-        write_data(collect(args.tuning, args.model), args.out)
+        write_data(collect(args.tuning, args.model, args.bicycle), args.out)
     except (EcuDataError, ControllerError, ModelError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
