@@ -103,7 +103,8 @@ firmware-asan: firmware
 		build/firmware-asan/libecu.so build/firmware-asan/ecu
 	ECU_LIB=build/firmware-asan/libecu.so ECU_EXE=build/firmware-asan/ecu LD_PRELOAD="$(FW_SAN_PRELOAD)" \
 		ASAN_OPTIONS=detect_leaks=0 $(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py \
-		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py tests/test_firmware_c_bus.py
+		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py tests/test_firmware_c_bus.py \
+		tests/test_firmware_c_excite.py
 
 ## cross-compile for aarch64 Linux and check its replay under qemu equals the host build's
 firmware-cross: firmware

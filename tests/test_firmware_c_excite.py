@@ -61,12 +61,20 @@ def stopping_program(tmp_path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("program", ["prbs-torque", "table", "stops"])
+def seeded_program(tmp_path: Path) -> Path:
+    """A PRBS with a seed a double cannot hold (2^53 + 1) and a torque PRBS of its own."""
+    path = tmp_path / "seeded.toml"
+    path.write_text('kind = "prbs"\nseed = 9007199254740993\ndelay_s = 0.5\nhold_s = 0.1\n'
+                    "torque_amplitude_nm = 200\ntorque_hold_s = 0.3\n")
+    return path
+
+
+@pytest.mark.parametrize("program", ["prbs-torque", "table", "stops", "seeded"])
 def test_c_excitation_equals_python_in_lockstep(native, program: str, tmp_path: Path) -> None:
     """Both ECUs on the hub with the same program: every STEER_TORQUE_CMD equal byte for
     byte; and the program shows (the excited run's commands differ from an unexcited run's
     in the steering after the program's delay); "stops" leaves its e_Y bound in both."""
-    files = {"table": table_program, "stops": stopping_program}
+    files = {"table": table_program, "stops": stopping_program, "seeded": seeded_program}
     spec = str(files[program](tmp_path)) if program in files else program
     runs, outputs = run_both(spec, "lmpc", tmp_path)
     if program == "stops":
@@ -83,7 +91,7 @@ def test_c_excitation_equals_python_in_lockstep(native, program: str, tmp_path: 
     changed = [tick for (tick, a), (_, b) in zip(c, plain) if abs(steer(a) - steer(b)) > 1e-3]
     print(f"{program}: {len(c)} commands equal; {len(changed)} steered > 1 mrad off the unexcited run, "
           f"from {changed[:1]} ms")
-    delay_ms = 500 if program == "stops" else 2000
+    delay_ms = 500 if program in ("stops", "seeded") else 2000
     assert len(changed) >= 10 and min(changed) >= delay_ms   # starts after its delay, not before
 
 

@@ -6,6 +6,7 @@
  */
 #include <ctype.h>
 #include <errno.h>
+#include <limits.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -93,9 +94,16 @@ static void py_repr(char *buf, size_t len, double v) {
   if (!strpbrk(buf, ".e")) strncat(buf, ".0", len - strlen(buf) - 1);
 }
 
+/* int(q) modulo 2^64 for a finite q >= 0 (Python's int is unbounded; the PRBS keeps the
+ * low 64 bits of seed * C + index + 1, so index modulo 2^64 gives the same bits). */
+static uint64_t index_bits(double q) {
+  static const double TWO_64 = 18446744073709551616.0;
+  return (uint64_t)(q < TWO_64 ? q : fmod(q, TWO_64));
+}
+
 /* _bit: +1 or -1 for bit `index` of a seeded sequence (splitmix64 of seed and index). */
-static double prbs_bit(int64_t seed, int64_t index) {
-  uint64_t value = (uint64_t)seed * 0x9E3779B97F4A7C15ull + (uint64_t)index + 1u;
+static double prbs_bit(int64_t seed, uint64_t index) {
+  uint64_t value = (uint64_t)seed * 0x9E3779B97F4A7C15ull + index + 1u;
   value = (value ^ (value >> 30)) * 0xBF58476D1CE4E5B9ull;
   value = (value ^ (value >> 27)) * 0x94D049BB133111EBull;
   value ^= value >> 31;
@@ -121,18 +129,21 @@ static double table_value(const double *values, double t) {
   return values[table_rows - 1];
 }
 
-/* excitation_offsets: (steering offset, torque offset) time_active_s after entering ACTIVE. */
-static void offsets(double time_active_s, double vx, double *steer, double *torque) {
+/* excitation_offsets: (steering offset, torque offset) time_active_s after entering ACTIVE.
+ * -1 where Python's int() of a bit or step index would raise (an infinite quotient). */
+static int offsets(double time_active_s, double vx, double *steer, double *torque) {
   double t = time_active_s - program.delay_s;
   *steer = *torque = 0.0;
-  if (!isfinite(t) || t < 0.0) return;
-  if (program.torque_amplitude_nm > 0.0)
-    *torque = program.torque_amplitude_nm *
-              prbs_bit(program.seed + 1, (int64_t)py_floordiv(t, program.torque_hold_s));
+  if (!isfinite(t) || t < 0.0) return 0;
+  if (program.torque_amplitude_nm > 0.0) {
+    double q = py_floordiv(t, program.torque_hold_s);
+    if (!isfinite(q)) return -1;
+    *torque = program.torque_amplitude_nm * prbs_bit(program.seed + 1, index_bits(q));
+  }
   if (program.kind == TABLE) {
     *steer = table_value(table_steer, t);
     *torque = table_value(table_has_torque ? table_torque : NULL, t) + *torque;
-    return;
+    return 0;
   }
   double amplitude = steer_amplitude(vx);
   if (program.kind == CHIRP) {
@@ -140,13 +151,17 @@ static void offsets(double time_active_s, double vx, double *steer, double *torq
     double rate = (program.chirp_end_hz - program.chirp_start_hz) / program.chirp_period_s;
     double phase = 2.0 * PI * (program.chirp_start_hz * tau + 0.5 * rate * tau * tau);
     *steer = amplitude * sin(phase);
-  } else if (program.kind == PRBS) {
-    *steer = amplitude * prbs_bit(program.seed, (int64_t)py_floordiv(t, program.hold_s));
   } else {
-    static const double STEPS[4] = {1.0, 0.0, -1.0, 0.0}; /* +, 0, -, 0 */
-    int64_t phase = (int64_t)py_floordiv(t, program.hold_s) % 4;
-    *steer = amplitude * STEPS[phase < 0 ? phase + 4 : phase];
+    double q = py_floordiv(t, program.hold_s);
+    if (!isfinite(q)) return -1;
+    if (program.kind == PRBS) {
+      *steer = amplitude * prbs_bit(program.seed, index_bits(q));
+    } else {
+      static const double STEPS[4] = {1.0, 0.0, -1.0, 0.0}; /* +, 0, -, 0 */
+      *steer = amplitude * STEPS[index_bits(q) % 4u];
+    }
   }
+  return 0;
 }
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
@@ -186,7 +201,13 @@ void ecu_excite_step(double now_s, int active, double vx, double x, double y, do
     fprintf(stderr, "warning: excitation stopped for this engagement: %s\n", stopped_reason);
   }
   double target_steer = 0.0, torque_offset = 0.0;
-  if (!stopped && isfinite(vx)) offsets(now_s - started_s, vx, &target_steer, &torque_offset);
+  if (!stopped && isfinite(vx) && offsets(now_s - started_s, vx, &target_steer, &torque_offset) != 0) {
+    /* as the Python ECU when the program raises: stopped, the law's command this cycle */
+    snprintf(stopped_reason, sizeof stopped_reason, "excitation failed: a step index beyond any integer");
+    stopped = 1;
+    fprintf(stderr, "error: excitation stopped for this engagement: %s\n", stopped_reason);
+    return;
+  }
   double max_step = program.steer_rate_limit_rad_s * CONTROL_PERIOD_S;
   steer_offset = steer_offset + fmin(fmax(target_steer - steer_offset, -max_step), max_step);
   double s = *steer + steer_offset, q = *torque + torque_offset;
@@ -350,6 +371,7 @@ static int load_toml(const char *file, FILE *stream, char *err, size_t err_len) 
   static char line[LINE_BYTES];
   char kind[NAME_BYTES] = "", name[NAME_BYTES];
   int number = 0, has_kind = 0;
+  int64_t program_seed = 0;
   double numbers[N_FIELDS];
   int given[N_FIELDS] = {0};
   stem_of(file, name, sizeof name);
@@ -413,9 +435,20 @@ static int load_toml(const char *file, FILE *stream, char *err, size_t err_len) 
                "for name and kind)", file, number, key, value);
       return -1;
     }
-    if (field == 9 && (strpbrk(value, ".eEn") || parsed != floor(parsed) || fabs(parsed) > 9.2e18)) {
+    if (field == 9 && (strpbrk(value, ".eEn") || parsed != floor(parsed))) {
       snprintf(err, err_len, "--excite %s: field seed must be an integer, got %s", file, value);
       return -1;
+    }
+    if (field == 9) { /* exact as an integer (a double would round a large seed) */
+      char *end;
+      errno = 0;
+      long long seed = strtoll(value, &end, 10);
+      if (errno == ERANGE || *end != '\0' || seed == LLONG_MAX || seed == LLONG_MIN) {
+        snprintf(err, err_len, "--excite %s: field seed %s: the C ECU takes a seed of magnitude below 2^63 - 1", file,
+                 value);
+        return -1;
+      }
+      program_seed = (int64_t)seed;
     }
     numbers[field] = parsed;
     given[field] = 1;
@@ -443,7 +476,7 @@ static int load_toml(const char *file, FILE *stream, char *err, size_t err_len) 
                                &program.lateral_error_bound_m};
   for (int k = 2; k < 15; k++)
     if (given[k] && targets[k]) *targets[k] = numbers[k];
-  if (given[9]) program.seed = (int64_t)numbers[9];
+  if (given[9]) program.seed = program_seed;
   return 0;
 }
 
