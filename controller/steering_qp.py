@@ -16,6 +16,11 @@ is zero whenever the hard constraints can be met.
 The sparsity pattern is built once. P's dense Nc x Nc upper triangle and A's dense
 state-gain block are written straight into preallocated data arrays (views), then passed
 to ``OSQP.update(Px=..., Ax=...)`` each step.
+
+OSQP runs unscaled (``scaling=0``, :data:`OSQP_SCALING_ITERATIONS`): P and A change every
+step, and with scaling on OSQP re-runs its Ruiz equilibration on every update, about 40 %
+of the C firmware's step (docs/firmware.md, Timing). The firmware's solver is generated
+from this object (firmware/tools/generate.py), so both implementations change together.
 """
 from __future__ import annotations
 
@@ -29,6 +34,12 @@ from controller.base import STEER_LIMIT_RAD, SolverStatus
 from controller.tuning import QpMpcTuning
 
 N_SOFT_STATES = 3  # vx, vy, yaw_rate
+#: OSQP's Ruiz scaling iterations (its default is 10). 0: none, so an update of P and A
+#: is a copy and a refactorization. Measured on the tuning set (studies/tuning_set.py,
+#: docs/firmware.md): e_Y objective of ESO-DKMPC / DKMPC / LMPC within 0.12 mm of the
+#: scaled solver's (as close as tightening eps from 1e-3 to 1e-4 moves it), every QP
+#: SOLVED, iterations per solve about the same (mean 7.0 vs 7.4 for ESO-DKMPC).
+OSQP_SCALING_ITERATIONS = 0
 
 _STATUS = {
     osqp.SolverStatus.OSQP_SOLVED: SolverStatus.SOLVED,
@@ -126,7 +137,7 @@ class SteeringQp:
                            warm_starting=True, polishing=False, verbose=False,
                            eps_abs=tuning.osqp_eps_abs, eps_rel=tuning.osqp_eps_rel,
                            max_iter=tuning.osqp_max_iter, check_termination=5,
-                           adaptive_rho_interval=25)
+                           adaptive_rho_interval=25, scaling=OSQP_SCALING_ITERATIONS)
         self._warm = np.zeros(self._n_var)
         # Dual start: with the state constraints inactive (the usual case) the multipliers of
         # s >= 0 equal the L1 weight. Starting them there instead of at 0 saves the hundreds

@@ -27,6 +27,7 @@
 #define DICTIONARY_MIN_SPEED 1.0   /* m/s: models.koopman.DICTIONARY_MIN_SPEED */
 #define WINDOW_AHEAD 6.0           /* m: PathTracker defaults */
 #define WINDOW_BEHIND 2.0
+#define LIFT_BLOCK 8               /* encoder outputs computed together (lift) */
 
 static ecu_config_t cfg;
 static int loaded, controller;
@@ -226,13 +227,23 @@ static void lift(const ecu_sample_t *sample, double z[NZ]) {
   (void)r;
   for (int layer = 0; layer < ECU_N_LAYERS; layer++) {
     const double *w = cfg.weights + cfg.weight_at[layer], *b = cfg.biases + cfg.bias_at[layer];
-    int n_in = cfg.layer_in[layer], n_out = cfg.layer_out[layer];
-    for (int o = 0; o < n_out; o++) {
+    int n_in = cfg.layer_in[layer], n_out = cfg.layer_out[layer], o = 0;
+    /* LIFT_BLOCK outputs at a time: each output's sum still runs over i in order (the same
+     * result to the bit as one output at a time), but the independent sums overlap in the
+     * pipeline instead of each waiting on its own chain of additions. */
+    for (; o + LIFT_BLOCK <= n_out; o += LIFT_BLOCK) {
+      double sum[LIFT_BLOCK] = {0.0};
+      for (int i = 0; i < n_in; i++)
+        for (int j = 0; j < LIFT_BLOCK; j++) sum[j] += w[(o + j) * n_in + i] * h_in[i];
+      for (int j = 0; j < LIFT_BLOCK; j++) h_out[o + j] = sum[j] + b[o + j];
+    }
+    for (; o < n_out; o++) {
       double sum = 0.0;
       for (int i = 0; i < n_in; i++) sum += w[o * n_in + i] * h_in[i];
-      sum += b[o];
-      h_out[o] = layer + 1 < ECU_N_LAYERS ? tanh(sum) : sum;
+      h_out[o] = sum + b[o];
     }
+    if (layer + 1 < ECU_N_LAYERS)
+      for (o = 0; o < n_out; o++) h_out[o] = tanh(h_out[o]);
     memcpy(h_in, h_out, (size_t)n_out * sizeof(double));
   }
   if (ECU_N_LAYERS > 0)
