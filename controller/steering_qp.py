@@ -13,9 +13,13 @@ D U - d are the increments U_j - U_{j-1} with U_{-1} = the previous command. The
 makes the QP always feasible; with the L1 weight large it is an exact penalty: the slack
 is zero whenever the hard constraints can be met.
 
-The sparsity pattern is built once. P's dense Nc x Nc upper triangle and A's dense
-state-gain block are written straight into preallocated data arrays (views), then passed
-to ``OSQP.update(Px=..., Ax=...)`` each step.
+The sparsity pattern is built once. P's dense Nc x Nc upper triangle is written straight
+into a preallocated data array (a view), A's state-gain block through a fixed gather
+index; both are passed to ``OSQP.update(Px=..., Ax=...)`` each step. A holds only the
+gain's causal entries: the state at step i depends on U_c only for c < i (U_c is the input
+of step c, the last one held from step Nc - 1 on), so the entries with c >= i are zero by
+construction and are left out of the pattern (168 of 1,440 at Np 30, Nc 8: a smaller KKT
+matrix to factor every step, the same QP).
 
 OSQP runs unscaled (``scaling=0``, :data:`OSQP_SCALING_ITERATIONS`): P and A change every
 step, and with scaling on OSQP re-runs its Ruiz equilibration on every update, about 40 %
@@ -93,15 +97,23 @@ class SteeringQp:
         self._p_data[len(rows):] = 2.0 * tuning.slack_l2
         self._p_upper = self._p_data[:len(rows)]  # view: the U block's values
 
-        # A, column by column. U column j: its bound row, then every soft row (dense block).
+        # A, column by column. U column j: its bound row, then the soft rows of the steps
+        # i > j (the causal gain entries; the flattened state rows from 3 j on), both sides.
         # Soft rows: ((step * 3 + state) * 2 + side), side 0 = upper (-s), 1 = lower (+s).
         soft_first = n_ctrl + N_SOFT_STATES
         self._soft_first = soft_first
-        u_col_len = 1 + n_soft_rows
+        n_state_rows = n_pred * N_SOFT_STATES
         indices, indptr = [], [0]
+        gain_source, gain_slot = [], []  # state_gain.ravel() index -> A data slot
         for j in range(n_ctrl):
-            indices.append(np.concatenate(([j], soft_first + np.arange(n_soft_rows))))
-            indptr.append(indptr[-1] + u_col_len)
+            state_rows = np.arange(N_SOFT_STATES * min(j, n_pred), n_state_rows)
+            indices.append(np.concatenate(([j], soft_first + np.stack((2 * state_rows, 2 * state_rows + 1),
+                                                                     1).ravel())))
+            gain_source.append(np.repeat(state_rows * n_ctrl + j, 2))
+            gain_slot.append(indptr[-1] + 1 + np.arange(2 * state_rows.size))
+            indptr.append(indptr[-1] + 1 + 2 * state_rows.size)
+        u_nnz = indptr[-1]
+        self._gain_source, self._gain_slot = np.concatenate(gain_source), np.concatenate(gain_slot)
         slack_signs = []
         for k in range(N_SOFT_STATES):
             soft_rows = soft_first + (np.arange(n_pred) * N_SOFT_STATES + k) * 2
@@ -109,10 +121,8 @@ class SteeringQp:
             indptr.append(indptr[-1] + 1 + 2 * n_pred)
             slack_signs.append(np.concatenate(([1.0], np.tile([-1.0, 1.0], n_pred))))
         a_indices = np.concatenate(indices)
-        self._a_data = np.concatenate((np.zeros(n_ctrl * u_col_len), *slack_signs))
-        u_block = self._a_data[:n_ctrl * u_col_len].reshape(n_ctrl, u_col_len)  # view
-        u_block[:, 0] = 1.0
-        self._a_gain = u_block[:, 1:].reshape(n_ctrl, n_pred * N_SOFT_STATES, 2)  # view
+        self._a_data = np.concatenate((np.zeros(u_nnz), *slack_signs))
+        self._a_data[indptr[:n_ctrl]] = 1.0  # the steer bound rows
 
         self._q = np.zeros(self._n_var)
         self._q[n_ctrl:] = tuning.slack_l1
@@ -153,7 +163,9 @@ class SteeringQp:
 
         pose_jacobian (Np, 3, Nc), pose_offset (Np, 3): linearised pose minus reference is
         ``pose_jacobian @ U + pose_offset``. state_gain (Np, 3, Nc) and state_free (Np, 3):
-        the states at steps 1..Np are ``state_gain @ U + state_free``. warm_steer (Nc,).
+        the states at steps 1..Np are ``state_gain @ U + state_free``; the entries
+        ``state_gain[k, :, c]`` with c > k are zero for every causal prediction and are not
+        read (see the module docstring). warm_steer (Nc,).
         """
         n_ctrl = self.n_ctrl
         jac = pose_jacobian.reshape(-1, n_ctrl)
@@ -164,8 +176,7 @@ class SteeringQp:
         self._q[:n_ctrl] = 2.0 * (offset @ weighted_jac)
         self._q[0] -= 2.0 * self.tuning.p_steer_rate * previous_steer
 
-        gain = state_gain.reshape(-1, n_ctrl)  # (Np * 3, Nc)
-        self._a_gain[:] = gain.T[:, :, None]
+        self._a_data[self._gain_slot] = state_gain.reshape(-1)[self._gain_source]
         free = state_free.ravel()
         self._soft_upper[:] = self._state_max - free
         self._soft_lower[:] = self._state_min - free

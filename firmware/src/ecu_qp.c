@@ -7,7 +7,8 @@
  * Variables v = [U (Nc steer angles), s (3 slacks)]. Constraints, in row order: the Nc
  * steer bounds, the 3 slack bounds s >= 0, then per prediction step and state
  * [vx, vy, yaw_rate] an upper row (gain U - s <= max - free) and a lower row
- * (gain U + s >= min - free).
+ * (gain U + s >= min - free). A's U column c holds the gain's causal entries only, the
+ * rows of the steps i > c (SteeringQp's pattern: the entries of c >= i are zero).
  */
 #include <math.h>
 #include <string.h>
@@ -15,6 +16,8 @@
 
 #include "ecu_internal.h"
 #include "osqp.h"
+#include "algebra_matrix.h" /* OSQPMatrix_get_nz, OSQPWorkspace: the generated A's size, checked at start-up */
+#include "types.h"
 #include "qp_dkmpc_workspace.h"
 #include "qp_eso_dkmpc_workspace.h"
 #include "qp_lmpc_workspace.h"
@@ -26,7 +29,7 @@
 #define N_VAR (NC + N_SOFT)
 #define N_CON (NC + N_SOFT + 2 * N_SOFT * NP)
 #define P_NNZ (NC * (NC + 1) / 2 + N_SOFT)
-#define A_NNZ (NC * (1 + 2 * N_SOFT * NP) + N_SOFT * (1 + 2 * NP))
+#define A_NNZ (NC * (1 + 2 * N_SOFT * NP) + N_SOFT * (1 + 2 * NP)) /* at most (all causal) */
 
 static OSQPSolver *solver;
 static const ecu_tuning_t *tun;
@@ -35,6 +38,9 @@ static int constraints_were_active;
 static double fixed_hessian[NC][NC];
 static double p_data[P_NNZ], a_data[A_NNZ], q[N_VAR], lower[N_CON], upper[N_CON];
 static double warm[N_VAR], initial_dual[N_CON], pose_weight[3 * NP];
+/* A's data: U column c starts at a_column[c] (its bound row; then the gain rows from
+ * gain_first[c] on, both sides); the slack columns start at a_column[n_ctrl]. */
+static int a_column[NC + 1], gain_first[NC], a_count;
 
 int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t err_len) {
   OSQPSolver *const solvers[ECU_N_CONTROLLERS] = {&qp_eso_dkmpc_solver, &qp_dkmpc_solver, &qp_lmpc_solver};
@@ -73,9 +79,20 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
   /* The parts of P, A, q, l, u that never change. */
   int upper_count = n_ctrl * (n_ctrl + 1) / 2;
   for (int k = 0; k < N_SOFT; k++) p_data[upper_count + k] = 2.0 * tuning->slack_l2;
-  int col_len = 1 + 2 * N_SOFT * n_pred;
-  for (int j = 0; j < n_ctrl; j++) a_data[j * col_len] = 1.0;
-  double *slack_cols = a_data + n_ctrl * col_len;
+  a_column[0] = 0;
+  for (int j = 0; j < n_ctrl; j++) {
+    gain_first[j] = N_SOFT * (j < n_pred ? j : n_pred);
+    a_column[j + 1] = a_column[j] + 1 + 2 * (N_SOFT * n_pred - gain_first[j]);
+    a_data[a_column[j]] = 1.0;
+  }
+  a_count = a_column[n_ctrl] + N_SOFT * (1 + 2 * n_pred);
+  /* The generated solver must have this pattern (it is generated from SteeringQp). */
+  if (a_count != OSQPMatrix_get_nz(solver->work->data->A)) {
+    snprintf(err, err_len, "the generated QP's A has %d nonzeros, the C core writes %d (regenerate: make firmware)",
+             (int)OSQPMatrix_get_nz(solver->work->data->A), a_count);
+    return -1;
+  }
+  double *slack_cols = a_data + a_column[n_ctrl];
   for (int k = 0; k < N_SOFT; k++) {
     double *col = slack_cols + k * (1 + 2 * n_pred);
     col[0] = 1.0;
@@ -121,7 +138,7 @@ static int map_status(OSQPInt status) {
 
 void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_steer, const double *gain,
                   const double *free_states, const double *warm_steer, ecu_qp_solution_t *sol) {
-  const int rows = 3 * n_pred, soft_first = n_ctrl + N_SOFT, col_len = 1 + 2 * N_SOFT * n_pred;
+  const int rows = 3 * n_pred, soft_first = n_ctrl + N_SOFT;
   double weighted[3 * NP][NC];
   double hessian[NC][NC];
   for (int r = 0; r < rows; r++)
@@ -143,10 +160,10 @@ void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_
     q[c] = 2.0 * sum;
   }
   q[0] -= 2.0 * tun->p_steer_rate * previous_steer;
-  /* The dense state-gain block of A (both rows of a soft pair) and the soft bounds. */
+  /* The causal state-gain entries of A (both rows of a soft pair) and the soft bounds. */
   for (int j = 0; j < n_ctrl; j++) {
-    double *col = a_data + j * col_len + 1;
-    for (int r = 0; r < rows; r++) col[2 * r] = col[2 * r + 1] = gain[r * n_ctrl + j];
+    double *col = a_data + a_column[j] + 1 - 2 * gain_first[j];
+    for (int r = gain_first[j]; r < rows; r++) col[2 * r] = col[2 * r + 1] = gain[r * n_ctrl + j];
   }
   for (int r = 0; r < rows; r++) {
     upper[soft_first + 2 * r] = tun->state_max[r % 3] - free_states[r];
@@ -154,8 +171,7 @@ void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_
   }
   /* The Python interface's order: vectors first, then matrices (rescaled, refactored). */
   osqp_update_data_vec(solver, q, lower, upper);
-  osqp_update_data_mat(solver, p_data, OSQP_NULL, n_ctrl * (n_ctrl + 1) / 2 + N_SOFT, a_data, OSQP_NULL,
-                       n_ctrl * col_len + N_SOFT * (1 + 2 * n_pred));
+  osqp_update_data_mat(solver, p_data, OSQP_NULL, n_ctrl * (n_ctrl + 1) / 2 + N_SOFT, a_data, OSQP_NULL, a_count);
   for (int c = 0; c < n_ctrl; c++) warm[c] = warm_steer[c];
   /* Dual start at the inactive-constraint values unless a state constraint was active. */
   osqp_warm_start(solver, warm, constraints_were_active ? OSQP_NULL : initial_dual);
