@@ -50,6 +50,7 @@ static int observer_running, observer_reset;
 static double z_hat[NZ], w_hat[NZ];
 static double local_A[NZ][NZ], local_B[NZ][ECU_NU], local_offset[NZ];
 static double lifted[NZ];
+static double decay_power[NP]; /* disturbance_decay^i, i = 0..Np-1 (set at load: pow once) */
 
 static double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -88,6 +89,7 @@ int ecu_load(const char *data_path, const char *name, char *err, size_t err_len)
   tun = t;
   n_pred = t->n_pred;
   n_ctrl = t->n_ctrl;
+  for (int i = 0; i < n_pred; i++) decay_power[i] = pow(t->disturbance_decay, (double)i);
   path_n = 0;
   loaded = 1;
   ecu_reset();
@@ -174,14 +176,21 @@ static void tracker_update(double x, double y) {
   has_progress = 1;
 }
 
-/* numpy.interp(v, path_s, values) inside the path (ends held). */
-static double interp(double v, const double *values) {
-  if (v >= path_s[path_n - 1]) return values[path_n - 1];
-  if (v <= path_s[0]) return values[0];
-  int j = search_sorted(v, 1) - 1;
-  if (path_s[j] == v) return values[j];
-  double slope = (values[j + 1] - values[j]) / (path_s[j + 1] - path_s[j]);
-  return slope * (v - path_s[j]) + values[j];
+/* numpy.interp(v, path_s, values) inside the path (ends held), for x, y and yaw at once:
+ * one search for the three (out[3]). */
+static void interp_pose(double v, double out[3]) {
+  const double *values[3] = {path_x, path_y, path_yaw};
+  int j, exact = 1;
+  if (v >= path_s[path_n - 1]) j = path_n - 1;
+  else if (v <= path_s[0]) j = 0;
+  else {
+    j = search_sorted(v, 1) - 1;
+    exact = path_s[j] == v;
+  }
+  for (int k = 0; k < 3; k++) {
+    const double *f = values[k];
+    out[k] = exact ? f[j] : (f[j + 1] - f[j]) / (path_s[j + 1] - path_s[j]) * (v - path_s[j]) + f[j];
+  }
 }
 
 /* PathTracker.horizon_reference: reference (Np, 3) poses at steps 1..Np. */
@@ -190,9 +199,7 @@ static void horizon_reference(double vx, double vehicle_yaw, double reference[][
   for (int i = 0; i < n_pred; i++) {
     double s = progress + advance * (double)(i + 1);
     double *pose = reference[i];
-    pose[0] = interp(s, path_x);
-    pose[1] = interp(s, path_y);
-    pose[2] = interp(s, path_yaw);
+    interp_pose(s, pose);
     /* Beyond either end the path goes on straight along its end tangent. */
     if (s > path_s[path_n - 1]) {
       double extra = s - path_s[path_n - 1], heading = path_yaw[path_n - 1];
@@ -357,7 +364,7 @@ static void predict_koopman(const ecu_sample_t *sample, double torque, double fr
   memcpy(f, lifted, sizeof f);
   for (int x = 0; x < 3; x++) free[0][x] = f[x];
   for (int i = 0; i < n_pred; i++) {
-    double decay = observed ? pow(tun->disturbance_decay, (double)i) : 0.0;
+    double decay = observed ? decay_power[i] : 0.0;
     for (int a = 0; a < NZ; a++) {
       double sum = drift[a];
       for (int b = 0; b < NZ; b++) sum += local_A[a][b] * f[b];
