@@ -147,3 +147,15 @@ def test_excite_with_replay_is_refused(native) -> None:
     assert result.returncode == 2
     assert result.stderr.strip() == ("error: --excite runs on the bus (the excitation is added while ACTIVE), "
                                      "not with --replay")
+
+
+def test_hil_run_passes_the_program_to_the_c_ecu(native, tmp_path: Path) -> None:
+    """``hil run --ecu c --excite``: a shipped name as it is, a program file made absolute
+    (the executable runs in the checkout)."""
+    from hil.scenario import load_scenario
+    from hil.session import c_ecu_command, default_options
+
+    scenario = load_scenario("dlc_smoke")
+    for program, passed in (("chirp", "chirp"), ("rel/doublet.csv", str(Path("rel/doublet.csv").resolve()))):
+        command = c_ecu_command(scenario, default_options("lmpc", ecu="c", excite=program))
+        assert command[command.index("--excite") + 1] == passed
