@@ -162,8 +162,8 @@ void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_
   q[0] -= 2.0 * tun->p_steer_rate * previous_steer;
   /* The causal state-gain entries of A (both rows of a soft pair) and the soft bounds. */
   for (int j = 0; j < n_ctrl; j++) {
-    double *col = a_data + a_column[j] + 1 - 2 * gain_first[j];
-    for (int r = gain_first[j]; r < rows; r++) col[2 * r] = col[2 * r + 1] = gain[r * n_ctrl + j];
+    double *col = a_data + a_column[j] + 1;
+    for (int r = gain_first[j], k = 0; r < rows; r++, k += 2) col[k] = col[k + 1] = gain[r * n_ctrl + j];
   }
   for (int r = 0; r < rows; r++) {
     upper[soft_first + 2 * r] = tun->state_max[r % 3] - free_states[r];
