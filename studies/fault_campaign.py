@@ -28,9 +28,11 @@ wall clock per run here); faults start at 3.0 s, in the first lane change (X ~ 2
 (``build/firmware/ecu``) as ``hil run --ecu c`` does: a separate process on a socketcand hub
 of its own on TCP loopback, the injector between this process's nodes and the hub. It
 writes results/faults_c.* and compares each verdict with the Python campaign's
-(results/faults.json). A case that needs the ECU in this process is reported as not
-applicable with the reason (`c_not_applicable`). A crash of the C ECU is the run raising
-(the process exited or stopped ACKing); it has no Python exceptions to count.
+(results/faults.json). The lost bus drops the process's connection at a relay
+(`_DroppingRelay`) and watches its output and CPU time. A case whose frames cannot reach a
+separate process is reported as not applicable with the reason (`c_not_applicable`). A
+crash of the C ECU is the run raising (the process exited or stopped ACKing); it has no
+Python exceptions to count.
 """
 from __future__ import annotations
 
@@ -39,6 +41,8 @@ import dataclasses
 import json
 import logging
 import math
+import os
+import socket
 import sys
 import threading
 import time
@@ -505,11 +509,6 @@ class _EcuLogCounter(logging.Handler):
 
 def c_not_applicable(case: FaultCase) -> str | None:
     """Why ``case`` cannot run against the C ECU (a separate process), or None when it can."""
-    if case.ecu_fault is not None and case.ecu_fault["kind"] == "lost_bus":
-        return ("needs the ECU in this process: the bus object is swapped for one that fails "
-                "(LosableBus) and the probe reads the ECU's bus_lost / bus_reopened and its "
-                "thread's CPU time; the C ECU's lost bus (its socketcand hub closed and "
-                "reopened) is tests/test_firmware_c_bus.py::test_lost_bus_is_reopened")
     kinds = sorted({f.get("frame_kind") for f in case.table.get("bus", ())
                     if f.get("kind") == "lookalike"} & set(HUB_LOST_KINDS))
     if kinds:
@@ -536,7 +535,7 @@ def run_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
                        outcome="n/a", ecu=ecu, not_applicable=reason)
     if case.ecu_fault is not None:
         if ecu == "c":
-            return run_c_time_jump(case, controller, scenario_name, duration_s)
+            return run_c_ecu_case(case, controller, scenario_name, duration_s)
         return run_ecu_case(case, controller, scenario_name, duration_s)
     scenario = load_scenario(scenario_name)
     table = dict(case.table)
@@ -585,7 +584,8 @@ class _LogLines(logging.Handler):
 
 @dataclass
 class _LostBusProbe:
-    """The lost-bus case's wall-clock measurements (`_lose_bus`)."""
+    """The lost-bus case's wall-clock measurements (`_lose_bus`; `_lose_c_bus` for the C
+    ECU, whose CPU time is its process's and whose receive calls are not counted: None)."""
 
     noticed_ms: float | None = None
     cpu_fraction: float = math.nan
@@ -593,7 +593,7 @@ class _LostBusProbe:
     log_lines: int = 0
     lost_lines: int = 0
     reopen_tries: int = 0
-    recv_calls: int = 0
+    recv_calls: int | None = 0
     reopened_ms: float | None = None
 
     def expects(self) -> list[dict[str, Any]]:
@@ -605,8 +605,9 @@ class _LostBusProbe:
              "at_ms": None if self.noticed_ms is None else round(self.noticed_ms),
              "met": self.noticed_ms is not None and self.noticed_ms <= 300},
             {"expect": "ECU thread CPU < 20 % while lost", "why": "not a busy loop",
-             "at_ms": None, "shown": f"{100 * self.cpu_fraction:.1f} %, {self.recv_calls} "
-             f"receive calls", "met": self.cpu_fraction < 0.2},
+             "at_ms": None, "shown": f"{100 * self.cpu_fraction:.1f} %" + (
+                 "" if self.recv_calls is None else f", {self.recv_calls} receive calls"),
+             "met": self.cpu_fraction < 0.2},
             {"expect": "lost-bus log lines <= 1/s", "why": "logged at most once a second",
              "at_ms": None, "shown": f"{self.lost_lines} of {self.log_lines} lines in {wall:.1f} s",
              "met": 1 <= self.lost_lines <= wall + 1 and self.log_lines <= 3 * (wall + 1)},
@@ -749,11 +750,126 @@ def _jump_tasks_expect(raw: Sequence[tuple[int, int, bytes]], onset_ms: int) -> 
             "at_ms": None, "shown": f"{tasks} task(s)", "met": tasks <= 1}
 
 
-def run_c_time_jump(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
-                    duration_s: float | None = None) -> Verdict:
-    """The jump of virtual time against the C ECU: the executable on a loopback socketcand
-    hub of its own (as ``hil.session.run_hil`` starts it for ``--ecu c``), the time
-    master's bus wrapped in `TimeShiftingBus`; judged as `run_ecu_case` judges it."""
+class _DroppingRelay:
+    """A TCP relay between the C ECU and its hub that can take the ECU's bus away: `lose`
+    closes the ECU's connection and, until `back`, accepts and at once closes every new
+    one (counted: the ECU's reopening tries), as an interface that went down would."""
+
+    def __init__(self, target_port: int) -> None:
+        self._target = target_port
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self._server.settimeout(0.05)
+        self.port = self._server.getsockname()[1]
+        self._down = threading.Event()
+        self._closed = threading.Event()
+        self._sockets: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self.refused = 0
+        threading.Thread(target=self._accept, name="relay", daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self._closed.is_set():
+            try:
+                client, _ = self._server.accept()
+            except (TimeoutError, OSError):
+                continue
+            if self._down.is_set():
+                self.refused += 1
+                client.close()
+                continue
+            upstream = socket.create_connection(("127.0.0.1", self._target))
+            for sock in (client, upstream):
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._sockets += [client, upstream]
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), name="relay-pump", daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket) -> None:
+        try:
+            while data := source.recv(65536):
+                sink.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for sock in (source, sink):
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+
+    def lose(self) -> None:
+        """The bus goes away: the ECU's stream ends, new connections are refused."""
+        self._down.set()
+        with self._lock:
+            sockets, self._sockets = self._sockets, []
+        for sock in sockets:
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            sock.close()
+
+    def back(self) -> None:
+        self._down.clear()
+
+    def close(self) -> None:
+        self._closed.set()
+        self.lose()
+        self._server.close()
+
+
+def _process_cpu_s(pid: int) -> float:
+    """User + system CPU time (s) of process ``pid`` so far (/proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _lose_c_bus(ecu: Any, relay: _DroppingRelay, outage_s: float) -> _LostBusProbe:
+    """`_lose_bus` for the C ECU process: its bus taken away at the relay for ``outage_s``
+    of wall clock, watched through its output (when it says the bus is lost, its log lines,
+    when it says it reopened) and its process CPU time; its reopening tries are the
+    connections the relay refused."""
+    probe = _LostBusProbe(recv_calls=None)
+    output = Path(ecu.output_path)
+    offset = len(output.read_bytes())
+
+    def said() -> str:
+        return output.read_bytes()[offset:].decode(errors="replace")
+
+    started = time.monotonic()
+    relay.lose()
+    cpu_from = wall_from = None
+    while time.monotonic() - started < outage_s:
+        if cpu_from is None and "bus lost" in said():
+            wall_from = time.monotonic()
+            cpu_from = _process_cpu_s(ecu.process.pid)
+            probe.noticed_ms = 1000 * (wall_from - started)
+        time.sleep(0.005)
+    if cpu_from is not None:
+        probe.lost_wall_s = time.monotonic() - wall_from
+        probe.cpu_fraction = (_process_cpu_s(ecu.process.pid) - cpu_from) / probe.lost_wall_s
+    lines = said().splitlines()
+    probe.log_lines = len(lines)
+    probe.lost_lines = sum("bus lost" in line or "still lost" in line for line in lines)
+    probe.reopen_tries = relay.refused
+    relay.back()
+    back_at = time.monotonic()
+    while time.monotonic() - back_at < 3.0 and "bus reopened" not in said():
+        time.sleep(0.005)
+    if "bus reopened" in said():
+        probe.reopened_ms = 1000 * (time.monotonic() - back_at)
+    return probe
+
+
+def run_c_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
+                   duration_s: float | None = None) -> Verdict:
+    """A fault of the time base or of the ECU's own bus against the C ECU: the executable on
+    a loopback socketcand hub of its own (as ``hil.session.run_hil`` starts it for ``--ecu
+    c``); the time master's bus wrapped in `TimeShiftingBus` (time jump), or the ECU's
+    connection through a `_DroppingRelay` (lost bus); judged as `run_ecu_case` judges the
+    Python ECU's run, the lost bus by the same rules from the process's output and CPU time."""
     from hil.bus import BusConfig, open_bus
     from hil.faults import TimeShiftingBus
     from hil.planner_node import PlannerNode
@@ -766,33 +882,40 @@ def run_c_time_jump(case: FaultCase, controller: str, scenario_name: str = SCENA
     from hil.timing.hub import LOOPBACK, READY_DELAY_S, LoopbackCanHub
 
     fault = case.ecu_fault
-    assert fault is not None and fault["kind"] == "time_jump"
+    assert fault is not None and fault["kind"] in ("time_jump", "lost_bus")
     scenario = load_scenario(scenario_name)
     if duration_s is not None:
         scenario = dataclasses.replace(scenario, duration_s=duration_s)
     onset_ms = round(fault["start_s"] * 1000)
     options = default_options(controller, ecu="c")
     hub = LoopbackCanHub(port=0).start()
+    relay = _DroppingRelay(hub.port) if fault["kind"] == "lost_bus" else None
     ecu: Any = None
     master_bus: Any = None
-    error, result = None, None
+    probe, error, result = None, None, None
     started = time.monotonic()
     try:
-        master_bus = TimeShiftingBus(open_bus(BusConfig("socketcand", HUB_CHANNEL), host=LOOPBACK,
-                                              port=hub.port, tcp_tune=True), onset_ms, fault["ahead_ms"])
-        ecu = EcuProcess(scenario, options, c_ecu_command(scenario, options, hub.port))
+        master_bus = open_bus(BusConfig("socketcand", HUB_CHANNEL), host=LOOPBACK, port=hub.port, tcp_tune=True)
+        if fault["kind"] == "time_jump":
+            master_bus = TimeShiftingBus(master_bus, onset_ms, fault["ahead_ms"])
+        ecu = EcuProcess(scenario, options, c_ecu_command(scenario, options, relay.port if relay else hub.port))
         time.sleep(2 * READY_DELAY_S)   # the hub delivers to a new client after READY_DELAY_S
         plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
         master = LockstepMaster(master_bus, [plant, planner, monitor], ack_timeout_s=options.ack_timeout_s,
                                 handshake_timeout_s=options.handshake_timeout_s,
                                 peer_alive=ecu.alive_problem)
-        stats = master.run(scenario.duration_s)
+        master.handshake()
+        for tick_ms in range(0, round(scenario.duration_s * 1000), 5):
+            if relay is not None and tick_ms == onset_ms:
+                probe = _lose_c_bus(ecu, relay, fault["outage_s"])
+                time.sleep(2 * READY_DELAY_S)   # the reopened connection is a new client of the hub
+            master.tick(tick_ms)
         plant_trace = plant.trace()
         result = HilRunResult(
             scenario=scenario.name, controller=controller, bus=f"socketcand:{HUB_CHANNEL} (loopback hub)",
             mode="lockstep", plant_trace=plant_trace, ecu_trace=monitor.trace(),
             tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
-            stats=stats, wall_time_s=time.monotonic() - started,
+            stats=master.stats, wall_time_s=time.monotonic() - started,
             extra={"ecu_frames_raw": monitor.raw, "ecu": "c"})
     except (TimeMasterError, SessionError) as e:   # the ECU stalled or died: a result of the case
         error = e
@@ -803,13 +926,17 @@ def run_c_time_jump(case: FaultCase, controller: str, scenario_name: str = SCENA
         finally:
             if master_bus is not None:
                 master_bus.shutdown()
+            if relay is not None:
+                relay.close()
             hub.close()
-    frames_hit = master_bus.record.actions if master_bus is not None else 0
+    frames_hit = master_bus.record.actions if fault["kind"] == "time_jump" and master_bus is not None else 1
     verdict = evaluate(case, controller, result, error, 0, 0, f"{case.name}: {case.note}",
                        reference_path(scenario), onset_ms=onset_ms, frames_hit=frames_hit)
     verdict.ecu = "c"
-    if result is not None:
+    if result is not None and fault["kind"] == "time_jump":
         verdict.expects.append(_jump_tasks_expect(result.extra["ecu_frames_raw"], onset_ms))
+    elif probe is not None:
+        verdict.expects.extend(probe.expects())
     return verdict
 
 
