@@ -6,7 +6,8 @@
 #   make faults-c the same cases against the C ECU executable (build/firmware/ecu, a process
 #                 on a loopback socketcand hub, as `hil run --ecu c`): results/faults_c.md,
 #                 faults_c.json, faults_c_vehicle.png, compared with results/faults.json;
-#                 the lost-bus case is reported not applicable (it needs the ECU in-process)
+#                 the FD / remote / error look-alikes are reported not applicable (the hub
+#                 cannot carry those frame kinds; about 1.3 min here)
 #   make fuzz     the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000,
 #                 about 14 min here; no pytest timeout); `make test` runs the same test
 #                 with 10000 (about 1 min)
