@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO_ROOT))
 
 from can_defs.crc import e2e_crc  # noqa: E402
 from can_defs.frames import FrameId  # noqa: E402
-from hil.logio import LogMetadata, frame_times, read_log, write_sidecar  # noqa: E402
+from hil.logio import LogMetadata, frame_times, read_log, sidecar_path, write_sidecar  # noqa: E402
 
 CONTROLLER = "lmpc"
 SCENARIO = HERE / "replay_short.toml"
@@ -55,6 +55,7 @@ def record(path: Path, lockstep: bool) -> Path:
             for message in messages:
                 writer.on_message_received(message)
         candump.unlink()
+        sidecar_path(candump).unlink(missing_ok=True)  # the recorder's, of the deleted candump
     summary = result.summary()
     print(f"{path.name}: {summary['frames_logged']} frames, {summary['active_cycles']} active "
           f"cycles, realtime overruns {summary['realtime_overruns']}")
