@@ -8,8 +8,9 @@
 
 IDENTIFY_ARGS ?=
 
-# About 10-25 min on 2 busy cores: the 612 s drive over CAN (1.5-3 min), the training
-# (5-15 min, one torch thread), 24 closed-loop runs (1-2 min). --reuse-log skips the drive.
+# 4-9 min measured on 2 shared cores (4.3 min at load ~2.5): the 612 s drive over CAN
+# (1.5-3 min), the training (2-7 min, one torch thread), 24 closed-loop runs (10-20 s).
+# --reuse-log skips the drive.
 ## identification study: drive the changed plant, train from its CAN log, Tables II/III with nominal and identified models -> results/identification/
 identify: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.identification study --out results/identification $(IDENTIFY_ARGS)
