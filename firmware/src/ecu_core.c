@@ -25,8 +25,6 @@
 #define LMPC_SPEED_QUANTUM 0.01    /* m/s: controller.lmpc.SPEED_QUANTUM */
 #define LMPC_MIN_MODEL_SPEED 1.0   /* m/s: controller.lmpc.MIN_MODEL_SPEED */
 #define DICTIONARY_MIN_SPEED 1.0   /* m/s: models.koopman.DICTIONARY_MIN_SPEED */
-#define WINDOW_AHEAD 6.0           /* m: PathTracker defaults */
-#define WINDOW_BEHIND 2.0
 #define LIFT_BLOCK 8               /* encoder outputs computed together (lift) */
 
 static ecu_config_t cfg;
@@ -136,46 +134,6 @@ void ecu_reset(void) {
 }
 
 /* ------------------------------------------------------------------ reference */
-/* numpy.searchsorted on path_s: first index with s[i] > v (right) or >= v (left). */
-static int search_sorted(double v, int right) {
-  int lo = 0, hi = path_n;
-  while (lo < hi) {
-    int mid = (lo + hi) / 2;
-    if (right ? path_s[mid] <= v : path_s[mid] < v) lo = mid + 1;
-    else hi = mid;
-  }
-  return lo;
-}
-
-/* PathTracker.update: the foot point on the segments around the last progress. */
-static void tracker_update(double x, double y) {
-  int n_segments = path_n - 1, first = 0, last = n_segments;
-  if (has_progress) {
-    first = search_sorted(progress - WINDOW_BEHIND, 1) - 1;
-    if (first < 0) first = 0;
-    last = search_sorted(progress + WINDOW_AHEAD, 0) + 1;
-    if (last > n_segments) last = n_segments;
-    if (last < first + 1) last = first + 1;
-  }
-  double best = INFINITY, best_t = 0.0, best_len_sq = 1.0;
-  int best_k = first;
-  for (int k = first; k < last; k++) {
-    double dx = path_x[k + 1] - path_x[k], dy = path_y[k + 1] - path_y[k];
-    double length_sq = dx * dx + dy * dy;
-    double t = clamp(((x - path_x[k]) * dx + (y - path_y[k]) * dy) / length_sq, 0.0, 1.0);
-    double ex = x - (path_x[k] + t * dx), ey = y - (path_y[k] + t * dy);
-    double d = ex * ex + ey * ey;
-    if (d < best) {
-      best = d;
-      best_k = k;
-      best_t = t;
-      best_len_sq = length_sq;
-    }
-  }
-  progress = path_s[best_k] + best_t * sqrt(best_len_sq);
-  has_progress = 1;
-}
-
 /* numpy.interp(v, path_s, values) inside the path (ends held), for x, y and yaw at once:
  * one search for the three (out[3]). */
 static void interp_pose(double v, double out[3]) {
@@ -184,7 +142,7 @@ static void interp_pose(double v, double out[3]) {
   if (v >= path_s[path_n - 1]) j = path_n - 1;
   else if (v <= path_s[0]) j = 0;
   else {
-    j = search_sorted(v, 1) - 1;
+    j = ecu_search_sorted(path_s, path_n, v, 1) - 1;
     exact = path_s[j] == v;
   }
   for (int k = 0; k < 3; k++) {
@@ -608,7 +566,8 @@ static void step_body(const ecu_sample_t *sample, ecu_output_t *out) {
     return;
   }
   double torque = clamp(cfg.speed_gain * (sample->target_speed - sample->vx), cfg.torque_min, cfg.torque_max);
-  tracker_update(sample->x, sample->y);
+  /* progress only: the control law takes the lateral error from the reference poses */
+  ecu_path_track(path_x, path_y, path_s, path_n, sample->x, sample->y, &progress, &has_progress);
   horizon_reference(sample->vx, sample->yaw, reference);
   observer_reset = 0;
   make_plan(sample, torque, reference, &plan, out);

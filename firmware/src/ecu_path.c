@@ -3,7 +3,8 @@
  * (read_path_csv, check_path_file, ReferencePath.from_arrays), with the same messages.
  * The file is read line by line and refused at its 100,001st point. Differences from
  * Python's csv and float(): a quoted cell may not contain a comma, and numbers with
- * underscores ("1_000") or hexadecimal floats are refused.
+ * underscores ("1_000") or hexadecimal floats are refused. Also the path search both
+ * trackers share (the control core's and the excitation's): ecu_search_sorted, ecu_path_track.
  */
 #include <ctype.h>
 #include <math.h>
@@ -11,8 +12,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "ecu_core.h"
 #include "ecu_excite.h"
+#include "ecu_internal.h"
 
 #define PI 3.141592653589793
 #define TWO_PI 6.283185307179586
@@ -281,8 +282,7 @@ int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
   return ecu_path_pool_select(0, err, err_len);
 }
 
-/* numpy.searchsorted on s[0..n-1]: first index with s[i] > v (right) or >= v (left). */
-static int search_sorted(const double *s, int n, double v, int right) {
+int ecu_search_sorted(const double *s, int n, double v, int right) {
   int lo = 0, hi = n;
   while (lo < hi) {
     int mid = (lo + hi) / 2;
@@ -292,44 +292,51 @@ static int search_sorted(const double *s, int n, double v, int right) {
   return lo;
 }
 
-/* PathTracker.update on a pooled path (the excitation's e_Y: a tracker of its own, apart
- * from the control core's): the nearest foot point on the segments around *progress. */
-int ecu_path_pool_track(int path_id, double x, double y, double *progress, int *has_progress,
-                        double *lateral_error) {
-  int slice = -1;
-  for (int k = n_slices - 1; k >= 0 && slice < 0; k--)
-    if (slices[k].id == path_id) slice = k;
-  if (slice < 0) return -1;
-  const double *sx = pool_x + slices[slice].first, *sy = pool_y + slices[slice].first;
-  const double *ss = pool_s + slices[slice].first;
-  int n = slices[slice].n, first = 0, last = n - 1;
+double ecu_path_track(const double *x, const double *y, const double *s, int n, double px, double py,
+                      double *progress, int *has_progress) {
+  int n_segments = n - 1, first = 0, last = n_segments;
   if (*has_progress) {
-    first = search_sorted(ss, n, *progress - WINDOW_BEHIND, 1) - 1;
+    first = ecu_search_sorted(s, n, *progress - WINDOW_BEHIND, 1) - 1;
     if (first < 0) first = 0;
-    last = search_sorted(ss, n, *progress + WINDOW_AHEAD, 0) + 1;
-    if (last > n - 1) last = n - 1;
+    last = ecu_search_sorted(s, n, *progress + WINDOW_AHEAD, 0) + 1;
+    if (last > n_segments) last = n_segments;
     if (last < first + 1) last = first + 1;
   }
-  double best = INFINITY, best_t = 0.0, best_ex = 0.0, best_ey = 0.0;
+  /* best_len_sq starts at 1: when no segment is nearer than infinity (coordinates so large
+   * that d overflows) the progress is s[first] + 0 * 1, never 0 * inf. */
+  double best = INFINITY, best_t = 0.0, best_ex = 0.0, best_ey = 0.0, best_len_sq = 1.0;
   int best_k = first;
   for (int k = first; k < last; k++) {
-    double dx = sx[k + 1] - sx[k], dy = sy[k + 1] - sy[k];
-    double t = ((x - sx[k]) * dx + (y - sy[k]) * dy) / (dx * dx + dy * dy);
+    double dx = x[k + 1] - x[k], dy = y[k + 1] - y[k];
+    double length_sq = dx * dx + dy * dy;
+    double t = ((px - x[k]) * dx + (py - y[k]) * dy) / length_sq;
     t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
-    double ex = x - (sx[k] + t * dx), ey = y - (sy[k] + t * dy), d = ex * ex + ey * ey;
+    double ex = px - (x[k] + t * dx), ey = py - (y[k] + t * dy), d = ex * ex + ey * ey;
     if (d < best) {
       best = d;
       best_k = k;
       best_t = t;
       best_ex = ex;
       best_ey = ey;
+      best_len_sq = length_sq;
     }
   }
-  double dx = sx[best_k + 1] - sx[best_k], dy = sy[best_k + 1] - sy[best_k];
-  double length = sqrt(dx * dx + dy * dy);
-  /* cross product of the tangent with the offset: > 0 when the point is to the left */
-  *lateral_error = (dx * best_ey - dy * best_ex) / length;
-  *progress = ss[best_k] + best_t * length;
+  double length = sqrt(best_len_sq);
+  *progress = s[best_k] + best_t * length;
   *has_progress = 1;
+  /* cross product of the tangent with the offset: > 0 when the point is to the left */
+  return ((x[best_k + 1] - x[best_k]) * best_ey - (y[best_k + 1] - y[best_k]) * best_ex) / length;
+}
+
+/* The excitation's e_Y: a tracker of its own on a pooled path, apart from the control core's. */
+int ecu_path_pool_track(int path_id, double x, double y, double *progress, int *has_progress,
+                        double *lateral_error) {
+  int slice = -1;
+  for (int k = n_slices - 1; k >= 0 && slice < 0; k--)
+    if (slices[k].id == path_id) slice = k;
+  if (slice < 0) return -1;
+  int first = slices[slice].first;
+  *lateral_error = ecu_path_track(pool_x + first, pool_y + first, pool_s + first, slices[slice].n, x, y, progress,
+                                  has_progress);
   return 0;
 }
