@@ -1,6 +1,7 @@
 """The steering QP's sparsity (controller/steering_qp.py): A holds only the causal entries
-of the state gain, which every QP controller's prediction leaves zero elsewhere; and the
-solution equals the one of the same QP with the full dense gain block."""
+of the state gain, which every QP controller's prediction leaves zero elsewhere; the solution
+equals the one of the same QP with the full dense gain block; and the soft rows are those of
+SOFT_STATES at every SOFT_STEP_STRIDE-th step and the last."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +12,8 @@ import scipy.sparse as sparse
 from controller.base import VehicleSample
 from controller.reference import ReferencePath
 from controller.registry import ALL_CONTROLLER_NAMES, create_controller
-from controller.steering_qp import N_SOFT_STATES, OSQP_SCALING_ITERATIONS, SteeringQp
+from controller.steering_qp import (N_SOFT_STATES, OSQP_SCALING_ITERATIONS, SOFT_STATES, SOFT_STEP_STRIDE,
+                                   SteeringQp, soft_state_rows, soft_steps)
 from controller.tuning import load_tuning
 
 #: The controllers that solve SteeringQp (NMPC solves its own NLP).
@@ -70,8 +72,9 @@ def test_causal_pattern_solves_the_same_qp_as_the_dense_one() -> None:
     free[5:, 2] += 0.7  # the yaw-rate bound 0.8 rad/s is reached: constraints active
     solution = qp.solve(jac, offset, 0.01, gain, free, np.zeros(n_ctrl))
 
-    # The dense reference: the same P, q, l, u; A with the whole gain block.
-    rows = gain.reshape(-1, n_ctrl)
+    # The dense reference: the same P, q, l, u; A with the whole gain block of the soft rows.
+    soft = soft_state_rows(n_pred)
+    rows = gain.reshape(-1, n_ctrl)[soft]
     weight = np.tile([tuning.q_position, tuning.q_position, tuning.q_yaw], n_pred)
     j = jac.reshape(-1, n_ctrl)
     difference = np.eye(n_ctrl) - np.eye(n_ctrl, k=-1)
@@ -80,13 +83,13 @@ def test_causal_pattern_solves_the_same_qp_as_the_dense_one() -> None:
     p = sparse.block_diag((2.0 * hessian, 2.0 * tuning.slack_l2 * np.eye(N_SOFT_STATES)), format="csc")
     q = np.concatenate((2.0 * (offset.ravel() * weight) @ j, np.full(N_SOFT_STATES, tuning.slack_l1)))
     q[0] -= 2.0 * tuning.p_steer_rate * 0.01
-    slack = np.tile(np.eye(N_SOFT_STATES), (n_pred, 1))
+    slack = np.eye(N_SOFT_STATES)[soft % N_SOFT_STATES]  # each soft row's own state's slack
     a = sparse.csc_matrix(np.vstack((np.eye(n_ctrl + N_SOFT_STATES), np.hstack((rows, -slack)),
                                      np.hstack((rows, slack)))))
-    state_min, state_max = np.tile(tuning.state_min, n_pred), np.tile(tuning.state_max, n_pred)
+    state_min, state_max = np.tile(tuning.state_min, n_pred)[soft], np.tile(tuning.state_max, n_pred)[soft]
     lower = np.concatenate((np.full(n_ctrl, -0.3), np.zeros(N_SOFT_STATES), np.full(rows.shape[0], -np.inf),
-                            state_min - free.ravel()))
-    upper = np.concatenate((np.full(n_ctrl, 0.3), np.full(N_SOFT_STATES, np.inf), state_max - free.ravel(),
+                            state_min - free.ravel()[soft]))
+    upper = np.concatenate((np.full(n_ctrl, 0.3), np.full(N_SOFT_STATES, np.inf), state_max - free.ravel()[soft],
                             np.full(rows.shape[0], np.inf)))
     dense = osqp.OSQP()
     dense.setup(sparse.triu(p, format="csc"), q, a, lower, upper, verbose=False, polishing=True,
@@ -99,3 +102,30 @@ def test_causal_pattern_solves_the_same_qp_as_the_dense_one() -> None:
     # SteeringQp stops at eps 1e-3: its answer within that of the tightly solved dense QP.
     assert np.allclose(solution.steer, reference.x[:n_ctrl], atol=5e-3)
     assert np.allclose(solution.slack, reference.x[n_ctrl:], atol=5e-3)
+
+
+@pytest.mark.parametrize("n_pred", [1, 2, 3, 4, 29, 30, 31])
+def test_soft_rows_every_stride_th_step_and_the_last(n_pred: int) -> None:
+    steps = soft_steps(n_pred) + 1  # 1-based prediction steps
+    expected = sorted(set(range(SOFT_STEP_STRIDE, n_pred + 1, SOFT_STEP_STRIDE)) | {n_pred})
+    print(f"Np {n_pred}: soft steps {steps.tolist()}")
+    assert steps.tolist() == expected
+    rows = soft_state_rows(n_pred)
+    assert rows.tolist() == [3 * (s - 1) + k for s in expected for k in SOFT_STATES]
+    assert 0 not in SOFT_STATES  # no vx rows: the longitudinal controller owns vx
+
+
+def test_qp_has_one_row_pair_per_soft_row_and_the_vx_slack_stays_zero() -> None:
+    """The constraint count follows soft_state_rows; the vx slack, with no soft row, is 0
+    even when vx is far outside its bounds (no vx rows to violate)."""
+    tuning = load_tuning(None).for_controller("eso-dkmpc")
+    n_pred, n_ctrl = tuning.prediction_horizon, tuning.control_horizon
+    qp = SteeringQp(tuning)
+    n_rows = soft_state_rows(n_pred).size
+    assert qp._lower.size == n_ctrl + N_SOFT_STATES + 2 * n_rows
+    free = np.tile([tuning.state_max[0] + 20.0, 0.0, 0.0], (n_pred, 1))  # vx 20 m/s above its bound
+    solution = qp.solve(np.zeros((n_pred, 3, n_ctrl)), np.zeros((n_pred, 3)), 0.0, np.zeros((n_pred, 3, n_ctrl)),
+                        free, np.zeros(n_ctrl))
+    print("Np", n_pred, "soft state rows", n_rows, "constraints", qp._lower.size, "slack", solution.slack)
+    assert solution.status.name == "SOLVED"
+    assert abs(solution.slack[0]) < 1e-6

@@ -5,10 +5,13 @@
  * the values in the same column order as the Python SteeringQp and updates them in place.
  *
  * Variables v = [U (Nc steer angles), s (3 slacks)]. Constraints, in row order: the Nc
- * steer bounds, the 3 slack bounds s >= 0, then per prediction step and state
- * [vx, vy, yaw_rate] an upper row (gain U - s <= max - free) and a lower row
- * (gain U + s >= min - free). A's U column c holds the gain's causal entries only, the
- * rows of the steps i > c (SteeringQp's pattern: the entries of c >= i are zero).
+ * steer bounds, the 3 slack bounds s >= 0, then per soft-constrained prediction step and
+ * state an upper row (gain U - s <= max - free) and a lower row (gain U + s >= min - free).
+ * The soft steps and states are SteeringQp's (controller.steering_qp.soft_state_rows:
+ * every ECU_SOFT_STRIDE-th step and the last, the states of ECU_SOFT_STATE_MASK; both
+ * generated into ecu_build.h from SOFT_STEP_STRIDE and SOFT_STATES). A's U column c holds
+ * the gain's causal entries only, the rows of the steps i > c (SteeringQp's pattern: the
+ * entries of c >= i are zero).
  */
 #include <math.h>
 #include <string.h>
@@ -30,6 +33,9 @@
 #define N_CON (NC + N_SOFT + 2 * N_SOFT * NP)
 #define P_NNZ (NC * (NC + 1) / 2 + N_SOFT)
 #define A_NNZ (NC * (1 + 2 * N_SOFT * NP) + N_SOFT * (1 + 2 * NP)) /* at most (all causal) */
+#if ECU_SOFT_STRIDE < 1 || (ECU_SOFT_STATE_MASK & ~7)
+#error "ecu_build.h: ECU_SOFT_STRIDE must be >= 1 and ECU_SOFT_STATE_MASK within [vx, vy, yaw_rate]"
+#endif
 
 static OSQPSolver *solver;
 static const ecu_tuning_t *tun;
@@ -41,6 +47,9 @@ static double warm[N_VAR], initial_dual[N_CON], pose_weight[3 * NP];
 /* A's data: U column c starts at a_column[c] (its bound row; then the gain rows from
  * gain_first[c] on, both sides); the slack columns start at a_column[n_ctrl]. */
 static int a_column[NC + 1], gain_first[NC], a_count;
+/* The soft rows: the r-th pair of rows bounds the flattened state soft_row[r] (3 step +
+ * state, step-major as soft_state_rows); state k has soft_count[k] of them. */
+static int soft_row[N_SOFT * NP], n_soft_rows, soft_count[N_SOFT];
 
 int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t err_len) {
   OSQPSolver *const solvers[ECU_N_CONTROLLERS] = {&qp_eso_dkmpc_solver, &qp_dkmpc_solver, &qp_lmpc_solver};
@@ -79,27 +88,42 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
   /* The parts of P, A, q, l, u that never change. */
   int upper_count = n_ctrl * (n_ctrl + 1) / 2;
   for (int k = 0; k < N_SOFT; k++) p_data[upper_count + k] = 2.0 * tuning->slack_l2;
+  n_soft_rows = 0;
+  for (int k = 0; k < N_SOFT; k++) soft_count[k] = 0;
+  for (int i = 0; i < n_pred; i++) {
+    if ((i + 1) % ECU_SOFT_STRIDE != 0 && i != n_pred - 1) continue;
+    for (int k = 0; k < N_SOFT; k++) {
+      if (!(ECU_SOFT_STATE_MASK & (1 << k))) continue;
+      soft_row[n_soft_rows++] = N_SOFT * i + k;
+      soft_count[k]++;
+    }
+  }
   a_column[0] = 0;
   for (int j = 0; j < n_ctrl; j++) {
-    gain_first[j] = N_SOFT * (j < n_pred ? j : n_pred);
-    a_column[j + 1] = a_column[j] + 1 + 2 * (N_SOFT * n_pred - gain_first[j]);
+    /* The first soft row whose step the input of step j reaches (the causal entries). */
+    int first = 0, step_row = N_SOFT * (j < n_pred ? j : n_pred);
+    while (first < n_soft_rows && soft_row[first] < step_row) first++;
+    gain_first[j] = first;
+    a_column[j + 1] = a_column[j] + 1 + 2 * (n_soft_rows - first);
     a_data[a_column[j]] = 1.0;
   }
-  a_count = a_column[n_ctrl] + N_SOFT * (1 + 2 * n_pred);
+  a_count = a_column[n_ctrl];
+  for (int k = 0; k < N_SOFT; k++) a_count += 1 + 2 * soft_count[k];
   /* The generated solver must have this pattern (it is generated from SteeringQp). */
   if (a_count != OSQPMatrix_get_nz(solver->work->data->A)) {
     snprintf(err, err_len, "the generated QP's A has %d nonzeros, the C core writes %d (regenerate: make firmware)",
              (int)OSQPMatrix_get_nz(solver->work->data->A), a_count);
     return -1;
   }
-  double *slack_cols = a_data + a_column[n_ctrl];
+  /* Slack column k: its bound row, then state k's soft rows (upper -1, lower +1). */
+  double *col = a_data + a_column[n_ctrl];
   for (int k = 0; k < N_SOFT; k++) {
-    double *col = slack_cols + k * (1 + 2 * n_pred);
     col[0] = 1.0;
-    for (int i = 0; i < n_pred; i++) {
+    for (int i = 0; i < soft_count[k]; i++) {
       col[1 + 2 * i] = -1.0;
       col[2 + 2 * i] = 1.0;
     }
+    col += 1 + 2 * soft_count[k];
   }
   for (int j = 0; j < n_ctrl; j++) {
     q[j] = 0.0;
@@ -112,7 +136,7 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
     lower[n_ctrl + k] = 0.0;
     upper[n_ctrl + k] = OSQP_INFTY;
   }
-  for (int r = 0; r < N_SOFT * n_pred; r++) {
+  for (int r = 0; r < n_soft_rows; r++) {
     lower[soft_first + 2 * r] = -OSQP_INFTY;
     upper[soft_first + 2 * r + 1] = OSQP_INFTY;
   }
@@ -163,11 +187,13 @@ void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_
   /* The causal state-gain entries of A (both rows of a soft pair) and the soft bounds. */
   for (int j = 0; j < n_ctrl; j++) {
     double *col = a_data + a_column[j] + 1;
-    for (int r = gain_first[j], k = 0; r < rows; r++, k += 2) col[k] = col[k + 1] = gain[r * n_ctrl + j];
+    for (int r = gain_first[j], k = 0; r < n_soft_rows; r++, k += 2)
+      col[k] = col[k + 1] = gain[soft_row[r] * n_ctrl + j];
   }
-  for (int r = 0; r < rows; r++) {
-    upper[soft_first + 2 * r] = tun->state_max[r % 3] - free_states[r];
-    lower[soft_first + 2 * r + 1] = tun->state_min[r % 3] - free_states[r];
+  for (int r = 0; r < n_soft_rows; r++) {
+    const int row = soft_row[r];
+    upper[soft_first + 2 * r] = tun->state_max[row % N_SOFT] - free_states[row];
+    lower[soft_first + 2 * r + 1] = tun->state_min[row % N_SOFT] - free_states[row];
   }
   /* The Python interface's order: vectors first, then matrices (rescaled, refactored). */
   osqp_update_data_vec(solver, q, lower, upper);
@@ -184,7 +210,7 @@ void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_
   for (int s = 0; s < N_SOFT; s++) sol->slack[s] = x[n_ctrl + s];
   if (sol->status == ECU_SOLVED || sol->status == ECU_SOLVED_INACCURATE) {
     double largest = 0.0;
-    for (int r = soft_first; r < soft_first + 2 * rows; r++) largest = fmax(largest, fabs(y[r]));
+    for (int r = soft_first; r < soft_first + 2 * n_soft_rows; r++) largest = fmax(largest, fabs(y[r]));
     constraints_were_active = largest > 1.0;
   } else {
     osqp_warm_start(solver, OSQP_NULL, initial_dual);
