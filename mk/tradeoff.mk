@@ -1,5 +1,5 @@
 # Weights against road (studies/weight_tradeoff.py; docs/tuning.md): every controller's
-# Table II and Table III e_Y RMSE over the tuning sweep's 48 weight settings. An analysis of
+# Table II and Table III e_Y RMSE over the tuning sweep's 36 weight settings. An analysis of
 # the evaluation scenarios, never a tuning: it chooses and writes nothing but its report.
 # About 10 min with 2 workers on 2 cores (NMPC takes most of it).
 .PHONY: tradeoff

@@ -118,29 +118,33 @@ class SweepGrid:
         return {name: [float(v) for v in values] for name, values in self.levels}
 
 
-#: The MPC-weight grid, the same absolute values for every controller: 8 x 3 x 2 = 48
+#: The MPC-weight grid, the same absolute values for every controller: 6 x 3 x 2 = 36
 #: settings (NMPC, about eight times slower per run than the QP MPCs, gets as many
-#: evaluations as the others within the sweep's half hour). The MPC's minimiser depends only
-#: on the ratios of the weights (up to the soft-constraint slacks, rarely active), so
-#: p_steer_rate stays 300 as the normalisation and the three other weights span the ratios.
-#: q_position / p_steer_rate matters most (by tens of percent per x2-x3 step of it, and by a
-#: few percent across the yaw and steer weights for the QP MPCs), and where its optimum lies
-#: differs between the controllers by more than a factor 30, hence its eight levels from
-#: 0.01 to 3.3 times p_steer_rate.
+#: evaluations as the others). The MPC's minimiser depends only on the ratios of the weights
+#: (up to the soft-constraint slacks, rarely active), so p_steer_rate stays 300 as the
+#: normalisation and the three other weights span the ratios. q_position / p_steer_rate
+#: matters most (by tens of percent per x3 step of it). The grid of the 2026-12-01 sweep
+#: (q_position 3 .. 1000 in 8 levels, q_yaw 5 / 20 / 80) put every controller's choice at
+#: q_position 3-60 and five of six at the grid's lower edge of q_position or upper edge of
+#: q_yaw, and q_yaw 5 in no top-5 but one controller's fifth: the levels now extend one x3
+#: step past those edges (q_position 1, q_yaw 300) and drop the levels no controller came near.
 WEIGHT_GRID = SweepGrid((
-    ("q_position", (3.0, 10.0, 30.0, 60.0, 120.0, 250.0, 500.0, 1000.0)),
-    ("q_yaw", (5.0, 20.0, 80.0)),
+    ("q_position", (1.0, 3.0, 10.0, 30.0, 100.0, 300.0)),
+    ("q_yaw", (20.0, 80.0, 300.0)),
     ("r_steer", (0.3, 3.0)),
     ("p_steer_rate", (300.0,)),
 ))
-#: The observer grid of stage 2: fast pole x slow pole x horizon decay of w_hat = 24.
+#: The observer grid of stage 2: fast pole x slow pole x horizon decay of w_hat = 24. The
+#: 2026-12-01 sweep chose the slowest second pole (0.995) and the strongest decay (0.8) of its
+#: grid and found the fast pole worth at most 0.1 mm: the grid now reaches 0.998 and 0.6 and
+#: spends two levels on the fast pole.
 OBSERVER_GRID = SweepGrid((
-    ("eso_pole", (0.0, 0.3, 0.6)),
-    ("eso_second_pole", (0.95, 0.97, 0.99, 0.995)),
-    ("disturbance_decay", (0.8, 1.0)),
+    ("eso_pole", (0.0, 0.5)),
+    ("eso_second_pole", (0.97, 0.99, 0.995, 0.998)),
+    ("disturbance_decay", (0.6, 0.8, 1.0)),
 ))
 #: The observer values of stage 1 (a point of OBSERVER_GRID).
-OBSERVER_START: Setting = (("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0))
+OBSERVER_START: Setting = (("eso_pole", 0.0), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0))
 
 
 # ---------------------------------------------------------------------------- building

@@ -4,7 +4,7 @@ sweep's weight grid, to show what a fixed weighting trades between grip and the 
 An analysis of the two evaluation scenarios, never a tuning: nothing here is chosen or
 written into ``controller/tuning.toml`` (``make tune`` chooses on the tuning set alone).
 Each controller runs both double lane changes (``dlc_high_mu``, ``dlc_low_mu``) at each of
-the 48 MPC-weight settings of ``studies.tuning_sweep.WEIGHT_GRID``; its other fields
+the 36 MPC-weight settings of ``studies.tuning_sweep.WEIGHT_GRID``; its other fields
 (horizons, constraints, observer poles and decay) stay the tuning file's. The tuned
 weights are one of the grid's points, marked.
 
