@@ -145,9 +145,10 @@ def test_state_constraint_violated_only_by_the_reported_slack(name: str) -> None
     errors, commands, debugs = run(controller, straight(), LinearPlant((0.0, 4.0, 0.0)), 120)
     # ADMM meets constraints to its primal tolerance, about eps_abs + eps_rel * |row value|.
     tolerance = 2.0 * (controller.tuning.osqp_eps_abs + controller.tuning.osqp_eps_rel)
-    # Eq. 21 is imposed at the QP's soft steps only (steering_qp.SOFT_STEP_STRIDE): checked there;
-    # the steps in between are reported.
+    # Eq. 21 is imposed at the QP's soft steps only (steering_qp.soft_steps: step 1, every
+    # SOFT_STEP_STRIDE-th step, the last): checked there; the steps in between are reported.
     soft = soft_steps(controller.tuning.prediction_horizon)
+    assert soft[0] == 0  # the first predicted step is among the checked ones
     worst_excess, worst_slack, worst_beyond, worst_between = 0.0, 0.0, -np.inf, -np.inf
     for debug in debugs:
         assert not debug.fallback

@@ -210,11 +210,12 @@ def test_build_header_carries_the_qp_soft_row_selection(native) -> None:
     """The C core's soft rows come from controller.steering_qp's constants through the
     generated ecu_build.h (no second hand-written copy), and the generated A's size is the
     one SteeringQp sets up (ecu_qp_init refuses another; the steps above pass through it)."""
-    from controller.steering_qp import SOFT_STATES, SOFT_STEP_STRIDE
+    from controller.steering_qp import SOFT_LEADING_STEPS, SOFT_STATES, SOFT_STEP_STRIDE
 
     header = (ROOT / "build" / "firmware" / "gen" / "ecu_build.h").read_text()
     print([line for line in header.splitlines() if "SOFT" in line and line.startswith("#define")])
+    assert f"#define ECU_SOFT_LEADING_STEPS {SOFT_LEADING_STEPS}\n" in header
     assert f"#define ECU_SOFT_STRIDE {SOFT_STEP_STRIDE}\n" in header
     assert f"#define ECU_SOFT_STATE_MASK {sum(1 << k for k in SOFT_STATES)}\n" in header
     source = (ROOT / "firmware" / "src" / "ecu_qp.c").read_text()
-    assert "ECU_SOFT_STRIDE" in source and "ECU_SOFT_STATE_MASK" in source
+    assert all(name in source for name in ("ECU_SOFT_LEADING_STEPS", "ECU_SOFT_STRIDE", "ECU_SOFT_STATE_MASK"))

@@ -1,7 +1,7 @@
 """The steering QP's sparsity (controller/steering_qp.py): A holds only the causal entries
 of the state gain, which every QP controller's prediction leaves zero elsewhere; the solution
 equals the one of the same QP with the full dense gain block; and the soft rows are those of
-SOFT_STATES at every SOFT_STEP_STRIDE-th step and the last."""
+SOFT_STATES at the first SOFT_LEADING_STEPS steps, every SOFT_STEP_STRIDE-th step and the last."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,8 +12,8 @@ import scipy.sparse as sparse
 from controller.base import VehicleSample
 from controller.reference import ReferencePath
 from controller.registry import ALL_CONTROLLER_NAMES, create_controller
-from controller.steering_qp import (N_SOFT_STATES, OSQP_SCALING_ITERATIONS, SOFT_STATES, SOFT_STEP_STRIDE,
-                                   SteeringQp, soft_state_rows, soft_steps)
+from controller.steering_qp import (N_SOFT_STATES, OSQP_SCALING_ITERATIONS, SOFT_LEADING_STEPS, SOFT_STATES,
+                                   SOFT_STEP_STRIDE, SteeringQp, soft_state_rows, soft_steps)
 from controller.tuning import load_tuning
 
 #: The controllers that solve SteeringQp (NMPC solves its own NLP).
@@ -105,11 +105,14 @@ def test_causal_pattern_solves_the_same_qp_as_the_dense_one() -> None:
 
 
 @pytest.mark.parametrize("n_pred", [1, 2, 3, 4, 29, 30, 31])
-def test_soft_rows_every_stride_th_step_and_the_last(n_pred: int) -> None:
+def test_soft_rows_at_the_first_step_every_stride_th_step_and_the_last(n_pred: int) -> None:
     steps = soft_steps(n_pred) + 1  # 1-based prediction steps
-    expected = sorted(set(range(SOFT_STEP_STRIDE, n_pred + 1, SOFT_STEP_STRIDE)) | {n_pred})
+    leading = set(range(1, min(SOFT_LEADING_STEPS, n_pred) + 1))
+    expected = sorted(leading | set(range(SOFT_STEP_STRIDE, n_pred + 1, SOFT_STEP_STRIDE)) | {n_pred})
     print(f"Np {n_pred}: soft steps {steps.tolist()}")
     assert steps.tolist() == expected
+    # Step 1 is always checked: the first predicted states are the ones the next command moves most.
+    assert SOFT_LEADING_STEPS >= 1 and steps[0] == 1
     rows = soft_state_rows(n_pred)
     assert rows.tolist() == [3 * (s - 1) + k for s in expected for k in SOFT_STATES]
     assert 0 not in SOFT_STATES  # no vx rows: the longitudinal controller owns vx

@@ -8,8 +8,9 @@
  * steer bounds, the 3 slack bounds s >= 0, then per soft-constrained prediction step and
  * state an upper row (gain U - s <= max - free) and a lower row (gain U + s >= min - free).
  * The soft steps and states are SteeringQp's (controller.steering_qp.soft_state_rows:
- * every ECU_SOFT_STRIDE-th step and the last, the states of ECU_SOFT_STATE_MASK; both
- * generated into ecu_build.h from SOFT_STEP_STRIDE and SOFT_STATES). A's U column c holds
+ * the first ECU_SOFT_LEADING_STEPS steps, every ECU_SOFT_STRIDE-th step and the last, the
+ * states of ECU_SOFT_STATE_MASK; all generated into ecu_build.h from SOFT_LEADING_STEPS,
+ * SOFT_STEP_STRIDE and SOFT_STATES). A's U column c holds
  * the gain's causal entries only, the rows of the steps i > c (SteeringQp's pattern: the
  * entries of c >= i are zero).
  */
@@ -33,8 +34,8 @@
 #define N_CON (NC + N_SOFT + 2 * N_SOFT * NP)
 #define P_NNZ (NC * (NC + 1) / 2 + N_SOFT)
 #define A_NNZ (NC * (1 + 2 * N_SOFT * NP) + N_SOFT * (1 + 2 * NP)) /* at most (all causal) */
-#if ECU_SOFT_STRIDE < 1 || (ECU_SOFT_STATE_MASK & ~7)
-#error "ecu_build.h: ECU_SOFT_STRIDE must be >= 1 and ECU_SOFT_STATE_MASK within [vx, vy, yaw_rate]"
+#if ECU_SOFT_STRIDE < 1 || ECU_SOFT_LEADING_STEPS < 0 || (ECU_SOFT_STATE_MASK & ~7)
+#error "ecu_build.h: ECU_SOFT_STRIDE must be >= 1, ECU_SOFT_LEADING_STEPS >= 0 and ECU_SOFT_STATE_MASK within [vx, vy, yaw_rate]"
 #endif
 
 static OSQPSolver *solver;
@@ -91,7 +92,8 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
   n_soft_rows = 0;
   for (int k = 0; k < N_SOFT; k++) soft_count[k] = 0;
   for (int i = 0; i < n_pred; i++) {
-    if ((i + 1) % ECU_SOFT_STRIDE != 0 && i != n_pred - 1) continue;
+    /* soft_steps: the leading steps, every stride-th step, the last. */
+    if (i >= ECU_SOFT_LEADING_STEPS && (i + 1) % ECU_SOFT_STRIDE != 0 && i != n_pred - 1) continue;
     for (int k = 0; k < N_SOFT; k++) {
       if (!(ECU_SOFT_STATE_MASK & (1 << k))) continue;
       soft_row[n_soft_rows++] = N_SOFT * i + k;

@@ -11,8 +11,9 @@ Writes under ``--out`` (build/firmware/gen):
   ``can_defs/vehicle.dbc`` (pack / unpack, raw <-> physical per signal).
 - ``ecu_build.h``: the shapes the build is for (horizons, model dimensions); a data file
   of another shape is refused at start-up with both shapes named. Also the QP's soft-row
-  selection (``ECU_SOFT_STRIDE``, ``ECU_SOFT_STATE_MASK`` from ``SOFT_STEP_STRIDE`` and
-  ``SOFT_STATES`` of controller/steering_qp.py), so the C core writes the generated pattern.
+  selection (``ECU_SOFT_LEADING_STEPS``, ``ECU_SOFT_STRIDE``, ``ECU_SOFT_STATE_MASK`` from
+  ``SOFT_LEADING_STEPS``, ``SOFT_STEP_STRIDE`` and ``SOFT_STATES`` of
+  controller/steering_qp.py), so the C core writes the generated pattern.
 - ``ecu_version.c``: the SHA-256 of every generator input, printed by ``--version`` and
   returned by ``ecu_version()``.
 """
@@ -28,7 +29,7 @@ import cantools
 import osqp
 from cantools.database.can.c_source import generate as generate_c_source
 
-from controller.steering_qp import SOFT_STATES, SOFT_STEP_STRIDE, SteeringQp
+from controller.steering_qp import SOFT_LEADING_STEPS, SOFT_STATES, SOFT_STEP_STRIDE, SteeringQp
 from controller.tuning import load_tuning
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 
@@ -89,8 +90,10 @@ def build_header(tuning_path: Path | None, model_path: Path) -> str:
                   f"#define ECU_NC_{c_name(name).upper()} {table.control_horizon}"]
     lines += [f"#define ECU_NP_MAX {max(h[0] for h in horizons)}",
               f"#define ECU_NC_MAX {max(h[1] for h in horizons)}",
-              "/* The steering QP's soft rows: every ECU_SOFT_STRIDE-th prediction step and the last,",
-              " * the states whose bit (1 << k, k of [vx, vy, yaw_rate]) is set (controller.steering_qp). */",
+              "/* The steering QP's soft rows: the first ECU_SOFT_LEADING_STEPS prediction steps, every",
+              " * ECU_SOFT_STRIDE-th step and the last, the states whose bit (1 << k, k of [vx, vy,",
+              " * yaw_rate]) is set (controller.steering_qp.soft_steps / soft_state_rows). */",
+              f"#define ECU_SOFT_LEADING_STEPS {SOFT_LEADING_STEPS}",
               f"#define ECU_SOFT_STRIDE {SOFT_STEP_STRIDE}",
               f"#define ECU_SOFT_STATE_MASK {sum(1 << k for k in set(SOFT_STATES))}",
               "#endif", ""]
