@@ -92,6 +92,8 @@ def cycles(draw) -> list[tuple[int, bytes, bool]]:
             frames.append((FrameId.PLANNER_REQ, encode(request, planner_counter), True))
             planner_counter = (planner_counter + draw(st.sampled_from([1, 1, 1, 0, 4]))) % 16
         for _ in range(draw(st.sampled_from([0] * 6 + [1, 2]))):  # mutations of what was queued
+            if not frames:  # every queued frame dropped: nothing to pick (an empty range is invalid)
+                break
             i = draw(st.integers(0, len(frames) - 1))
             frame_id, data, kind = frames[i]
             action = draw(st.sampled_from(["flip", "drop", "duplicate", "length", "foreign", "kind"]))
