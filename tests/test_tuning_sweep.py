@@ -212,11 +212,41 @@ def test_sweep_picks_the_lowest_objective_and_penalises_incomplete_runs() -> Non
     assert lmpc.before is not None and dict(lmpc.before.setting)["q_position"] == 10.0
     assert lmpc.before.objective_m < lmpc.chosen.objective_m  # reported, never chosen
     assert {e.stage for e in lmpc_eso.evaluations} == {"weights", "observer"}
-    assert len(lmpc_eso.evaluations) == 3 + 1  # the stage-2 point at OBSERVER_START is not rerun
+    # Stage 2's point at OBSERVER_START is not rerun; the alternation's weight round at
+    # eso_pole 0 adds the two q_position levels not yet run there, its observer round none.
+    assert len(lmpc_eso.evaluations) == 3 + 1 + 2
     assert dict(lmpc_eso.chosen.setting) == {"q_position": 100.0, "q_yaw": 20.0, "r_steer": 1.0,
                                               "p_steer_rate": 300.0, "eso_pole": 0.0,
                                               "eso_second_pole": 0.97, "disturbance_decay": 1.0}
     assert [e.objective_m for e in lmpc.top(2)] == sorted(e.objective_m for e in lmpc.evaluations)[:2]
+
+
+def test_alternation_leaves_the_basin_of_the_observer_start() -> None:
+    """Stand-in runner where the best q_position depends on the observer: 30 at eso_pole 0.3
+    (the start), 1000 at eso_pole 0. Stages 1-2 alone stop at q_position 30 / eso_pole 0;
+    the alternation's weight round at eso_pole 0 finds q_position 1000, then stays."""
+    tuning = load_tuning()
+    weights = SweepGrid((("q_position", (30.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
+                         ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
+    observer = SweepGrid((("eso_pole", (0.0, 0.3)), ("eso_second_pole", (0.97,)),
+                          ("disturbance_decay", (1.0,))))
+
+    def runner(scenario, controller):
+        table = controller.tuning
+        if table.eso_pole == 0.3:
+            return _fake_result(0.1 + 0.1 * abs(np.log10(table.q_position / 30.0)))
+        return _fake_result(0.02 * abs(np.log10(table.q_position / 1000.0)))
+
+    (sweep,) = run_sweep(["lmpc-eso"], [_scenario("a")], tuning, weight_grid=weights,
+                         observer_grid=observer,
+                         observer_start=(("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0)),
+                         runner=runner, show_progress=False)
+    assert dict(sweep.chosen.setting)["q_position"] == 1000.0
+    assert dict(sweep.chosen.setting)["eso_pole"] == 0.0
+    assert sweep.chosen.objective_m == pytest.approx(0.0)
+    stages = [e.stage for e in sweep.evaluations]
+    assert stages == ["weights"] * 3 + ["observer"] + ["weights"] * 2  # then nothing new to run
+    assert len({e.setting for e in sweep.evaluations}) == len(sweep.evaluations)  # none run twice
 
 
 def test_report_rebuilds_from_the_stored_document(tmp_path: Path) -> None:
