@@ -177,16 +177,20 @@ def _scenario(name: str) -> SimpleNamespace:
     return SimpleNamespace(name=name)
 
 
+#: Small grids of the stand-in runner tests.
+STAND_IN_WEIGHTS = SweepGrid((("q_position", (30.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
+                              ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
+STAND_IN_OBSERVER = SweepGrid((("eso_pole", (0.0, 0.3)), ("eso_second_pole", (0.97,)),
+                               ("disturbance_decay", (1.0,))))
+
+
 def test_sweep_picks_the_lowest_objective_and_penalises_incomplete_runs() -> None:
     """On a stand-in runner (no plant): the objective is q_position's distance from 100,
     except that q_position 1000 leaves the road on one scenario, and the file's setting
     (q_position 10, off the grid) is the best of all but is no candidate."""
     tuning = load_tuning()
     tuning = dataclasses.replace(tuning, lmpc=dataclasses.replace(tuning.lmpc, q_position=10.0))
-    weights = SweepGrid((("q_position", (30.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
-                         ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
-    observer = SweepGrid((("eso_pole", (0.0, 0.3)), ("eso_second_pole", (0.97,)),
-                          ("disturbance_decay", (1.0,))))
+    weights, observer = STAND_IN_WEIGHTS, STAND_IN_OBSERVER
 
     def runner(scenario, controller):
         table = controller.tuning
@@ -226,10 +230,7 @@ def test_alternation_leaves_the_basin_of_the_observer_start() -> None:
     (the start), 1000 at eso_pole 0. Stages 1-2 alone stop at q_position 30 / eso_pole 0;
     the alternation's weight round at eso_pole 0 finds q_position 1000, then stays."""
     tuning = load_tuning()
-    weights = SweepGrid((("q_position", (30.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
-                         ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
-    observer = SweepGrid((("eso_pole", (0.0, 0.3)), ("eso_second_pole", (0.97,)),
-                          ("disturbance_decay", (1.0,))))
+    weights, observer = STAND_IN_WEIGHTS, STAND_IN_OBSERVER
 
     def runner(scenario, controller):
         table = controller.tuning
