@@ -248,6 +248,15 @@ def test_alternation_leaves_the_basin_of_the_observer_start() -> None:
     stages = [e.stage for e in sweep.evaluations]
     assert stages == ["weights"] * 3 + ["observer"] + ["weights"] * 2  # then nothing new to run
     assert len({e.setting for e in sweep.evaluations}) == len(sweep.evaluations)  # none run twice
+    # A second start at eso_pole 0 finds it in stage 1; nothing is left to alternate over.
+    (started,) = run_sweep(["lmpc-eso"], [_scenario("a")], tuning, weight_grid=weights,
+                           observer_grid=observer,
+                           observer_start=(("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0)),
+                           runner=runner, show_progress=False,
+                           extra_observer_starts=((("eso_pole", 0.0), ("eso_second_pole", 0.97),
+                                                   ("disturbance_decay", 1.0)),))
+    assert [e.stage for e in started.evaluations] == ["weights"] * 6
+    assert started.chosen.setting == sweep.chosen.setting
 
 
 def test_report_rebuilds_from_the_stored_document(tmp_path: Path) -> None:
