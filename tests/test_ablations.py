@@ -79,10 +79,14 @@ def _drive_open_loop(controller, plant_step, x0: np.ndarray, vx: float, n_steps:
 
 
 def _steps_to_converge(table) -> int:
-    """Steps after which the slower ESO error pole of the shipped tuning has decayed by 1e-7
-    (plus a margin): the tests hold for whatever poles `make tune` chose."""
+    """Steps after which the slower ESO error pole of the shipped tuning has decayed by 1e-5
+    (plus a margin): the tests hold for whatever poles `make tune` chose. 1e-5 takes an
+    initial error of w's size (4e-3) to 4e-8, under the tests' 1e-6. Not longer: the DMDc
+    artefact has an eigenvalue of modulus 1.0085, so the open-loop plant's state grows
+    (by 1e12 over the 3,415 steps a 1e-7 decay of a 0.995 pole took) until float precision
+    hides w in it."""
     slowest = max(table.eso_pole, table.eso_second_pole)
-    return int(math.ceil(math.log(1e-7) / math.log(slowest))) + 200
+    return int(math.ceil(math.log(1e-5) / math.log(slowest))) + 200
 
 
 def test_lmpc_eso_observer_converges_to_a_constant_model_error() -> None:
