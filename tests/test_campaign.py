@@ -1,6 +1,8 @@
 """The campaign runner (studies/campaign): grid expansion and bad input, cache keys,
-resume, failing and interrupted cells, a cell against ``python -m hil run``, and (slow) a
-2-cell grid on a real Ray cluster started as separate processes on 127.0.0.1."""
+resume, failing and interrupted cells, a cell against ``python -m hil run``, the ecu axis
+(the NMPC rule, keys of Python cells, the missing build, a real C ECU cell beside its
+Python twin), and (slow) a 2-cell grid on a real Ray cluster started as separate
+processes on 127.0.0.1."""
 from __future__ import annotations
 
 import csv
@@ -17,10 +19,12 @@ from pathlib import Path
 
 import pytest
 
+from studies.campaign import runner
 from studies.campaign.cell import CellJob, run_cell
 from studies.campaign.grid import GridError, load_grid, to_toml
 from studies.campaign.executors import SerialExecutor
-from studies.campaign.runner import cell_job, cell_key, run_campaign
+from studies.campaign.report import summary_markdown, write_cells_csv, write_heatmaps
+from studies.campaign.runner import CampaignError, cell_job, cell_key, run_campaign
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -78,6 +82,9 @@ model = ["default", "models/artifacts/dk_paper_nominal.npz"]
     ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\n[[exclude]]\nmu = 0.3', ["exclude[0].mu"]),
     ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_high_mu"]\nspeed = [120.0]', ["path ends"]),
     ('[axes]\ncontroller = ["lmpc"]', ["axes.scenario is required"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\necu = ["rust"]', ["axes.ecu", "'rust'"]),
+    ('[axes]\ncontroller = ["nmpc"]\nscenario = ["dlc_smoke"]\necu = ["c"]',
+     ["no cell left", "the C ECU has no nmpc"]),
 ])
 def test_bad_input_is_an_error_naming_the_key_and_the_file(tmp_path, body, words):
     file = _grid(tmp_path, body)
@@ -96,6 +103,130 @@ def test_cache_keys_are_stable_and_tell_cells_and_code_apart(tmp_path):
     assert len(set(keys)) == len(keys)
     assert keys == [cell_key(grid, c, "code-1") for c in load_grid(_grid(tmp_path, GRID, "b.toml")).cells]
     assert cell_key(grid, grid.cells[0], "code-2") != keys[0]
+
+
+ECU_GRID = """
+name = "ecu"
+[axes]
+controller = ["lmpc", "nmpc"]
+scenario = ["dlc_smoke"]
+fault = ["none", "CAN FD look-alikes"]
+ecu = ["python", "c"]
+"""
+
+
+def test_the_ecu_axis_leaves_out_what_the_c_ecu_cannot_run(tmp_path):
+    """2 controllers x 2 faults x 2 ECUs = 8; the C ECU has no NMPC (2 cells) and its
+    loopback hub cannot carry FD frames (LMPC's FD cell): 5 cells, 3 left out by reason,
+    each C cell right after its Python twin."""
+    grid = load_grid(_grid(tmp_path, ECU_GRID))
+    assert [(c.controller, c.fault, c.ecu) for c in grid.cells] == [
+        ("lmpc", "none", "python"), ("lmpc", "none", "c"), ("lmpc", "CAN FD look-alikes", "python"),
+        ("nmpc", "none", "python"), ("nmpc", "CAN FD look-alikes", "python")]
+    assert grid.excluded == 0 and grid.not_applicable == 0
+    assert sorted(grid.c_left_out.values()) == [1, 2]
+    assert grid.c_left_out["the C ECU has no nmpc (Python only)"] == 2
+    assert any("FD" in reason and n == 1 for reason, n in grid.c_left_out.items())
+    # an exclusion on the axis (before the rule: all 4 C cells excluded, none left out),
+    # and a grid without the axis: the Python ECU only
+    excluded = load_grid(_grid(tmp_path, ECU_GRID + '[[exclude]]\necu = "c"\n', "x.toml"))
+    assert {c.ecu for c in excluded.cells} == {"python"}
+    assert (excluded.excluded, dict(excluded.c_left_out)) == (4, {})
+    plain = load_grid(_grid(tmp_path, GRID, "plain.toml"))
+    assert {c.ecu for c in plain.cells} == {"python"} and not plain.c_left_out
+
+
+def _stand_in_c_build(tmp_path: Path, monkeypatch) -> list[Path]:
+    """Files in place of ``make firmware``'s build (the key hashes them; nothing runs)."""
+    files = []
+    for path in runner.C_ECU_FILES:
+        stand_in = tmp_path / "c-build" / path.name
+        stand_in.parent.mkdir(exist_ok=True)
+        stand_in.write_bytes(path.name.encode())
+        files.append(stand_in)
+    monkeypatch.setattr(runner, "C_ECU_FILES", tuple(files))
+    return files
+
+
+def test_a_python_cells_key_does_not_depend_on_the_ecu_axis(tmp_path, monkeypatch):
+    """A Python cell's key is the same with and without the axis (a cache from before the
+    axis stays valid); a C cell's differs from its twin's and follows the C build's bytes."""
+    files = _stand_in_c_build(tmp_path, monkeypatch)
+    plain = load_grid(_grid(tmp_path, GRID))
+    both = load_grid(_grid(tmp_path, GRID.replace('scenario = ["dlc_smoke"]',
+                                                  'scenario = ["dlc_smoke"]\necu = ["python", "c"]'), "b.toml"))
+    assert len(both.cells) == 2 * len(plain.cells)
+    python = [cell_key(both, c, "code-1") for c in both.cells if c.ecu == "python"]
+    c_keys = [cell_key(both, c, "code-1") for c in both.cells if c.ecu == "c"]
+    assert python == [cell_key(plain, c, "code-1") for c in plain.cells]
+    assert not set(c_keys) & set(python) and len(set(c_keys)) == len(c_keys)
+    job = cell_job(both, both.cells[1], "code-1")
+    assert (job.ecu, cell_job(both, both.cells[0], "code-1").ecu) == ("c", "python")
+    files[0].write_bytes(b"another executable")
+    assert cell_key(both, both.cells[1], "code-1") != c_keys[0]
+    assert cell_key(both, both.cells[0], "code-1") == python[0]
+
+
+def test_a_missing_c_build_is_one_error_before_any_cell(tmp_path, monkeypatch, capsys):
+    from studies.campaign.__main__ import main
+
+    missing = tmp_path / "no-build" / "ecu"
+    monkeypatch.setattr(runner, "C_ECU_FILES", (missing, *runner.C_ECU_FILES[1:]))
+    grid_file = _grid(tmp_path, ECU_GRID)
+    ran: list[CellJob] = []
+    with pytest.raises(CampaignError) as info:
+        run_campaign(load_grid(grid_file), tmp_path / "out", SerialExecutor(ran.append), progress=False)
+    assert str(missing) in str(info.value) and "make firmware" in str(info.value) and not ran
+    assert main([str(grid_file), "--out", str(tmp_path / "cli"), "--serial", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    print(err)
+    assert len(err) == 1 and err[0].startswith("error: ") and "`make firmware`" in err[0]
+    assert 'axes.ecu has "c" (1 of the cells)' in err[0] and not (tmp_path / "cli").exists()
+
+
+@pytest.fixture(scope="module")
+def c_ecu_built() -> None:
+    """``make firmware`` (a no-op when up to date); skipped only without a C compiler."""
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc: the C ECU cannot be built here (make firmware-deps installs it as root)")
+    build = subprocess.run(["make", "-s", "--no-print-directory", "firmware"], cwd=ROOT,
+                           capture_output=True, text=True, check=False)
+    assert build.returncode == 0, build.stdout + build.stderr
+
+
+def test_a_c_ecu_cell_runs_the_executable_beside_its_python_twin(tmp_path, c_ecu_built):
+    """ESO-DKMPC on dlc_smoke on both ECUs, serially: the C cell completes with the
+    executable's own step times, e_Y within 1 mm of the Python cell's RMSE (issue 18's
+    lockstep equivalence), and the outputs carry the ecu column and the "(C)" columns."""
+    grid = load_grid(_grid(tmp_path, """
+name = "c-cell"
+[axes]
+controller = ["eso-dkmpc"]
+scenario = ["dlc_smoke"]
+ecu = ["python", "c"]
+"""))
+    result = run_campaign(grid, tmp_path / "out", SerialExecutor(run_cell), progress=False)
+    python, c = result.rows
+    print({k: c[k] for k in ("e_y_rmse", "e_y_max", "step_p50_us", "step_p99_us", "wall_s")},
+          "python", {k: python[k] for k in ("e_y_rmse", "step_p99_us", "wall_s")})
+    assert (python["ecu"], c["ecu"]) == ("python", "c")
+    for row in (python, c):
+        assert row["error"] == "" and row["completed"] == 1 and row["end_reason"] == "duration"
+        assert 0.0 < row["e_y_rmse"] < 0.05 and row["e_y_max"] < 0.2
+    assert abs(c["e_y_rmse"] - python["e_y_rmse"]) < 1e-3
+    # the executable's CTRL_DIAG: its own step, well below the Python ECU's
+    assert 0 < c["step_p50_us"] < python["step_p50_us"]
+    write_cells_csv(tmp_path / "cells.csv", result.rows)
+    with (tmp_path / "cells.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0])[:3] == ["controller", "ecu", "scenario"]
+    assert [(r["controller"], r["ecu"]) for r in rows] == [("eso-dkmpc", "python"), ("eso-dkmpc", "c")]
+    summary = summary_markdown(grid, result.rows, command="test", wall_s=result.wall_s,
+                               executor="serial", computed=2, cached=0, machine="test")
+    assert "| ESO-DKMPC | 1/1 |" in summary and "| ESO-DKMPC (C) | 1/1 |" in summary
+    assert "## C ECU against the Python ECU" in summary
+    assert "| ESO-DKMPC | 1 | 1 | 1 |" in summary  # one pair, same outcome, both completed
+    assert write_heatmaps(grid, result.rows, tmp_path)[0].stat().st_size > 0
 
 
 def _fake_row(job: CellJob) -> dict:

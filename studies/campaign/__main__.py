@@ -60,10 +60,12 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
                                          write_heatmaps)
     from studies.campaign.cell import run_cell
     from studies.campaign.executors import open_executor
-    from studies.campaign.runner import CampaignError, Cache, cell_job, code_version, run_campaign
+    from studies.campaign.runner import (CampaignError, Cache, cell_job, check_c_ecu_built,
+                                         code_version, run_campaign)
     from studies.machine import machine_description
 
     grid = load_grid(args.grid)  # every error before any cell runs
+    check_c_ecu_built(grid)      # C cells without `make firmware`'s build: one error, no cell run
     out = args.out
     try:
         out.mkdir(parents=True, exist_ok=True)

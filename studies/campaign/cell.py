@@ -1,5 +1,7 @@
-"""One campaign cell: one lockstep run on the virtual bus through ``hil.session.run_hil``
-(ECU in-process), the same code path as ``python -m hil run --faults``.
+"""One campaign cell: one lockstep run on the virtual bus through ``hil.session.run_hil``,
+the same code path as ``python -m hil run --faults [--ecu c]``: the Python ECU in-process,
+or the C ECU executable (``build/firmware/ecu``) as a process on the run's own loopback
+socketcand hub.
 
 :func:`run_cell` runs in a Ray worker (or in-process with ``--serial``); it takes a
 :class:`CellJob` (plain data, so it pickles to any worker) and never raises for a failure
@@ -44,13 +46,14 @@ class CellJob:
     ``scenario_toml``: the cell's scenario file (``studies.campaign.grid.to_toml``) with
     ``path.file`` relative to the repository root (``{ROOT}/`` prefix), so the job is the
     same on any node with a checkout; ``model``: artefact path relative to the root, or
-    None for the controllers' default.
+    None for the controllers' default; ``ecu``: "python" or "c" (``hil.session.RunOptions.ecu``).
     """
 
     key: str
     controller: str
     scenario_toml: str
     model: str | None = None
+    ecu: str = "python"
 
 
 def model_factory(artefact: Path) -> Any:
@@ -92,10 +95,17 @@ def run_cell(job: CellJob) -> dict[str, Any]:
             file = Path(folder) / "scenario.toml"
             file.write_text(job.scenario_toml.replace("{ROOT}", str(ROOT)), encoding="utf-8")
             scenario = Scenario.load(file)
-        factory = model_factory(ROOT / job.model) if job.model else None
-        options = RunOptions(controller=job.controller,
-                             bus=BusConfig("virtual", private_virtual_channel()),
-                             faults=scenario_fault_spec(scenario), controller_factory=factory)
+        bus = BusConfig("virtual", private_virtual_channel())
+        if job.ecu == "c":
+            # the executable reads another model as its data file (``--model`` of hil run);
+            # a controller factory exists only in-process
+            options = RunOptions(controller=job.controller, bus=bus, ecu="c",
+                                 faults=scenario_fault_spec(scenario),
+                                 model=ROOT / job.model if job.model else None)
+        else:
+            factory = model_factory(ROOT / job.model) if job.model else None
+            options = RunOptions(controller=job.controller, bus=bus,
+                                 faults=scenario_fault_spec(scenario), controller_factory=factory)
         result = run_hil(scenario, options)
     except Exception as e:  # noqa: BLE001 - recorded in the row; the campaign goes on
         row["error"] = f"{type(e).__name__}: {e}"

@@ -17,6 +17,7 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
                                                 # or a case of the fault catalogue (make faults)
     model = ["default", "models/artifacts/dk_paper_nominal.npz"]   # Koopman artefact
     seed = [0, 1]                               # seed of the random faults
+    ecu = ["python", "c"]                       # the Python ECU in-process, the C executable
 
     [[exclude]]                  # a cell matching every key of one table is dropped
     controller = "nmpc"
@@ -33,10 +34,17 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     [faults."my fault"]          # a [faults] table of hil/faults.py
     vehicle = { steer_offset_rad = 0.02 }
 
+The ``ecu`` axis (default ``["python"]``) runs a cell on the Python ECU (firmware_sim,
+in-process) or on the C ECU executable (``build/firmware/ecu``, ``make firmware``; a
+process on a loopback socketcand hub, as ``hil run --ecu c``). A C cell the C ECU cannot
+run is left out, not an error (:func:`c_ecu_unavailable`: a controller it does not have,
+NMPC and the ablations; a fault sending frame kinds its hub cannot carry), and counted
+per reason in ``Grid.c_left_out``.
+
 Each cell becomes one scenario TOML (:func:`scenario_document`): the base scenario's file
 with the cell's values written in, its ``[faults]`` table holding the fault, the lag and
 the seed. ``python -m hil run --scenario THAT.toml --controller NAME --faults`` is the
-same run as the cell's (tests/test_campaign.py checks it).
+same run as the cell's (tests/test_campaign.py checks it); a C cell's adds ``--ecu c``.
 
 Every error is raised before any cell runs and names the file and the key.
 """
@@ -47,7 +55,7 @@ import itertools
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -58,12 +66,14 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 GRID_DIR = Path(__file__).resolve().parent / "grids"
 #: Every axis, in the order of a cell's fields and of cells.csv.
 AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
-        "model", "seed")
+        "model", "seed", "ecu")
 REQUIRED_AXES = ("controller", "scenario")
 #: Value of an axis the grid does not set: the scenario's own (mu, speed, mass), x1, none.
 SCENARIO_VALUE = "scenario"
 NO_FAULT = "none"
 DEFAULT_MODEL = "default"
+#: The ECU of a grid without an ``ecu`` axis (and the only one before the axis existed).
+DEFAULT_ECU = "python"
 #: Controllers that run a Koopman artefact (the only ones the model axis changes).
 KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
 #: Path the MPC horizons need beyond a run's last position (m): 30 steps at 25 ms, 70 km/h.
@@ -91,6 +101,7 @@ class Cell:
     fault: str = NO_FAULT
     model: str = DEFAULT_MODEL
     seed: int | str = SCENARIO_VALUE
+    ecu: str = DEFAULT_ECU
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -100,7 +111,7 @@ class Cell:
         """Short text for errors and logs."""
         return ", ".join(f"{k}={v}" for k, v in self.as_dict().items()
                          if v not in (SCENARIO_VALUE, NO_FAULT, DEFAULT_MODEL) and
-                         not (k == "lag_factor" and v == 1.0))
+                         not (k == "lag_factor" and v == 1.0) and not (k == "ecu" and v == DEFAULT_ECU))
 
 
 @dataclass(frozen=True)
@@ -119,6 +130,8 @@ class Grid:
     margin_s: float
     excluded: int
     not_applicable: int
+    #: C cells left out because the C ECU cannot run them: reason -> count.
+    c_left_out: Mapping[str, int] = field(default_factory=dict)
 
     def scenario_document(self, cell: Cell) -> dict[str, Any]:
         """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
@@ -181,21 +194,25 @@ def load_grid(file: str | Path) -> Grid:
     excludes = _excludes(file, raw.get("exclude", []), axes)
 
     cells, excluded, not_applicable = [], 0, 0
+    c_left_out: dict[str, int] = {}
     for values in itertools.product(*(axes[name] for name in AXES)):
         cell = Cell(*values)
         if any(_matches(cell, rule) for rule in excludes):
             excluded += 1
         elif cell.model != DEFAULT_MODEL and cell.controller not in KOOPMAN_CONTROLLERS:
             not_applicable += 1  # the same run as the default model's
+        elif (reason := c_ecu_unavailable(cell, faults)) is not None:
+            c_left_out[reason] = c_left_out.get(reason, 0) + 1
         else:
             cells.append(cell)
     grid = Grid(name=str(raw.get("name", file.stem)), description=str(raw.get("description", "")),
                 source=file.resolve(), cells=tuple(cells), scenario_files=scenario_files,
                 speed_profiles=profiles, faults=faults,
                 distance_m=None if distance is None else float(distance), margin_s=float(margin),
-                excluded=excluded, not_applicable=not_applicable)
+                excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out)
     if not cells:
-        raise GridError(f"{file}: no cell left after the exclusions")
+        left_out = "".join(f"; {n} C cells left out: {why}" for why, n in c_left_out.items())
+        raise GridError(f"{file}: no cell left after the exclusions{left_out}")
     for cell in cells:  # every scenario builds, every path is long enough: before any run
         scenario_document(grid, cell)
     return grid
@@ -204,7 +221,7 @@ def load_grid(file: str | Path) -> Grid:
 def _axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
     defaults = {"controller": None, "scenario": None, "mu": SCENARIO_VALUE, "speed": SCENARIO_VALUE,
                 "mass_offset_kg": SCENARIO_VALUE, "lag_factor": 1.0, "fault": NO_FAULT,
-                "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE}
+                "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE, "ecu": DEFAULT_ECU}
     if raw is None:
         return (defaults[name],)
     values = raw if isinstance(raw, list) else [raw]
@@ -227,6 +244,12 @@ def _axis_value(file: Path, name: str, value: Any) -> Any:
         if value not in ALL_CONTROLLER_NAMES:
             raise bad(f"unknown controller; choose from {', '.join(ALL_CONTROLLER_NAMES)}")
         return value
+    if name == "ecu":
+        from hil.session import ECU_IMPLEMENTATIONS
+
+        if value not in ECU_IMPLEMENTATIONS:
+            raise bad(f"unknown ECU; choose from {', '.join(ECU_IMPLEMENTATIONS)}")
+        return value
     if name in ("scenario", "fault", "model"):
         if not isinstance(value, str) or not value:
             raise bad("must be a non-empty string")
@@ -243,6 +266,29 @@ def _axis_value(file: Path, name: str, value: Any) -> Any:
     if not number or not math.isfinite(value) or not low <= value <= high:
         raise bad(f"must be a number in [{low}, {high}]")
     return float(value)
+
+
+def c_ecu_unavailable(cell: Cell, faults: Mapping[str, Mapping[str, Any]]) -> str | None:
+    """Why the C ECU cannot run ``cell`` (the reason it is left out of the grid), or None
+    when it can (and for every Python cell). ``faults``: fault name -> ``[faults]`` table.
+
+    The rule: the C ECU has the controllers ``hil.session.C_ECU_CONTROLLERS`` (NMPC and the
+    ablations are Python only), and its loopback socketcand hub cannot carry FD, remote or
+    error frames (``studies.fault_campaign.c_not_applicable``: a fault sending such
+    look-alikes would be another fault there).
+    """
+    if cell.ecu != "c":
+        return None
+    from hil.session import C_ECU_CONTROLLERS
+
+    if cell.controller not in C_ECU_CONTROLLERS:
+        return f"the C ECU has no {cell.controller} (Python only)"
+    from studies.fault_campaign import FaultCase, c_not_applicable
+
+    if c_not_applicable(FaultCase(cell.fault, "bus", dict(faults[cell.fault]), ())) is not None:
+        return (f"fault {cell.fault!r}: FD / remote / error frames, which the C ECU's loopback "
+                "socketcand hub cannot carry")
+    return None
 
 
 def _scenario_file(file: Path, name: str) -> Path:

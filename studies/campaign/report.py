@@ -1,5 +1,9 @@
 """What a campaign writes: ``cells.csv`` (one row per cell), ``summary.md`` (pivot tables)
-and heat maps of e_Y RMSE (``heatmap_*.png``)."""
+and heat maps of e_Y RMSE (``heatmap_*.png``).
+
+The tables' columns are a controller on one ECU (:func:`column_label`): "ESO-DKMPC" on the
+Python ECU, "ESO-DKMPC (C)" on the C ECU executable, side by side; a grid with C cells
+also gets a table of each C cell against its Python twin (:func:`c_against_python`)."""
 from __future__ import annotations
 
 import csv
@@ -9,10 +13,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from studies.campaign.grid import AXES, Grid
+from studies.campaign.grid import AXES, DEFAULT_ECU, Grid
 
 #: Columns of cells.csv, in order (the axes as the issue names them, then the results).
-CSV_FIELDS = ("controller", "scenario", "mu", "speed", "mass", "lag", "fault", "model", "seed",
+CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "model", "seed",
               "e_y_rmse", "e_y_max", "heading_rmse", "completed", "end_reason",
               "step_p50_us", "step_p99_us", "overruns", "wall_s", "error", "key")
 #: cells.csv column -> Cell field.
@@ -77,21 +81,39 @@ def write_cells_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
     return path
 
 
+def column_label(controller: str, ecu: str = DEFAULT_ECU) -> str:
+    """A controller's column in the tables: its display name, "NAME (C)" on the C ECU (as
+    the "NAME (C)" rows of make bench and make timing)."""
+    from studies.report import display_name
+
+    return f"{display_name(controller)} (C)" if ecu == "c" else display_name(controller)
+
+
+def _column(row: dict[str, Any]) -> str:
+    return column_label(row["controller"], row.get("ecu", DEFAULT_ECU))
+
+
+def grid_columns(grid: Grid) -> list[str]:
+    """The tables' columns in grid order: each controller, its C ECU column beside it."""
+    return list(dict.fromkeys(column_label(c.controller, c.ecu) for c in grid.cells))
+
+
 def _sort_key(value: Any) -> tuple:
     return (0, value, "") if isinstance(value, (int, float)) else (1, 0.0, str(value))
 
 
-def pivot(rows: Sequence[dict[str, Any]], axis: str, controllers: Sequence[str],
+def pivot(rows: Sequence[dict[str, Any]], axis: str, columns: Sequence[str],
           statistic: Callable[[list[dict[str, Any]]], str]) -> list[str]:
-    """A Markdown table: one row per value of ``axis``, one column per controller."""
+    """A Markdown table: one row per value of ``axis``, one column per controller and ECU
+    (:func:`column_label`)."""
     groups: dict[tuple[Any, str], list[dict[str, Any]]] = defaultdict(list)
     for row in rows:
-        groups[(row[axis], row["controller"])].append(row)
+        groups[(row[axis], _column(row))].append(row)
     values = sorted({row[axis] for row in rows}, key=_sort_key)
-    lines = [f"| {_TITLES[axis]} | " + " | ".join(controllers) + " |",
-             "|---|" + "---|" * len(controllers)]
+    lines = [f"| {_TITLES[axis]} | " + " | ".join(columns) + " |",
+             "|---|" + "---|" * len(columns)]
     for value in values:
-        cells = [statistic(groups.get((value, c), [])) for c in controllers]
+        cells = [statistic(groups.get((value, c), [])) for c in columns]
         lines.append(f"| {_text(value, 0)} | " + " | ".join(cells) + " |")
     return lines
 
@@ -105,6 +127,12 @@ def _mean_rmse(rows: list[dict[str, Any]]) -> str:
     return text if len(done) == len(rows) else f"{text} ({len(done)}/{len(rows)})"
 
 
+def _median(rows: Sequence[dict[str, Any]], field: str) -> float | None:
+    """The (upper) median of ``field`` over the rows where it is a finite number."""
+    values = sorted(v for v in (_float(r.get(field)) for r in rows) if math.isfinite(v))
+    return values[len(values) // 2] if values else None
+
+
 def _completed(rows: list[dict[str, Any]]) -> str:
     return f"{sum(1 for r in rows if r.get('completed'))}/{len(rows)}" if rows else "-"
 
@@ -113,61 +141,101 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
                      executor: str, computed: int, cached: int, machine: str,
                      interrupted: bool = False) -> str:
     """``summary.md``: the run's facts, per-controller totals and one pivot per axis."""
-    controllers = list(dict.fromkeys(c.controller for c in grid.cells))
+    columns = grid_columns(grid)
     lines = [f"# Campaign `{grid.name}`", "", f"`{command}`", ""]
     if grid.description:
         lines += [grid.description, ""]
     lines += [
         f"- Grid: `{_shown(grid.source)}`, "
         f"{len(grid.cells)} cells ({grid.excluded} excluded, {grid.not_applicable} not applicable: "
-        "the model axis on a controller without a Koopman model).",
+        "the model axis on a controller without a Koopman model"
+        + "".join(f"; {n} C cells left out: {why}" for why, n in grid.c_left_out.items()) + ").",
         f"- This run: {computed} cells computed, {cached} from the cache, {len(rows)} of "
         f"{len(grid.cells)} finished{' (interrupted)' if interrupted else ''}; wall time "
         f"{wall_s:.0f} s on {executor}.",
         f"- Machine: {machine}.",
-        "- Each cell: one lockstep run on the virtual bus with the ECU in-process "
-        "(`hil.session.run_hil`, as `python -m hil run --faults`). Completed: ran to the end with "
-        "the ECU ACTIVE and |e_Y| <= 2 m throughout.",
+        "- Each cell: one lockstep run on the virtual bus (`hil.session.run_hil`, as "
+        "`python -m hil run --faults`): the Python ECU in-process; \"NAME (C)\" the C ECU "
+        "executable `build/firmware/ecu` as a process on the run's own loopback socketcand hub "
+        "(`--ecu c`). Completed: ran to the end with the ECU ACTIVE and |e_Y| <= 2 m throughout.",
         "",
         "## Per controller", "",
         "| controller | completed | e_Y RMSE mean (cm) | e_Y max worst (cm) | heading RMSE mean (mrad) "
-        "| step p50 / p99 median (ms) | errors |",
+        "| step p50 / p99 median (us) | errors |",
         "|---|---|---|---|---|---|---|",
     ]
-    for controller in controllers:
-        mine = [r for r in rows if r["controller"] == controller]
+    for column in columns:
+        mine = [r for r in rows if _column(r) == column]
         done = [r for r in mine if r.get("completed")]
         e_y = [_float(r["e_y_rmse"]) for r in done]
         e_max = [_float(r["e_y_max"]) for r in mine if math.isfinite(_float(r.get("e_y_max")))]
         head = [_float(r["heading_rmse"]) for r in done]
-        p50 = sorted(_float(r.get("step_p50_us")) for r in mine if math.isfinite(_float(r.get("step_p50_us"))))
-        p99 = sorted(_float(r.get("step_p99_us")) for r in mine if math.isfinite(_float(r.get("step_p99_us"))))
-        columns = [controller, f"{len(done)}/{len(mine)}",
-                   f"{sum(e_y) / len(e_y) * 100:.1f}" if e_y else "-",
-                   f"{max(e_max) * 100:.1f}" if e_max else "-",
-                   f"{sum(head) / len(head) * 1000:.1f}" if head else "-",
-                   f"{p50[len(p50) // 2] / 1000:.2f} / {p99[len(p99) // 2] / 1000:.2f}" if p50 else "-",
-                   str(sum(1 for r in mine if r.get("error")))]
-        lines.append("| " + " | ".join(columns) + " |")
+        p50, p99 = _median(mine, "step_p50_us"), _median(mine, "step_p99_us")
+        fields = [column, f"{len(done)}/{len(mine)}",
+                  f"{sum(e_y) / len(e_y) * 100:.1f}" if e_y else "-",
+                  f"{max(e_max) * 100:.1f}" if e_max else "-",
+                  f"{sum(head) / len(head) * 1000:.1f}" if head else "-",
+                  f"{p50:.0f} / {p99:.0f}" if p50 is not None else "-",
+                  str(sum(1 for r in mine if r.get("error")))]
+        lines.append("| " + " | ".join(fields) + " |")
+    lines += c_against_python(rows)
     for axis in PIVOT_AXES:
         if len({getattr(c, axis) for c in grid.cells}) < 2:
             continue
         lines += ["", f"## e_Y RMSE (cm) by {_TITLES[axis]}", "",
                   "Mean over the other axes, completed cells only; (k/n) when only k of the n "
                   "cells completed.", ""]
-        lines += pivot(rows, axis, controllers, _mean_rmse)
+        lines += pivot(rows, axis, columns, _mean_rmse)
         lines += ["", f"Completed cells by {_TITLES[axis]}:", ""]
-        lines += pivot(rows, axis, controllers, _completed)
+        lines += pivot(rows, axis, columns, _completed)
     failures = [r for r in rows if not r.get("completed")]
     if failures:
         lines += ["", "## Cells not completed", "", "| controller | cell | end | error |", "|---|---|---|---|"]
         for r in failures[:60]:
-            cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r)
+            cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r and a != "ecu")
             error = str(r.get("error", "")).replace("|", "/").replace("\n", " ")[:160]
-            lines.append(f"| {r['controller']} | {cell} | {r.get('end_reason', '')} | {error} |")
+            lines.append(f"| {_column(r)} | {cell} | {r.get('end_reason', '')} | {error} |")
         if len(failures) > 60:
             lines.append(f"| ... | {len(failures) - 60} more in cells.csv | | |")
     return "\n".join(lines) + "\n"
+
+
+def c_against_python(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """Markdown lines: each C cell against the Python cell of the same conditions (every
+    axis but ``ecu`` equal), per controller; no lines without such pairs.
+
+    Columns: pairs; pairs with the same outcome (completed or not, and the end reason);
+    pairs both completed; over those, the largest and the mean of C's e_Y RMSE minus
+    Python's (mm); the median of the cells' step p99 (us) on each ECU.
+    """
+    others = [a for a in AXES if a != "ecu"]
+    python = {tuple(r[a] for a in others): r for r in rows if r.get("ecu", DEFAULT_ECU) == DEFAULT_ECU}
+    pairs: dict[str, list[tuple[dict[str, Any], dict[str, Any]]]] = defaultdict(list)
+    for row in rows:
+        twin = python.get(tuple(row[a] for a in others))
+        if row.get("ecu") == "c" and twin is not None:
+            pairs[row["controller"]].append((twin, row))
+    if not pairs:
+        return []
+    lines = ["", "## C ECU against the Python ECU", "",
+             "Each C cell beside the Python cell of the same conditions. Same outcome: both "
+             "completed, or both ended for the same reason. e_Y RMSE difference: C minus Python, "
+             "over the pairs that both completed. Step p99: the median over the cells of each "
+             "ECU's control task p99 (CTRL_DIAG, wall clock of a shared worker).", "",
+             "| controller | pairs | same outcome | both completed | max abs e_Y RMSE difference (mm) "
+             "| mean e_Y RMSE difference (mm) | step p99 median Python / C (us) |",
+             "|---|---|---|---|---|---|---|"]
+    for controller, matched in pairs.items():
+        same = sum(1 for p, c in matched if (p.get("completed"), p.get("end_reason"))
+                   == (c.get("completed"), c.get("end_reason")))
+        both = [(p, c) for p, c in matched if p.get("completed") and c.get("completed")]
+        deltas = [(_float(c["e_y_rmse"]) - _float(p["e_y_rmse"])) * 1000 for p, c in both]
+        p99 = [_median(side, "step_p99_us") for side in ([p for p, _ in matched], [c for _, c in matched])]
+        step = " / ".join("-" if v is None else f"{v:.0f}" for v in p99)
+        lines.append(f"| {column_label(controller)} | {len(matched)} | {same} | {len(both)} | "
+                     + (f"{max(abs(d) for d in deltas):.2f} | {sum(deltas) / len(deltas):+.2f}"
+                        if deltas else "- | -") + f" | {step} |")
+    return lines
 
 
 def _shown(path: Path) -> str:
@@ -195,8 +263,10 @@ def heatmap_axes(grid: Grid) -> tuple[str, str]:
 
 def write_heatmaps(grid: Grid, rows: Sequence[dict[str, Any]], out_dir: Path) -> list[Path]:
     """``heatmap_e_y_rmse.png``: mean e_Y RMSE (cm) over the two :func:`heatmap_axes`, one
-    panel per controller (or one panel with the controllers as an axis); cells that did not
-    complete are grey with a cross."""
+    panel per controller and ECU: the Python ECU's panels in the first row, the C ECU's
+    below them, each under its controller (a controller the C ECU does not have leaves its
+    place empty); or one panel with the controller columns (:func:`column_label`) as an
+    axis. Cells that did not complete are grey with a cross."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -205,42 +275,56 @@ def write_heatmaps(grid: Grid, rows: Sequence[dict[str, Any]], out_dir: Path) ->
 
     row_axis, col_axis = heatmap_axes(grid)
     controllers = list(dict.fromkeys(c.controller for c in grid.cells))
-    panels = [None] if col_axis == "controller" else controllers
+    ecus = list(dict.fromkeys(c.ecu for c in grid.cells))
+    present = {(c.controller, c.ecu) for c in grid.cells}
+    # panel layout (ECU row, controller column) -> (controller, ecu), or None: one panel
+    layout = ({(0, 0): None} if col_axis == "controller" else
+              {(i, j): (controller, ecu) for i, ecu in enumerate(ecus)
+               for j, controller in enumerate(controllers) if (controller, ecu) in present})
     row_values = sorted({r[row_axis] for r in rows}, key=_sort_key)
-    col_values = (controllers if col_axis == "controller"
+    col_values = (grid_columns(grid) if col_axis == "controller"
                   else sorted({r[col_axis] for r in rows}, key=_sort_key))
     if not rows or not row_values or not col_values:
         return []
-    grids = []
-    for panel in panels:
+    grids = {}
+    for place, panel in layout.items():
         values = np.full((len(row_values), len(col_values)), np.nan)
         for i, rv in enumerate(row_values):
             for j, cv in enumerate(col_values):
                 group = [r for r in rows if r[row_axis] == rv and
-                         (r["controller"] == cv if col_axis == "controller" else r[col_axis] == cv)
-                         and (panel is None or r["controller"] == panel)]
+                         (_column(r) == cv if col_axis == "controller" else r[col_axis] == cv)
+                         and (panel is None or (r["controller"], r.get("ecu", DEFAULT_ECU)) == panel)]
                 done = [_float(r["e_y_rmse"]) * 100 for r in group if r.get("completed")]
                 if group and len(done) == len(group):
                     values[i, j] = float(np.mean(done))
-        grids.append(values)
-    finite = [v for g in grids for v in g[np.isfinite(g)]]
+        grids[place] = values
+    finite = [v for g in grids.values() for v in g[np.isfinite(g)]]
     vmax = max(finite) if finite else 1.0
-    fig, axes = plt.subplots(1, len(panels), figsize=(2.2 + 2.6 * len(panels), 3.4), squeeze=False)
-    for ax, panel, values in zip(axes[0], panels, grids):
+    n_rows = 1 + max(i for i, _ in layout)
+    n_cols = 1 + max(j for _, j in layout)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.2 + 2.6 * n_cols, 0.4 + 3.0 * n_rows),
+                             squeeze=False)
+    for (i, j), ax in np.ndenumerate(axes):
+        if (i, j) not in layout:
+            ax.axis("off")
+            ax.text(0.5, 0.5, f"no {column_label(controllers[j], ecus[i])} cells", ha="center",
+                    va="center", fontsize=8, transform=ax.transAxes)
+            continue
+        values, panel = grids[(i, j)], layout[(i, j)]
         image = ax.imshow(values, cmap="viridis", vmin=0.0, vmax=vmax, origin="lower", aspect="auto")
-        for i in range(len(row_values)):
-            for j in range(len(col_values)):
-                text = "x" if not np.isfinite(values[i, j]) else f"{values[i, j]:.1f}"
-                ax.text(j, i, text, ha="center", va="center", fontsize=7,
-                        color="white" if not np.isfinite(values[i, j]) or values[i, j] < vmax / 2 else "black")
+        for a in range(len(row_values)):
+            for b in range(len(col_values)):
+                text = "x" if not np.isfinite(values[a, b]) else f"{values[a, b]:.1f}"
+                ax.text(b, a, text, ha="center", va="center", fontsize=7,
+                        color="white" if not np.isfinite(values[a, b]) or values[a, b] < vmax / 2 else "black")
         ax.set_xticks(range(len(col_values)), [_text(v, 0) for v in col_values], fontsize=7,
                       rotation=30 if col_axis in ("controller", "scenario", "fault") else 0)
         ax.set_yticks(range(len(row_values)), [_text(v, 0) for v in row_values], fontsize=7)
         ax.set_xlabel(_TITLES.get(col_axis, col_axis), fontsize=8)
         ax.set_ylabel(_TITLES.get(row_axis, row_axis), fontsize=8)
         ax.set_facecolor("0.85")
-        ax.set_title(panel or "all controllers", fontsize=9)
-    fig.colorbar(image, ax=axes[0].tolist(), label="e_Y RMSE (cm), mean over the other axes")
+        ax.set_title("all controllers" if panel is None else column_label(*panel), fontsize=9)
+    fig.colorbar(image, ax=axes.ravel().tolist(), label="e_Y RMSE (cm), mean over the other axes")
     fig.suptitle(f"Campaign {grid.name}: e_Y RMSE (x: not every cell completed)", fontsize=9)
     path = out_dir / "heatmap_e_y_rmse.png"
     fig.savefig(path, dpi=110, bbox_inches="tight")

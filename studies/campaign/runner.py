@@ -5,7 +5,10 @@ Cache: ``DIR/cache/<key>.json`` per finished cell. The key (:func:`cell_key`) ha
 cell's values, its scenario file as the worker gets it, the digest of its path file and
 model artefact, and the code version (:func:`code_version`: the source files of the cell
 runner and of every project module it imports, transitively, plus the tuning, vehicle, DBC
-and default model files). A re-run into the same DIR computes only the cells without a
+and default model files). A C ECU cell's key also hashes the executable and its data file
+(:data:`C_ECU_FILES`: what ``make firmware`` built); a Python cell's key material is what
+it was before the ``ecu`` axis existed (no ``ecu`` entry), so its key does not depend on
+whether the grid has the axis. A re-run into the same DIR computes only the cells without a
 cached result; editing a source file or an artefact recomputes what it could change.
 A cell whose run raised is cached with its error (the same inputs fail the same way); a
 cell whose worker died (Ray) is recorded in the rows but not cached, so the next run
@@ -26,10 +29,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from firmware_sim.native import DEFAULT_DATA
 from hil.errors import HilError
+from hil.session import C_ECU_EXECUTABLE
 from studies.campaign.cell import ROOT, CellJob
 from studies.campaign.executors import Executor
-from studies.campaign.grid import Cell, Grid, effective_values, model_file, to_toml
+from studies.campaign.grid import DEFAULT_ECU, Cell, Grid, effective_values, model_file, to_toml
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
@@ -39,6 +44,10 @@ DATA_FILES = ("controller/tuning.toml", "models/vehicle.toml", "can_defs/vehicle
               "models/artifacts/dmdc.npz", "models/artifacts/dmdc.json")
 #: Modules whose sources (and their imports') make a cell's result.
 CELL_MODULES = ("studies.campaign.cell", "hil.session", "firmware_sim.ecu", "controller.registry")
+#: What a C ECU cell runs besides the Python side: ``make firmware``'s executable
+#: (statically linked, the generated QPs and codecs inside), its data file (tuning, Koopman
+#: model, bicycle) and the tool that converts another model artefact to such a file.
+C_ECU_FILES = (C_ECU_EXECUTABLE, DEFAULT_DATA, ROOT / "firmware" / "tools" / "ecu_data.py")
 
 
 class CampaignError(HilError):
@@ -70,8 +79,22 @@ def _repo_relative(path: Path) -> str:
         return str(path)
 
 
+def check_c_ecu_built(grid: Grid) -> None:
+    """Before any cell runs: the C ECU's build exists when the grid has C cells.
+
+    Raises:
+        CampaignError: naming the missing file and ``make firmware``.
+    """
+    c_cells = sum(1 for cell in grid.cells if cell.ecu == "c")
+    missing = [path for path in C_ECU_FILES if not path.is_file()]
+    if c_cells and missing:
+        raise CampaignError(f"{grid.source}: axes.ecu has \"c\" ({c_cells} of the cells) but the "
+                            f"C ECU's {missing[0]} is missing: run `make firmware` first")
+
+
 def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
-    """The worker's job for ``cell``, with its cache key."""
+    """The worker's job for ``cell``, with its cache key (a C cell: after
+    :func:`check_c_ecu_built`)."""
     document = grid.scenario_document(cell)
     path_file = Path(document["path"]["file"])
     document["path"]["file"] = _repo_relative(path_file)
@@ -81,10 +104,17 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
     digests = {"path": _digest(path_file)}
     if artefact is not None:
         digests.update(model=_digest(artefact), model_json=_digest(artefact.with_suffix(".json")))
-    material = json.dumps({"version": CACHE_VERSION, "cell": cell.as_dict(), "scenario": text,
+    values = cell.as_dict()
+    if cell.ecu == DEFAULT_ECU:
+        # the key material of a Python cell as before the ecu axis: its cached results stay
+        del values["ecu"]
+    else:
+        digests.update({path.name: _digest(path) for path in C_ECU_FILES})
+    material = json.dumps({"version": CACHE_VERSION, "cell": values, "scenario": text,
                            "digests": digests, "code": version}, sort_keys=True)
     key = hashlib.sha256(material.encode()).hexdigest()[:24]
-    return CellJob(key=key, controller=cell.controller, scenario_toml=text, model=model)
+    return CellJob(key=key, controller=cell.controller, scenario_toml=text, model=model,
+                   ecu=cell.ecu)
 
 
 def cell_key(grid: Grid, cell: Cell, version: str | None = None) -> str:
@@ -139,6 +169,7 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
     from tqdm import tqdm
 
     started = time.monotonic()
+    check_c_ecu_built(grid)
     cache = Cache(out_dir)
     version = code_version()
     jobs = [cell_job(grid, cell, version) for cell in grid.cells]
