@@ -3,7 +3,7 @@
  * socketcand TCP protocol. The only file with OS calls; the rest of the firmware is C11
  * with libc's stdio and libm.
  */
-#define _GNU_SOURCE /* sched_setaffinity */
+#define _GNU_SOURCE /* sched_setaffinity, ppoll */
 
 #include <arpa/inet.h>
 #include <errno.h>
@@ -91,10 +91,14 @@ static int can_socketcand; /* 1: socketcand's text protocol on a TCP stream */
 static char stream_buffer[8192];
 static size_t stream_used;
 
+/* ppoll, not poll: poll's timeout is whole milliseconds, rounded up, so a wait for the
+ * next release woke up to 1 ms late (release jitter p50 0.29 ms, p99 0.80 ms in make
+ * timing); ppoll takes the remaining time to the nanosecond. */
 static int wait_readable(int64_t timeout_ns) {
   struct pollfd pfd = {can_fd, POLLIN, 0};
-  int ms = timeout_ns <= 0 ? 0 : (int)((timeout_ns + 999999) / 1000000);
-  int ready = poll(&pfd, 1, ms);
+  if (timeout_ns < 0) timeout_ns = 0;
+  struct timespec timeout = {(time_t)(timeout_ns / 1000000000), (long)(timeout_ns % 1000000000)};
+  int ready = ppoll(&pfd, 1, &timeout, NULL);
   if (ready < 0) return errno == EINTR ? 0 : -1;
   return ready;
 }
