@@ -279,3 +279,26 @@ def test_stress_load_runs_one_busy_loop_per_cpu_and_stops():
         ticks = int(open(f"/proc/{pid}/stat").read().split()[13])  # utime, clock ticks
     print("busy loop user time after 0.3 s:", ticks, "ticks;", load.pinned)
     assert ticks > 0 and not load._processes
+
+
+def test_cpu_latency_request_writes_the_latency_and_holds_it_while_open(tmp_path):
+    from studies.timing.cpu_latency import CpuLatencyRequest
+
+    device = tmp_path / "cpu_dma_latency"
+    device.write_bytes(b"")
+    with CpuLatencyRequest(7, device=device) as request:
+        assert request.held
+        assert "held at 7 us" in request.describe()
+        assert device.read_bytes() == (7).to_bytes(4, "little", signed=True)
+    assert not request.held  # closing the file drops the request
+
+
+def test_cpu_latency_request_reports_an_unusable_device_and_does_not_raise(tmp_path):
+    from studies.timing.cpu_latency import CpuLatencyRequest
+
+    with CpuLatencyRequest(0, device=tmp_path / "missing" / "cpu_dma_latency") as request:
+        assert not request.held
+        assert request.describe().startswith("not held (")
+        assert "missing" in request.describe()
+    with pytest.raises(ValueError, match="must be >= 0 us, got -1"):
+        CpuLatencyRequest(-1)

@@ -3,7 +3,8 @@
     python -m studies.timing.bench [--seconds 120] [--nmpc-seconds 30]
         [--controllers eso-dkmpc,dkmpc,lmpc,nmpc] [--c-controllers eso-dkmpc,dkmpc,lmpc]
         [--conditions idle,stress]
-        [--scheduling rt|normal] [--out results/timing.md] [--work build/timing]
+        [--scheduling rt|normal] [--cpu-latency hold|default]
+        [--out results/timing.md] [--work build/timing]
 
 For each load condition (``idle``; ``stress``: a busy loop pinned to each core, see
 `studies.timing.stress`) and each controller, `studies.timing.runner.run_timing` runs the ECU
@@ -12,7 +13,8 @@ hub, 40 Hz control for ``--seconds`` (default ``TIMING_SECONDS`` from the enviro
 else 120 s); NMPC for ``--nmpc-seconds`` only, as it does not keep up with 25 ms.
 Then the C ECU executable (issue 18, ``make firmware``) with each of ``--c-controllers``
 under the same conditions and options, rows "NAME (C)" (``--c-controllers none``: left out).
-Writes the Markdown report, one histogram PNG per condition (``<out stem>_<condition>.png``)
+The whole benchmark holds a CPU latency request of 0 us (`studies.timing.cpu_latency`, as
+cyclictest does) unless ``--cpu-latency default``. Writes the Markdown report, one histogram PNG per condition (``<out stem>_<condition>.png``)
 and ``summary.json`` plus each run's raw files under ``--work``.
 """
 from __future__ import annotations
@@ -26,9 +28,11 @@ import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from contextlib import nullcontext  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from hil.errors import HilError  # noqa: E402
+from studies.timing.cpu_latency import CpuLatencyRequest  # noqa: E402
 from studies.timing.report import (SETTLE_S, RunFigures, as_json, goal_lines,  # noqa: E402
                                percentile_table, plot_histograms, run_figures, summary_table)
 from studies.timing.runner import Placement, ecu_label, run_timing  # noqa: E402
@@ -81,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scheduling", choices=("rt", "normal"), default="rt",
                         help="rt: ECU and plant pinned to separate cores under SCHED_FIFO "
                              "(default); normal: no pinning, SCHED_OTHER (for comparison)")
+    parser.add_argument("--cpu-latency", choices=("hold", "default"), default="hold",
+                        help="hold: a CPU latency request of 0 us (/dev/cpu_dma_latency, as "
+                             "cyclictest) for the whole benchmark, so idle cores poll instead of "
+                             "halting (default); default: the machine's idle states")
     parser.add_argument("--out", type=Path, default=Path("results/timing.md"))
     parser.add_argument("--work", type=Path, default=Path("build/timing"))
     args = parser.parse_args(argv)
@@ -100,10 +108,33 @@ def main(argv: list[str] | None = None) -> int:
     loads: dict[str, str] = {}
     stress_pinning: list[str] = []
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    with CpuLatencyRequest(0) if args.cpu_latency == "hold" else nullcontext() as latency:
+        idle_states = latency.describe() if latency else "the machine's default (not requested)"
+        status = _run_conditions(args, conditions, controllers, c_controllers, seconds, placement,
+                                 cpus, figures, loads, stress_pinning)
+    if status:
+        return status
+    pngs = [plot_histograms(figures, condition,
+                            args.out.with_name(f"{args.out.stem}_{condition}.png"))
+            for condition in conditions]
+    args.work.mkdir(parents=True, exist_ok=True)
+    (args.work / "summary.json").write_text(json.dumps(as_json(figures), indent=1) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(_report(figures, seconds, args, started, loads,
+                                          stress_pinning, pngs, idle_states)) + "\n")
+    print(f"wrote {args.out}, {', '.join(map(str, pngs))}")
+    return 0
+
+
+def _run_conditions(args: argparse.Namespace, conditions: list[str], controllers: list[str],
+                    c_controllers: list[str], seconds: float, placement: Placement,
+                    cpus: tuple[int, ...], figures: list[RunFigures], loads: dict[str, str],
+                    stress_pinning: list[str]) -> int:
+    """Every run of every condition, appended to ``figures``; 1 after a failed run."""
     for condition in conditions:
         load_before = os.getloadavg()
         with StressLoad(cpus if condition == "stress" else ()) as stress:
-            stress_pinning = stress_pinning or stress.pinned
+            stress_pinning[:] = stress_pinning or stress.pinned
             for controller, ecu in [*((c, "python") for c in controllers), *((c, "c") for c in c_controllers)]:
                 run_seconds = min(seconds, args.nmpc_seconds) if controller == "nmpc" else seconds
                 label = ecu_label(controller, ecu)
@@ -119,25 +150,18 @@ def main(argv: list[str] | None = None) -> int:
         load_after = os.getloadavg()
         loads[condition] = (f"load average (1 min) {load_before[0]:.2f} before, "
                             f"{load_after[0]:.2f} after")
-    pngs = [plot_histograms(figures, condition,
-                            args.out.with_name(f"{args.out.stem}_{condition}.png"))
-            for condition in conditions]
-    args.work.mkdir(parents=True, exist_ok=True)
-    (args.work / "summary.json").write_text(json.dumps(as_json(figures), indent=1) + "\n")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(_report(figures, seconds, args, started, loads,
-                                          stress_pinning, pngs)) + "\n")
-    print(f"wrote {args.out}, {', '.join(map(str, pngs))}")
     return 0
 
 
 def _report(figures: list[RunFigures], seconds: float, args: argparse.Namespace, started: str,
-            loads: dict[str, str], stress_pinning: list[str], pngs: list[Path]) -> list[str]:
+            loads: dict[str, str], stress_pinning: list[str], pngs: list[Path],
+            idle_states: str) -> list[str]:
     scheduling = figures[0].scheduling if figures else {}
     lines = [
         "# ECU timing (issue 9)", "",
         f"`python -m studies.timing.bench --seconds {seconds:g} --nmpc-seconds {args.nmpc_seconds:g}"
-        f"{'' if args.c_controllers == ','.join(C_CONTROLLERS) else f' --c-controllers {args.c_controllers}'}` "
+        f"{'' if args.c_controllers == ','.join(C_CONTROLLERS) else f' --c-controllers {args.c_controllers}'}"
+        f"{'' if args.cpu_latency == 'hold' else f' --cpu-latency {args.cpu_latency}'}` "
         f"(`make timing`), started {started} on `{platform.node()}` "
         f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs).", "",
         "- Transport: python-can's `socketcand` interface (TCP_NODELAY) to `hil.timing.hub`, a "
@@ -145,6 +169,9 @@ def _report(figures: list[RunFigures], seconds: float, args: argparse.Namespace,
         "SocketCAN vcan0). Each frame crosses two TCP loopback hops (sender -> hub -> receiver).",
         f"- Scheduling obtained: ECU {scheduling.get('ecu', '?')}; plant "
         f"{scheduling.get('plant', '?')}; hub {scheduling.get('hub', '?')}.",
+        f"- CPU idle states: latency request {idle_states} for all runs alike, so an idle core "
+        "polls instead of halting its vCPU (`studies/timing/cpu_latency.py`; "
+        "`--cpu-latency default` leaves the idle states as they are).",
         "- Load conditions: `idle` = nothing of ours besides the run (other jobs on the shared "
         "machine may run: see the load averages); `stress` = one busy-loop process per core "
         f"(`{BUSY_LOOP.strip().splitlines()[-1].strip()}` forever, SCHED_OTHER nice 0, "
