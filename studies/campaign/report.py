@@ -302,8 +302,9 @@ def write_heatmaps(grid: Grid, rows: Sequence[dict[str, Any]], out_dir: Path) ->
     vmax = max(finite) if finite else 1.0
     n_rows = 1 + max(i for i, _ in layout)
     n_cols = 1 + max(j for _, j in layout)
-    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.2 + 2.6 * n_cols, 0.4 + 3.0 * n_rows),
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.2 + 2.6 * n_cols, 0.4 + 3.4 * n_rows),
                              squeeze=False)
+    fig.subplots_adjust(hspace=0.45, wspace=0.3)
     for (i, j), ax in np.ndenumerate(axes):
         if (i, j) not in layout:
             ax.axis("off")
@@ -321,7 +322,8 @@ def write_heatmaps(grid: Grid, rows: Sequence[dict[str, Any]], out_dir: Path) ->
                       rotation=30 if col_axis in ("controller", "scenario", "fault") else 0)
         ax.set_yticks(range(len(row_values)), [_text(v, 0) for v in row_values], fontsize=7)
         ax.set_xlabel(_TITLES.get(col_axis, col_axis), fontsize=8)
-        ax.set_ylabel(_TITLES.get(row_axis, row_axis), fontsize=8)
+        if j == 0:  # the panels of a row share the rows' axis
+            ax.set_ylabel(_TITLES.get(row_axis, row_axis), fontsize=8)
         ax.set_facecolor("0.85")
         ax.set_title("all controllers" if panel is None else column_label(*panel), fontsize=9)
     fig.colorbar(image, ax=axes.ravel().tolist(), label="e_Y RMSE (cm), mean over the other axes")
