@@ -169,46 +169,53 @@ def test_c_ecu_in_real_time_tracks_as_the_python_ecu(native, tmp_path: Path) -> 
     assert abs(rmse_c - results["python"][2]) <= 0.005
 
 
+def _drive(scenario, port: int, seconds: float) -> list:
+    """Lockstep plant, planner and time master on the hub at ``port`` for ``seconds``;
+    the ECU's STEER_TORQUE_CMD frames."""
+    from hil.planner_node import PlannerNode
+    from hil.plant_node import PlantNode
+    from hil.recorder import EcuFrameMonitor
+    from hil.time_master import LockstepMaster
+
+    bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=port, tcp_tune=True)
+    try:
+        time.sleep(0.2)
+        monitor = EcuFrameMonitor()
+        master = LockstepMaster(bus, [PlantNode(scenario), PlannerNode(scenario), monitor],
+                                handshake_timeout_s=30.0, ack_timeout_s=10.0)
+        master.run(seconds)
+        return monitor.commands
+    finally:
+        bus.shutdown()
+
+
+def _wait_for(log: Path, text: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while text not in log.read_text() and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
 def test_lost_bus_is_reopened(native, tmp_path: Path) -> None:
     """The bus goes away (the hub closes) and comes back on the same port: the C ECU says
     so once, reopens it within about a second, and answers a new handshake (contract rev. 2,
     "lost bus")."""
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
     from hil.scenario import load_scenario
-    from hil.time_master import LockstepMaster
     from hil.timing.hub import LoopbackCanHub
 
     scenario = load_scenario("dlc_smoke")
     hub = LoopbackCanHub(port=0).start()
     port = hub.port
     log = tmp_path / "ecu.log"
-
-    def drive(seconds: float) -> list:
-        bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=port, tcp_tune=True)
-        try:
-            time.sleep(0.2)
-            monitor = EcuFrameMonitor()
-            master = LockstepMaster(bus, [PlantNode(scenario), PlannerNode(scenario), monitor],
-                                    handshake_timeout_s=30.0, ack_timeout_s=10.0)
-            master.run(seconds)
-            return monitor.commands
-        finally:
-            bus.shutdown()
-
     with log.open("w") as output:
         command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU)
         ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
         try:
-            first = drive(0.5)
+            first = _drive(scenario, port, 0.5)
             hub.close()
             time.sleep(0.5)
             hub = LoopbackCanHub(port=port).start()
-            deadline = time.monotonic() + 10.0
-            while "bus reopened" not in log.read_text() and time.monotonic() < deadline:
-                time.sleep(0.1)
-            second = drive(0.5)
+            _wait_for(log, "bus reopened")
+            second = _drive(scenario, port, 0.5)
         finally:
             ecu.send_signal(signal.SIGTERM)
             status = ecu.wait(timeout=20)
@@ -217,6 +224,104 @@ def test_lost_bus_is_reopened(native, tmp_path: Path) -> None:
     assert status == 0, output_text
     assert output_text.count("bus lost") == 1 and "bus reopened after it was lost" in output_text
     assert len(first) == len(second) == 20  # 0.5 s of 25 ms control tasks, each run
+
+
+#: An LD_PRELOAD shim: once the file named by ECU_TEST_RECV_FAIL_FILE exists, recv() fails
+#: with EIO from its next call for the number of milliseconds the file holds, then removes
+#: the file: a receive failure of a chosen length that starts when the ECU receives.
+_RECV_FAILURE_SHIM = r"""
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <errno.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <sys/socket.h>
+#include <time.h>
+#include <unistd.h>
+static double now_ms(void) {
+  struct timespec t;
+  clock_gettime(CLOCK_MONOTONIC, &t);
+  return 1e3 * (double)t.tv_sec + 1e-6 * (double)t.tv_nsec;
+}
+ssize_t recv(int fd, void *buf, size_t len, int flags) {
+  static ssize_t (*real)(int, void *, size_t, int);
+  static double until = -1.0;
+  if (!real) real = (ssize_t (*)(int, void *, size_t, int))dlsym(RTLD_NEXT, "recv");
+  const char *flag = getenv("ECU_TEST_RECV_FAIL_FILE");
+  if (until < 0 && flag) {
+    FILE *file = fopen(flag, "r");
+    double duration_ms;
+    if (file) {
+      if (fscanf(file, "%lf", &duration_ms) == 1) until = now_ms() + duration_ms;
+      fclose(file);
+    }
+  }
+  if (until >= 0 && now_ms() < until) {
+    errno = EIO;
+    return -1;
+  }
+  if (until >= 0) {
+    until = -1.0;
+    unlink(flag);
+  }
+  return real(fd, buf, len, flags);
+}
+"""
+
+
+def test_receive_errors_are_a_lost_bus_only_once_they_persist_for_100_ms(native, tmp_path: Path) -> None:
+    """Contract rev. 2, "lost bus": receive errors that persist for 100 ms are a lost bus,
+    a short burst is not. recv() fails (EIO) for 40 ms as the ECU starts dlc_smoke in
+    lockstep: it warns once and every command still comes; then for 400 ms while a node
+    keeps sending: the bus is lost once ("receive errors for 100 ms"), reopened, and a new
+    run works."""
+    from hil.scenario import load_scenario
+    from hil.timing.hub import LoopbackCanHub
+
+    shim = tmp_path / "recv_failure.so"
+    source = tmp_path / "recv_failure.c"
+    source.write_text(_RECV_FAILURE_SHIM)
+    subprocess.run(["gcc", "-shared", "-fPIC", "-O1", "-o", str(shim), str(source), "-ldl"], check=True)
+    failing = tmp_path / "failing"
+    scenario = load_scenario("dlc_smoke")
+    hub = LoopbackCanHub(port=0).start()
+    port = hub.port
+    log = tmp_path / "ecu.log"
+    with log.open("w") as output:
+        command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU,
+                                           extra=("--log-level", "info"))
+        # after the sanitizer runtime where make firmware-asan preloads one
+        environment["LD_PRELOAD"] = f"{environment.get('LD_PRELOAD', '')} {shim}".strip()
+        environment["ECU_TEST_RECV_FAIL_FILE"] = str(failing)
+        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
+        try:
+            _wait_for(log, "ready: controller")  # the bus is open
+            failing.write_text("40")
+            first = _drive(scenario, port, 4.0)
+            assert not failing.exists(), "the burst did not happen"
+            assert "bus lost" not in log.read_text()
+            sender = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=port, tcp_tune=True)
+            try:
+                failing.write_text("400")
+                end = time.monotonic() + 1.0
+                while time.monotonic() < end:  # traffic, so that the ECU keeps receiving
+                    sender.send(can.Message(arbitration_id=0x7FF, data=b"\0", is_extended_id=False))
+                    time.sleep(0.01)
+            finally:
+                sender.shutdown()
+            _wait_for(log, "bus reopened")
+            second = _drive(scenario, port, 0.5)
+        finally:
+            ecu.send_signal(signal.SIGTERM)
+            status = ecu.wait(timeout=20)
+            hub.close()
+    output_text = log.read_text()
+    assert status == 0, output_text
+    assert output_text.count("bus receive failed") == 2, output_text  # the burst, then the persisting errors
+    assert output_text.count("bus lost") == 1, output_text
+    assert "bus lost (receive errors for 100 ms)" in output_text
+    assert "bus reopened after it was lost" in output_text
+    assert len(first) == 160 and len(second) == 20  # every 25 ms control task of each run
 
 
 def test_timing_record_reads_as_the_python_ecus(native, tmp_path: Path) -> None:

@@ -52,6 +52,8 @@
 #define EXIT_BUS 1
 #define RECV_TIMEOUT_NS 50000000LL /* bounds the reaction to a stop signal */
 #define REOPEN_INTERVAL_NS 1000000000LL
+#define BUS_LOST_AFTER_NS 100000000LL /* receive errors that persist this long: a lost bus */
+#define RECV_RETRY_NS 10000000LL      /* the wait between failed receives */
 #define MAX_PATHS 256
 #define PERIOD_NS 25000000 /* Ts = 25 ms */
 #define N_SAMPLE_FIELDS 9
@@ -209,7 +211,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
   if (realtime) ecu_node_set_realtime();
   os_install_stop_handler(&stop_requested);
   int lost = 0;
-  int64_t next_reopen = 0;
+  int64_t next_reopen = 0, failing_since = -1;
   while (!stop_requested) {
     if (lost) {
       int64_t now = os_monotonic_ns();
@@ -240,13 +242,30 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     int status = os_can_recv(&frame, wait);
     if (status == 1) {
       ecu_node_receive(frame.id, frame.data, frame.length, frame.contract_kind);
-    } else if (status < 0) {
-      fprintf(stderr, "error: bus lost (end of the interface's stream or a socket error); reopening it every "
-              "second\n");
-      os_can_close();
-      lost = 1;
-      next_reopen = os_monotonic_ns() + REOPEN_INTERVAL_NS;
     }
+    if (status >= 0) {
+      failing_since = -1;
+      continue;
+    }
+    /* Contract rev. 2: the end of the stream is a lost bus at once; receive errors only
+     * once they persist for BUS_LOST_AFTER_NS (a single failed read is not a lost bus). */
+    int64_t now = os_monotonic_ns();
+    if (status == OS_CAN_FAILED) {
+      if (failing_since < 0) {
+        failing_since = now;
+        fprintf(stderr, "warning: bus receive failed; the bus is lost if this persists for 100 ms\n");
+      }
+      if (now - failing_since < BUS_LOST_AFTER_NS) {
+        os_sleep_until_ns(now + RECV_RETRY_NS); /* not a busy loop on a failing socket */
+        continue;
+      }
+    }
+    fprintf(stderr, "error: bus lost (%s); reopening it every second\n",
+            status == OS_CAN_ENDED ? "end of the interface's stream" : "receive errors for 100 ms");
+    os_can_close();
+    lost = 1;
+    failing_since = -1;
+    next_reopen = now + REOPEN_INTERVAL_NS;
   }
   if (!lost) ecu_node_close();
   os_can_close();

@@ -42,8 +42,11 @@ int os_can_open(const char *interface, const char *channel, const char *host, in
 /* Send one classic frame; 0, or -1 when the bus refused it. */
 int os_can_send(uint32_t id, const uint8_t *data, int length);
 
-/* Wait up to timeout_ns for a frame: 1 (frame filled), 0 (none yet), -1 (bus lost: the
- * stream ended or the socket failed). */
+/* What os_can_recv returns besides 1 (frame filled) and 0 (none yet). */
+#define OS_CAN_ENDED (-1)  /* the interface's stream ended: the bus is lost now */
+#define OS_CAN_FAILED (-2) /* this receive failed; a lost bus once it persists (contract rev. 2) */
+
+/* Wait up to timeout_ns for a frame: 1, 0, OS_CAN_ENDED or OS_CAN_FAILED. */
 int os_can_recv(os_can_frame_t *frame, int64_t timeout_ns);
 
 void os_can_close(void);

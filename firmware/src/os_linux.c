@@ -99,11 +99,12 @@ static int wait_readable(int64_t timeout_ns) {
   if (timeout_ns < 0) timeout_ns = 0;
   struct timespec timeout = {(time_t)(timeout_ns / 1000000000), (long)(timeout_ns % 1000000000)};
   int ready = ppoll(&pfd, 1, &timeout, NULL);
-  if (ready < 0) return errno == EINTR ? 0 : -1;
+  if (ready < 0) return errno == EINTR ? 0 : OS_CAN_FAILED;
   return ready;
 }
 
-/* The next "< ... >" message of the socketcand stream into msg; 1, 0 (incomplete), -1 (lost). */
+/* The next "< ... >" message of the socketcand stream into msg; 1, 0 (incomplete),
+ * OS_CAN_ENDED or OS_CAN_FAILED. */
 static int next_message(char *msg, size_t len, int64_t timeout_ns) {
   for (;;) {
     char *start = memchr(stream_buffer, '<', stream_used);
@@ -117,11 +118,12 @@ static int next_message(char *msg, size_t len, int64_t timeout_ns) {
       return 1;
     }
     if (!start) stream_used = 0; /* nothing of a message: drop the noise */
-    if (stream_used == sizeof stream_buffer) return -1; /* not socketcand */
+    if (stream_used == sizeof stream_buffer) return OS_CAN_ENDED; /* not socketcand */
     int ready = wait_readable(timeout_ns);
     if (ready <= 0) return ready;
     ssize_t got = recv(can_fd, stream_buffer + stream_used, sizeof stream_buffer - stream_used, 0);
-    if (got <= 0) return -1; /* the server closed the stream, or the socket failed */
+    if (got == 0) return OS_CAN_ENDED; /* the server closed the stream */
+    if (got < 0) return errno == EINTR || errno == EAGAIN ? 0 : OS_CAN_FAILED;
     stream_used += (size_t)got;
     timeout_ns = 0;
   }
@@ -246,7 +248,8 @@ int os_can_recv(os_can_frame_t *out, int64_t timeout_ns) {
   if (ready <= 0) return ready;
   struct can_frame frame;
   ssize_t got = read(can_fd, &frame, sizeof frame);
-  if (got != (ssize_t)sizeof frame) return -1; /* a CAN FD frame is larger: not enabled here */
+  if (got < 0) return errno == EINTR || errno == EAGAIN ? 0 : OS_CAN_FAILED;
+  if (got != (ssize_t)sizeof frame) return OS_CAN_FAILED; /* CAN FD is not enabled here */
   out->contract_kind = !(frame.can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG));
   out->id = frame.can_id & (frame.can_id & CAN_EFF_FLAG ? CAN_EFF_MASK : CAN_SFF_MASK);
   out->length = frame.can_dlc > 8 ? 8 : frame.can_dlc;
