@@ -40,4 +40,5 @@ hil-test: setup
 # The real SocketCAN path: host vcan0 if present, else user-mode Linux (see docs/vcan.md).
 ## the real SocketCAN path: host vcan0, else user-mode Linux
 vcan-test: setup firmware
-	$(PY) -m pytest -q -s tests/test_vcan.py tests/test_vcan_odd_frames.py tests/test_firmware_c_vcan.py
+	$(PY) -m pytest -q -s tests/test_vcan.py tests/test_vcan_odd_frames.py tests/test_firmware_c_vcan.py \
+		tests/test_vcan_lost_interface.py
