@@ -16,6 +16,8 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -189,6 +191,20 @@ def _drive(scenario, port: int, seconds: float) -> list:
         bus.shutdown()
 
 
+@contextmanager
+def _ecu_process(command: list[str], environment: dict[str, str], log: Path) -> Iterator[dict]:
+    """The ECU as a process writing to ``log``; SIGTERM at the end, which it must survive:
+    its exit status is the yielded dict's ``status``."""
+    outcome: dict = {}
+    with log.open("w") as output:
+        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
+        try:
+            yield outcome
+        finally:
+            ecu.send_signal(signal.SIGTERM)
+            outcome["status"] = ecu.wait(timeout=20)
+
+
 def _wait_for(log: Path, text: str, timeout_s: float = 10.0) -> None:
     deadline = time.monotonic() + timeout_s
     while text not in log.read_text() and time.monotonic() < deadline:
@@ -206,22 +222,19 @@ def test_lost_bus_is_reopened(native, tmp_path: Path) -> None:
     hub = LoopbackCanHub(port=0).start()
     port = hub.port
     log = tmp_path / "ecu.log"
-    with log.open("w") as output:
-        command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU)
-        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
-        try:
+    command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU)
+    try:
+        with _ecu_process(command, environment, log) as ecu:
             first = _drive(scenario, port, 0.5)
             hub.close()
             time.sleep(0.5)
             hub = LoopbackCanHub(port=port).start()
             _wait_for(log, "bus reopened")
             second = _drive(scenario, port, 0.5)
-        finally:
-            ecu.send_signal(signal.SIGTERM)
-            status = ecu.wait(timeout=20)
-            hub.close()
+    finally:
+        hub.close()
     output_text = log.read_text()
-    assert status == 0, output_text
+    assert ecu["status"] == 0, output_text
     assert output_text.count("bus lost") == 1 and "bus reopened after it was lost" in output_text
     assert len(first) == len(second) == 20  # 0.5 s of 25 ms control tasks, each run
 
@@ -287,14 +300,13 @@ def test_receive_errors_are_a_lost_bus_only_once_they_persist_for_100_ms(native,
     hub = LoopbackCanHub(port=0).start()
     port = hub.port
     log = tmp_path / "ecu.log"
-    with log.open("w") as output:
-        command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU,
-                                           extra=("--log-level", "info"))
-        # after the sanitizer runtime where make firmware-asan preloads one
-        environment["LD_PRELOAD"] = f"{environment.get('LD_PRELOAD', '')} {shim}".strip()
-        environment["ECU_TEST_RECV_FAIL_FILE"] = str(failing)
-        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
-        try:
+    command, environment = ecu_command("c", "lmpc", scenario.path_file, port, executable=ECU,
+                                       extra=("--log-level", "info"))
+    # after the sanitizer runtime where make firmware-asan preloads one
+    environment["LD_PRELOAD"] = f"{environment.get('LD_PRELOAD', '')} {shim}".strip()
+    environment["ECU_TEST_RECV_FAIL_FILE"] = str(failing)
+    try:
+        with _ecu_process(command, environment, log) as ecu:
             _wait_for(log, "ready: controller")  # the bus is open
             failing.write_text("40")
             first = _drive(scenario, port, 4.0)
@@ -311,12 +323,10 @@ def test_receive_errors_are_a_lost_bus_only_once_they_persist_for_100_ms(native,
                 sender.shutdown()
             _wait_for(log, "bus reopened")
             second = _drive(scenario, port, 0.5)
-        finally:
-            ecu.send_signal(signal.SIGTERM)
-            status = ecu.wait(timeout=20)
-            hub.close()
+    finally:
+        hub.close()
     output_text = log.read_text()
-    assert status == 0, output_text
+    assert ecu["status"] == 0, output_text
     assert output_text.count("bus receive failed") == 2, output_text  # the burst, then the persisting errors
     assert output_text.count("bus lost") == 1, output_text
     assert "bus lost (receive errors for 100 ms)" in output_text

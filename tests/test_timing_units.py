@@ -302,3 +302,14 @@ def test_cpu_latency_request_reports_an_unusable_device_and_does_not_raise(tmp_p
         assert "missing" in request.describe()
     with pytest.raises(ValueError, match="must be >= 0 us, got -1"):
         CpuLatencyRequest(-1)
+
+
+def test_cpu_latency_request_not_requested_holds_nothing(tmp_path):
+    from studies.timing.cpu_latency import CpuLatencyRequest
+
+    device = tmp_path / "cpu_dma_latency"
+    device.write_bytes(b"")
+    with CpuLatencyRequest(0, device=device, requested=False) as request:
+        assert not request.held
+        assert request.describe().startswith("not requested")
+    assert device.read_bytes() == b""

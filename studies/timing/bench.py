@@ -28,7 +28,6 @@ import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from contextlib import nullcontext  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from hil.errors import HilError  # noqa: E402
@@ -108,12 +107,29 @@ def main(argv: list[str] | None = None) -> int:
     loads: dict[str, str] = {}
     stress_pinning: list[str] = []
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    with CpuLatencyRequest(0) if args.cpu_latency == "hold" else nullcontext() as latency:
-        idle_states = latency.describe() if latency else "the machine's default (not requested)"
-        status = _run_conditions(args, conditions, controllers, c_controllers, seconds, placement,
-                                 cpus, figures, loads, stress_pinning)
-    if status:
-        return status
+    with CpuLatencyRequest(0, requested=args.cpu_latency == "hold") as latency:
+        for condition in conditions:
+            load_before = os.getloadavg()
+            with StressLoad(cpus if condition == "stress" else ()) as stress:
+                stress_pinning = stress_pinning or stress.pinned
+                for controller, ecu in [*((c, "python") for c in controllers),
+                                        *((c, "c") for c in c_controllers)]:
+                    run_seconds = min(seconds, args.nmpc_seconds) if controller == "nmpc" else seconds
+                    label = ecu_label(controller, ecu)
+                    print(f"{condition} / {label}: {run_seconds:g} s ...", flush=True)
+                    try:
+                        run = run_timing(controller, run_seconds, args.work /
+                                         f"{condition}__{controller}{'_c' if ecu == 'c' else ''}",
+                                         placement, ecu)
+                    except HilError as e:
+                        print(f"error: {condition} / {label}: {e}", file=sys.stderr)
+                        return 1
+                    figures.append(run_figures(run, condition))
+                    print("\n".join(summary_table(figures[-1:])[2:]), flush=True)
+            load_after = os.getloadavg()
+            loads[condition] = (f"load average (1 min) {load_before[0]:.2f} before, "
+                                f"{load_after[0]:.2f} after")
+        idle_states = latency.describe()
     pngs = [plot_histograms(figures, condition,
                             args.out.with_name(f"{args.out.stem}_{condition}.png"))
             for condition in conditions]
@@ -123,33 +139,6 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text("\n".join(_report(figures, seconds, args, started, loads,
                                           stress_pinning, pngs, idle_states)) + "\n")
     print(f"wrote {args.out}, {', '.join(map(str, pngs))}")
-    return 0
-
-
-def _run_conditions(args: argparse.Namespace, conditions: list[str], controllers: list[str],
-                    c_controllers: list[str], seconds: float, placement: Placement,
-                    cpus: tuple[int, ...], figures: list[RunFigures], loads: dict[str, str],
-                    stress_pinning: list[str]) -> int:
-    """Every run of every condition, appended to ``figures``; 1 after a failed run."""
-    for condition in conditions:
-        load_before = os.getloadavg()
-        with StressLoad(cpus if condition == "stress" else ()) as stress:
-            stress_pinning[:] = stress_pinning or stress.pinned
-            for controller, ecu in [*((c, "python") for c in controllers), *((c, "c") for c in c_controllers)]:
-                run_seconds = min(seconds, args.nmpc_seconds) if controller == "nmpc" else seconds
-                label = ecu_label(controller, ecu)
-                print(f"{condition} / {label}: {run_seconds:g} s ...", flush=True)
-                try:
-                    run = run_timing(controller, run_seconds, args.work /
-                                     f"{condition}__{controller}{'_c' if ecu == 'c' else ''}", placement, ecu)
-                except HilError as e:
-                    print(f"error: {condition} / {label}: {e}", file=sys.stderr)
-                    return 1
-                figures.append(run_figures(run, condition))
-                print("\n".join(summary_table(figures[-1:])[2:]), flush=True)
-        load_after = os.getloadavg()
-        loads[condition] = (f"load average (1 min) {load_before[0]:.2f} before, "
-                            f"{load_after[0]:.2f} after")
     return 0
 
 
@@ -169,8 +158,8 @@ def _report(figures: list[RunFigures], seconds: float, args: argparse.Namespace,
         "SocketCAN vcan0). Each frame crosses two TCP loopback hops (sender -> hub -> receiver).",
         f"- Scheduling obtained: ECU {scheduling.get('ecu', '?')}; plant "
         f"{scheduling.get('plant', '?')}; hub {scheduling.get('hub', '?')}.",
-        f"- CPU idle states: latency request {idle_states} for all runs alike, so an idle core "
-        "polls instead of halting its vCPU (`studies/timing/cpu_latency.py`; "
+        f"- CPU idle states: CPU latency request {idle_states}, for all runs alike "
+        "(`studies/timing/cpu_latency.py`: held, an idle core polls instead of halting its vCPU; "
         "`--cpu-latency default` leaves the idle states as they are).",
         "- Load conditions: `idle` = nothing of ours besides the run (other jobs on the shared "
         "machine may run: see the load averages); `stress` = one busy-loop process per core "

@@ -21,19 +21,24 @@ CPU_DMA_LATENCY = Path("/dev/cpu_dma_latency")
 class CpuLatencyRequest:
     """A context manager holding a CPU latency request of ``max_us`` microseconds.
 
-    Never raises for an unavailable device (not Linux, not root): ``describe()`` then says
-    why, and the run goes on with the default idle states.
+    ``requested=False``: holds nothing (the machine's idle states). Never raises for an
+    unavailable device (not Linux, not root): ``describe()`` then says why, and the run
+    goes on with the default idle states.
     """
 
-    def __init__(self, max_us: int = 0, device: Path = CPU_DMA_LATENCY) -> None:
+    def __init__(self, max_us: int = 0, device: Path = CPU_DMA_LATENCY,
+                 requested: bool = True) -> None:
         if max_us < 0:
             raise ValueError(f"CPU latency request must be >= 0 us, got {max_us}")
         self.max_us = max_us
         self.device = device
+        self.requested = requested
         self._file = None
-        self._problem = "not requested"
+        self._problem = "not requested (the machine's idle states)"
 
     def __enter__(self) -> "CpuLatencyRequest":
+        if not self.requested:
+            return self
         try:
             self._file = self.device.open("wb", buffering=0)
             self._file.write(struct.pack("<i", self.max_us))
