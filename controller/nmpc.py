@@ -87,6 +87,9 @@ class Nmpc(SteeringMpc):
         initial = ca.SX.sym("initial", N_STATE)
         reference = ca.SX.sym("reference", 3, n_pred)
         torque, previous_steer = ca.SX.sym("torque"), ca.SX.sym("previous_steer")
+        # The scheduled weights (MpcTuning.weights_at at the measured vx): parameters, so
+        # one NLP serves every speed.
+        q_position, q_yaw, r_steer = ca.SX.sym("q_position"), ca.SX.sym("q_yaw"), ca.SX.sym("r_steer")
 
         constraints = [states[:, 0] - initial]
         cost = 0
@@ -94,17 +97,17 @@ class Nmpc(SteeringMpc):
             u = steer[min(i, n_ctrl - 1)]
             constraints.append(states[:, i + 1] - rk4_step(derivatives, states[:, i], u, torque, ts))
             error = states[3:6, i + 1] - reference[:, i]
-            cost += tuning.q_position * (error[0] ** 2 + error[1] ** 2) + tuning.q_yaw * error[2] ** 2
+            cost += q_position * (error[0] ** 2 + error[1] ** 2) + q_yaw * error[2] ** 2
         n_equal = N_STATE * (n_pred + 1)
         for i in range(1, n_pred + 1):  # eq. 21 softened: x - s <= x_max, x + s >= x_min
             constraints.append(states[0:3, i] - slack)
             constraints.append(states[0:3, i] + slack)
         increments = steer - ca.vertcat(previous_steer, steer[:-1])
-        cost += tuning.r_steer * ca.sumsqr(steer) + tuning.p_steer_rate * ca.sumsqr(increments)
+        cost += r_steer * ca.sumsqr(steer) + tuning.p_steer_rate * ca.sumsqr(increments)
         cost += tuning.slack_l1 * ca.sum1(slack) + tuning.slack_l2 * ca.sumsqr(slack)
 
         variables = ca.vertcat(ca.vec(states), steer, slack)
-        parameters = ca.vertcat(initial, ca.vec(reference), torque, previous_steer)
+        parameters = ca.vertcat(initial, ca.vec(reference), torque, previous_steer, q_position, q_yaw, r_steer)
         options = {"expand": True, "print_time": False, "record_time": True,
                    "ipopt": {"print_level": 0, "sb": "yes", "max_iter": tuning.ipopt_max_iter,
                              "tol": tuning.ipopt_tol, "warm_start_init_point": "yes"}}
@@ -150,7 +153,9 @@ class Nmpc(SteeringMpc):
             states_guess[:, 0] = initial
             lam_x, lam_g = self._warm["lam_x"], self._warm["lam_g"]
         guess = np.concatenate((states_guess.ravel(order="F"), guess_steer, np.zeros(3)))
-        parameters = np.concatenate((initial, reference.T.ravel(order="F"), [drive_torque, previous]))
+        weights = self.tuning.weights_at(sample.vx)
+        parameters = np.concatenate((initial, reference.T.ravel(order="F"),
+                                     [drive_torque, previous, weights.q_position, weights.q_yaw, weights.r_steer]))
         arguments = dict(x0=guess, p=parameters, lbx=self._lower_x, ubx=self._upper_x,
                          lbg=self._lower_g, ubg=self._upper_g)
         if lam_x is not None:

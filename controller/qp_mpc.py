@@ -46,7 +46,8 @@ class QpSteeringMpc(SteeringMpc):
         nominal_states = free + gain @ nominal  # (Np + 1, 3)
         pose_nominal, jacobian = linearise_pose(sample.pose(), nominal_states[:n_pred], gain[:n_pred], self.ts)
         pose_offset = pose_nominal - jacobian @ nominal - reference
-        solution = self.qp.solve(jacobian, pose_offset, self.previous_steer(sample), gain[1:], free[1:], nominal)
+        solution = self.qp.solve(jacobian, pose_offset, self.previous_steer(sample), gain[1:], free[1:], nominal,
+                                 weights=self.tuning.weights_at(sample.vx))
         steer = solution.steer
         return Plan(status=solution.status, steer=steer, iterations=solution.iterations,
                     solve_time_s=solution.solve_time_s, cost=solution.cost,

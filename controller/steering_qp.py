@@ -48,7 +48,7 @@ import osqp
 import scipy.sparse as sparse
 
 from controller.base import STEER_LIMIT_RAD, SolverStatus
-from controller.tuning import QpMpcTuning
+from controller.tuning import QpMpcTuning, StageWeights
 
 N_SOFT_STATES = 3  # vx, vy, yaw_rate: one slack each (the decision vector's last 3 entries)
 #: The states of eq. 21 that get soft rows, as indices into [vx, vy, yaw_rate]. vx is left
@@ -137,11 +137,13 @@ class SteeringQp:
         n_soft_rows = 2 * self._soft_rows.size
         self._n_var = n_ctrl + N_SOFT_STATES
         n_con = n_ctrl + N_SOFT_STATES + n_soft_rows
-        # Pose weight per flattened (step, [X, Y, yaw]) entry.
-        self._pose_weight = np.tile([tuning.q_position, tuning.q_position, tuning.q_yaw], n_pred)
         # Increment operator: (D U)_j = U_j - U_{j-1}; U_{-1} enters through the linear term.
         difference = np.eye(n_ctrl) - np.eye(n_ctrl, k=-1)
-        self._fixed_hessian = tuning.r_steer * np.eye(n_ctrl) + tuning.p_steer_rate * difference.T @ difference
+        self._rate_hessian = tuning.p_steer_rate * difference.T @ difference
+        # The weights of the speed schedule (MpcTuning.weights_at), set by _use_weights: the
+        # pose weight per flattened (step, [X, Y, yaw]) entry and r I + p D'D.
+        self._weights: StageWeights | None = None
+        self._use_weights(StageWeights(tuning.q_position, tuning.q_yaw, tuning.r_steer))
 
         # P: dense upper triangle of the U block, then the slack diagonal (CSC, column order).
         rows, cols = [], []
@@ -218,17 +220,31 @@ class SteeringQp:
         self._solver.warm_start(x=self._warm, y=self._initial_dual)
         self._constraints_were_active = False
 
+    def _use_weights(self, weights: StageWeights) -> None:
+        """Set the pose weights and r I + p D'D for ``weights`` (recomputed only on a change:
+        the schedule is flat outside its speed band)."""
+        if weights == self._weights:
+            return
+        self._weights = weights
+        self._pose_weight = np.tile([weights.q_position, weights.q_position, weights.q_yaw], self.n_pred)
+        self._fixed_hessian = weights.r_steer * np.eye(self.n_ctrl) + self._rate_hessian
+
     def solve(self, pose_jacobian: np.ndarray, pose_offset: np.ndarray, previous_steer: float,
-              state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray) -> QpSolution:
+              state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray,
+              weights: StageWeights | None = None) -> QpSolution:
         """Update the data and solve.
 
         pose_jacobian (Np, 3, Nc), pose_offset (Np, 3): linearised pose minus reference is
         ``pose_jacobian @ U + pose_offset``. state_gain (Np, 3, Nc) and state_free (Np, 3):
         the states at steps 1..Np are ``state_gain @ U + state_free``; the entries
         ``state_gain[k, :, c]`` with c > k are zero for every causal prediction and are not
-        read (see the module docstring). warm_steer (Nc,).
+        read (see the module docstring). warm_steer (Nc,). weights: the scheduled weights
+        of this step (``tuning.weights_at(vx)``); None: the table's ``q_position``,
+        ``q_yaw``, ``r_steer``.
         """
         n_ctrl = self.n_ctrl
+        self._use_weights(weights if weights is not None
+                          else StageWeights(self.tuning.q_position, self.tuning.q_yaw, self.tuning.r_steer))
         jac = pose_jacobian.reshape(-1, n_ctrl)
         offset = pose_offset.ravel()
         weighted_jac = jac * self._pose_weight[:, None]

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from controller.errors import TuningError
 
@@ -39,10 +39,26 @@ class LongitudinalTuning:
 
 
 @dataclass(frozen=True)
+class StageWeights:
+    """The weights of eq. 15 that the speed schedule moves: Q on X and Y error, Q on yaw
+    error, R on the steer angle (p_steer_rate, the normalisation, is not scheduled)."""
+
+    q_position: float
+    q_yaw: float
+    r_steer: float
+
+
+@dataclass(frozen=True)
 class MpcTuning:
     """Weights and horizons shared by the four steering MPCs (eq. 15).
 
     ``state_min`` / ``state_max`` are eq. 21's bounds on [vx, vy, yaw_rate], enforced softly.
+
+    Speed schedule of the weights (:meth:`weights_at`): at and below
+    ``weight_schedule_speeds[0]`` (m/s) the MPC uses ``low_speed_q_position``,
+    ``low_speed_q_yaw``, ``low_speed_r_steer``; at and above ``weight_schedule_speeds[1]``
+    ``q_position``, ``q_yaw``, ``r_steer``; linearly in the measured vx between. With the
+    low-speed weights equal to the others there is no schedule (the paper's fixed weights).
     """
 
     prediction_horizon: int
@@ -55,8 +71,17 @@ class MpcTuning:
     state_max: tuple[float, float, float]
     slack_l1: float
     slack_l2: float
+    low_speed_q_position: float
+    low_speed_q_yaw: float
+    low_speed_r_steer: float
+    weight_schedule_speeds: tuple[float, float]
 
     def __post_init__(self) -> None:
+        low, high = self.weight_schedule_speeds
+        if not 0.0 <= low < high:
+            raise TuningError(
+                f"weight_schedule_speeds must be two speeds 0 <= low < high (m/s), got [{low}, {high}]"
+            )
         if self.control_horizon > self.prediction_horizon:
             raise TuningError(
                 f"control_horizon ({self.control_horizon}) must be <= prediction_horizon "
@@ -65,6 +90,20 @@ class MpcTuning:
         for name, low, high in zip(("vx", "vy", "yaw_rate"), self.state_min, self.state_max):
             if low >= high:
                 raise TuningError(f"state_min[{name}] ({low}) must be < state_max[{name}] ({high})")
+
+    def weights_at(self, vx: float) -> StageWeights:
+        """The scheduled weights at measured speed ``vx`` (m/s); held for the whole horizon.
+
+        The C core computes the same (firmware/src/ecu_qp.c, ``scheduled_weights``)."""
+        low, high = self.weight_schedule_speeds
+        # Fraction of the way from the low-speed weights to the others; a NaN speed never
+        # reaches here (the MPC falls back on a non-finite sample first).
+        blend = min(max((vx - low) / (high - low), 0.0), 1.0)
+        return StageWeights(
+            q_position=self.low_speed_q_position + blend * (self.q_position - self.low_speed_q_position),
+            q_yaw=self.low_speed_q_yaw + blend * (self.q_yaw - self.low_speed_q_yaw),
+            r_steer=self.low_speed_r_steer + blend * (self.r_steer - self.low_speed_r_steer),
+        )
 
 
 @dataclass(frozen=True)
@@ -127,6 +166,23 @@ class ControllerTuning:
         return table[name]
 
 
+#: The scheduled weights and their low-speed fields (MpcTuning.weights_at).
+SCHEDULED_WEIGHTS = ("q_position", "q_yaw", "r_steer")
+LOW_SPEED_WEIGHTS = tuple(f"low_speed_{name}" for name in SCHEDULED_WEIGHTS)
+
+_Table = TypeVar("_Table", bound=MpcTuning)
+
+
+def with_fixed_weights(table: _Table, **weights: float) -> _Table:
+    """``table`` with ``weights`` (fields of eq. 15's weights, e.g. ``q_position=10``) at
+    every speed: each scheduled weight given also replaces its low-speed twin, unless that
+    twin is given too (``low_speed_q_position=...``). Other fields (``p_steer_rate``,
+    observer fields) pass through as given."""
+    low_speed = {f"low_speed_{name}": value for name, value in weights.items() if name in SCHEDULED_WEIGHTS}
+    # A low-speed weight given explicitly wins over its twin's copy.
+    return replace(table, **(low_speed | weights))
+
+
 _RULES: dict[str, _Rule] = {
     "speed_gain": _POSITIVE,
     "prediction_horizon": (lambda v: 2 <= v <= 200, "must be in [2, 200]"),
@@ -134,6 +190,9 @@ _RULES: dict[str, _Rule] = {
     "q_position": _NON_NEGATIVE,
     "q_yaw": _NON_NEGATIVE,
     "r_steer": _POSITIVE,
+    "low_speed_q_position": _NON_NEGATIVE,
+    "low_speed_q_yaw": _NON_NEGATIVE,
+    "low_speed_r_steer": _POSITIVE,
     "p_steer_rate": _NON_NEGATIVE,
     "slack_l1": _POSITIVE,
     "slack_l2": _POSITIVE,
@@ -159,6 +218,12 @@ def _convert(table: str, name: str, annotation: str, value: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise TuningError(f"{where} must be a finite number, got {value!r}")
         return float(value)
+    if annotation == "tuple[float, float]":
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                           and math.isfinite(v) for v in value)):
+            raise TuningError(f"{where} must be a list of 2 finite numbers [low, high], got {value!r}")
+        return tuple(float(v) for v in value)
     if annotation.startswith("tuple[float"):
         if (not isinstance(value, list) or len(value) != 3
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)

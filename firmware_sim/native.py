@@ -146,7 +146,8 @@ def is_bicycle_file(model: Path) -> bool:
 
 
 def data_file_for_model(model: Path, out_dir: Path | None = None) -> Path:
-    """The C core's data file for ``model`` (written once per content): a Koopman artefact
+    """The C core's data file for ``model`` (written once per content of the model, the
+    tuning file and the writer): a Koopman artefact
     in place of the build's, or a fitted bicycle (``is_bicycle_file``) in place of the
     nominal one (LMPC's; the build's Koopman model stays).
 
@@ -155,6 +156,9 @@ def data_file_for_model(model: Path, out_dir: Path | None = None) -> Path:
     """
     bicycle = is_bicycle_file(model)
     sources = [model] if bicycle else [model.with_suffix(".npz"), model.with_suffix(".json")]
+    # The file also holds the tuning, in ecu_data.py's layout: both are in the key, so a
+    # retune or a new layout never reuses a file written before it.
+    sources += [ROOT / "controller" / "tuning.toml", ROOT / "firmware" / "tools" / "ecu_data.py"]
     digest = hashlib.sha256(b"".join(source.read_bytes() for source in sources)).hexdigest()[:12]
     out = (out_dir or DEFAULT_DATA.parent / "data") / f"{model.stem}-{digest}.bin"
     if not out.is_file():

@@ -21,8 +21,17 @@ paper's four and the ablations):
    ``OBSERVER_START``: the 2026-12-02 sweep's stage 1 at eso_second_pole 0.97 picked
    q_position 1 for ESO-DKMPC, where no observer setting came within 25 % of the objective
    the previous choice (q_position 3, eso_second_pole 0.995) had.
-4. The chosen setting is the one with the smallest objective over all stages (ties: the
-   first evaluated).
+4. Stage ``low-speed``, every controller: the weights below the speed schedule's low knot
+   (``low_speed_q_position``, ``low_speed_q_yaw``, ``low_speed_r_steer``; controller.tuning
+   ``MpcTuning.weights_at``) over ``LOW_SPEED_GRID`` (the weight grid's levels), every
+   other field at the best setting of steps 1-3. Steps 1-3 tune one weighting for every
+   speed (their settings name no low-speed field: the low-speed weights follow,
+   ``controller.tuning.with_fixed_weights``); the tuning set's 40 km/h scenarios and the
+   other six wanted different weights (the best weights for each group differed for every
+   controller in the 2026-12-02 sweep).
+5. The chosen setting is the one with the smallest objective over all stages (ties: the
+   first evaluated); it is written with its low-speed weights (equal to the others when
+   stage 4 found nothing better: no schedule).
 
 Objective of a setting: the mean over the tuning scenarios of the closed-loop e_Y RMSE (m);
 a run that does not complete (the vehicle leaves the path by more than
@@ -68,6 +77,7 @@ from tqdm import tqdm
 from hil.errors import HilError, StudyError
 from hil.scenario import Scenario
 from studies.closed_loop import ABORT_LATERAL_ERROR_M, ClosedLoopResult, run_closed_loop
+from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, with_fixed_weights
 from studies.tuning_set import TUNING_SET, tuning_scenarios
 
 #: One setting of the swept fields: ``((field, value), ...)`` in grid order (hashable).
@@ -160,6 +170,9 @@ OBSERVER_GRID = SweepGrid((
 EXTRA_OBSERVER_STARTS: tuple[Setting, ...] = (
     (("eso_pole", 0.0), ("eso_second_pole", 0.995), ("disturbance_decay", 0.8)),
 )
+#: Stage 4's grid: the low-speed weights over the levels of WEIGHT_GRID's scheduled weights.
+LOW_SPEED_GRID = SweepGrid(tuple((f"low_speed_{name}", values) for name, values in WEIGHT_GRID.levels
+                                 if name in SCHEDULED_WEIGHTS))
 #: Rounds of step 3 (weights again, then observer again) at most, per controller.
 MAX_EXTRA_ROUNDS = 3
 #: The observer values of stage 1 (a point of OBSERVER_GRID).
@@ -191,10 +204,20 @@ def swept_fields(table: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:
 
 def with_setting(tuning: Any, name: str, setting: Setting) -> Any:
     """``tuning`` (a ``ControllerTuning``) with controller ``name``'s table's fields of
-    ``setting`` replaced; every other value unchanged."""
+    ``setting`` replaced; every other value unchanged, except that a weight replaces its
+    low-speed twin too unless the setting names that twin (a flat schedule)."""
     attribute = tuning_table_attribute(tuning, name)
     table = getattr(tuning, attribute)
-    return dataclasses.replace(tuning, **{attribute: dataclasses.replace(table, **dict(setting))})
+    return dataclasses.replace(tuning, **{attribute: with_fixed_weights(table, **dict(setting))})
+
+
+def with_low_speed_weights(setting: Setting) -> Setting:
+    """``setting`` with its low-speed weights named: as given, else equal to its weights
+    (the flat schedule ``with_setting`` applies). What is written to the tuning file."""
+    named = dict(setting)
+    extra = tuple((f"low_speed_{name}", named[name]) for name in SCHEDULED_WEIGHTS
+                  if name in named and f"low_speed_{name}" not in named)
+    return setting + extra
 
 
 def build_controller(name: str, tuning: Any) -> Any:
@@ -317,6 +340,12 @@ class SweepTask:
     runner: Runner
 
 
+def reuse_key(setting: Setting) -> Setting:
+    """The controller tables a setting builds, as a key: low-speed weights named, fields
+    sorted (a stage-1 setting and the same weights with a flat schedule are one key)."""
+    return tuple(sorted(with_low_speed_weights(setting)))
+
+
 def _run_task(task: SweepTask) -> RunOutcome:
     return run_one(task.controller, task.setting, task.scenario, task.tuning, task.runner)
 
@@ -327,9 +356,11 @@ class SweepExecutor:
     Ray tasks on a local Ray with ``workers`` CPUs or on the cluster at ``address``."""
 
     def __init__(self, scenarios: Sequence[Scenario], tuning: Any, runner: Runner, workers: int,
-                 progress: tqdm, address: str | None = None) -> None:
+                 progress: tqdm, address: str | None = None,
+                 reuse: Mapping[tuple[str, Setting], Evaluation] | None = None) -> None:
         from studies.campaign.executors import open_executor
 
+        self.reuse = {(name, reuse_key(setting)): e for (name, setting), e in (reuse or {}).items()}
         self.scenarios = list(scenarios)
         self.tuning = tuning
         self.runner = runner
@@ -341,10 +372,15 @@ class SweepExecutor:
         self.executor.close()
 
     def evaluate(self, jobs: Sequence[tuple[str, str, Setting]]) -> list[Evaluation]:
-        """Evaluate (controller, stage, setting) jobs on every scenario, in job order."""
+        """Evaluate (controller, stage, setting) jobs on every scenario, in job order (a job
+        in ``reuse`` takes the stored evaluation, relabelled with this job's stage)."""
+        reused = {i: dataclasses.replace(self.reuse[(name, reuse_key(setting))], stage=stage, setting=setting)
+                  for i, (name, stage, setting) in enumerate(jobs) if (name, reuse_key(setting)) in self.reuse}
+        self.progress.update(len(reused) * len(self.scenarios))
         tasks = [SweepTask(f"{name} {setting} on {scenario.name}", i, name, setting, k, scenario,
                            self.tuning, self.runner)
-                 for i, (name, _, setting) in enumerate(jobs) for k, scenario in enumerate(self.scenarios)]
+                 for i, (name, _, setting) in enumerate(jobs) if i not in reused
+                 for k, scenario in enumerate(self.scenarios)]
         outcomes: dict[int, dict[int, RunOutcome]] = {i: {} for i in range(len(jobs))}
         for task, outcome, worker_error in self.executor.run(tasks):
             if worker_error is not None:
@@ -354,6 +390,9 @@ class SweepExecutor:
             self.progress.update(1)
         evaluations = []
         for i, (name, stage, setting) in enumerate(jobs):
+            if i in reused:
+                evaluations.append(reused[i])
+                continue
             runs = {self.scenarios[k].name: outcomes[i][k] for k in range(len(self.scenarios))}
             rmse = {s: r.rmse_m for s, r in runs.items()}
             completed = {s: r.completed for s, r in runs.items()}
@@ -389,7 +428,8 @@ def current_setting(tuning: Any, name: str) -> Setting:
     """Controller ``name``'s swept fields as ``tuning`` (a ``ControllerTuning``) has them."""
     table = tuning.for_controller(name)
     weight_fields, observer_fields = swept_fields(table)
-    return tuple((field, float(getattr(table, field))) for field in weight_fields + observer_fields)
+    return tuple((field, float(getattr(table, field)))
+                 for field in weight_fields + observer_fields + LOW_SPEED_WEIGHTS)
 
 
 def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *,
@@ -397,7 +437,9 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
               observer_start: Setting = OBSERVER_START, workers: int = 1,
               address: str | None = None, runner: Runner = run_closed_loop, show_progress: bool = True,
               evaluate_before: bool = False,
-              extra_observer_starts: Sequence[Setting] = ()) -> list[ControllerSweep]:
+              extra_observer_starts: Sequence[Setting] = (),
+              low_speed_grid: SweepGrid = LOW_SPEED_GRID,
+              reuse: Mapping[tuple[str, Setting], Evaluation] | None = None) -> list[ControllerSweep]:
     """The procedure of the module docstring for every controller of ``controllers``.
 
     Args:
@@ -414,6 +456,10 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
         extra_observer_starts: more observer settings at which stage 1 runs the weight grid
             too, for controllers with observer fields (``main`` passes
             ``EXTRA_OBSERVER_STARTS``).
+        low_speed_grid: stage 4's grid (an empty grid: no stage 4).
+        reuse: evaluations of an earlier sweep by (controller, setting) (``--reuse``): a
+            job found there takes that evaluation instead of running again (the runs are
+            deterministic; the caller checks that scenarios and model are the same).
 
     Returns:
         One :class:`ControllerSweep` per controller, in ``controllers`` order.
@@ -439,7 +485,7 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
     before: dict[str, Evaluation] = {}
     with tqdm(total=total, desc="make tune", unit="run", disable=not show_progress,
               dynamic_ncols=True) as progress:
-        executor = SweepExecutor(scenarios, tuning, runner, workers, progress, address)
+        executor = SweepExecutor(scenarios, tuning, runner, workers, progress, address, reuse)
         try:
             # Round robin over the controllers: the slow ones' runs spread over the queue, so
             # no worker is left alone with a slow controller's runs at the end.
@@ -465,9 +511,22 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
                 evaluations[evaluation.controller].append(evaluation)
             _alternate(executor, evaluations, {n: plans[n][1] for n in controllers}, weight_grid,
                        observer_grid, progress, len(scenarios))
+            jobs = []
+            for name in controllers:
+                current = best(evaluations[name]).setting
+                flat = dict(with_low_speed_weights(current))
+                for low_speed in low_speed_grid.settings():
+                    # The flat schedule is the best setting itself, already evaluated.
+                    if any(flat[field] != value for field, value in low_speed):
+                        jobs.append((name, "low-speed", current + low_speed))
+            progress.total += len(jobs) * len(scenarios)
+            progress.refresh()
+            for evaluation in executor.evaluate(jobs):
+                evaluations[evaluation.controller].append(evaluation)
         finally:
             executor.close()
-    return [ControllerSweep(name, plans[name][0], plans[name][1], tuple(evaluations[name]),
+    low_speed_fields = low_speed_grid.fields
+    return [ControllerSweep(name, plans[name][0] + low_speed_fields, plans[name][1], tuple(evaluations[name]),
                             best(evaluations[name]), before.get(name)) for name in controllers]
 
 
@@ -620,6 +679,11 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], names: Sequence[str],
            f"observer setting and the observer grid at the best weights, until a round keeps the best "
            f"(at most {MAX_EXTRA_ROUNDS} rounds; evaluations of these rounds are listed under the "
            f"stage of their grid).",
+           f"- Stage 4, low-speed weights (every controller, {len(LOW_SPEED_GRID)} settings at the best "
+           f"setting so far): {_grid_text(LOW_SPEED_GRID)}; the weights the MPC uses at and below the "
+           "speed schedule's low knot, blended linearly in vx into the others up to its high knot "
+           "(`weight_schedule_speeds` in controller/tuning.toml). A setting without low-speed fields has "
+           "the same weights at every speed.",
            ]
     out += [f"- {key}: {value}" for key, value in context.items()]
     out += ["", "| controller | swept fields | evaluations | chosen setting | tuning-set e_Y RMSE (m) "
@@ -651,7 +715,7 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], names: Sequence[str],
                        f"{evaluation.objective_m:.4f} | {worst_name}: {evaluation.rmse_m[worst_name]:.4f} | "
                        f"{', '.join(incomplete) or '-'} |")
         chosen = sweep.chosen
-        grid_levels = dict(weight_grid.levels) | dict(observer_grid.levels)
+        grid_levels = dict(weight_grid.levels) | dict(observer_grid.levels) | dict(LOW_SPEED_GRID.levels)
         # Only fields with an interior level: with two levels every choice is an "edge".
         edges = [name for name, value in chosen.setting
                  if len(grid_levels.get(name, ())) > 2 and value in (min(grid_levels[name]), max(grid_levels[name]))]
@@ -750,8 +814,8 @@ def sweep_from_document(document: Mapping[str, Any]) -> SweepRecord:
             fields = tuple(entry["swept_fields"])
             sweeps.append(ControllerSweep(
                 controller=name,
-                weight_fields=tuple(f for f in fields if f in WEIGHT_FIELDS),
-                observer_fields=tuple(f for f in fields if f not in WEIGHT_FIELDS),
+                weight_fields=tuple(f for f in fields if f in WEIGHT_FIELDS + LOW_SPEED_WEIGHTS),
+                observer_fields=tuple(f for f in fields if f not in WEIGHT_FIELDS + LOW_SPEED_WEIGHTS),
                 evaluations=evaluations, chosen=best(evaluations),
                 before=None if entry.get("before") is None else _evaluation_from_dict(entry["before"])))
         return SweepRecord(sweeps, list(document["scenarios"]), dict(document["context"]),
@@ -770,6 +834,27 @@ def write_reports(record: SweepRecord, out: Path, *, document: bool = True) -> N
         (out / "tuning_sweep.json").write_text(
             json.dumps(sweep_document(record.sweeps, record.names, record.context, *grids), indent=1) + "\n")
     plot_sweep(record.sweeps, out / "tuning_sweep.png")
+
+
+def reusable_evaluations(path: Path, scenario_names: Sequence[str],
+                         artefact: str) -> dict[tuple[str, Setting], Evaluation]:
+    """The evaluations of the sweep document at ``path`` by (controller, setting), for
+    ``--reuse``. Raises StudyError unless it ran the same scenarios on the same artefact."""
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise StudyError(f"--reuse {path}: cannot read it: {e}") from e
+    record = sweep_from_document(document)
+    if list(record.names) != list(scenario_names):
+        raise StudyError(f"--reuse {path}: it ran scenarios {record.names}, this sweep runs {list(scenario_names)}")
+    if record.context.get("Koopman artefact used") != artefact:
+        raise StudyError(f"--reuse {path}: it used {record.context.get('Koopman artefact used')}, "
+                         f"this sweep uses {artefact}")
+    found = {}
+    for sweep in record.sweeps:
+        for evaluation in (*sweep.evaluations, *(() if sweep.before is None else (sweep.before,))):
+            found[(sweep.controller, evaluation.setting)] = evaluation
+    return found
 
 
 def artefact_description(path: Path) -> str:
@@ -806,6 +891,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="tuning file read and (unless --no-write) updated")
     parser.add_argument("--no-write", action="store_true", help="do not write the tuning file")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
+    parser.add_argument("--reuse", type=Path, default=None, metavar="JSON",
+                        help="take the evaluations of an earlier sweep's tuning_sweep.json instead of "
+                             "running them again (same scenarios and Koopman artefact required; the "
+                             "runs are deterministic, so only settings not in it run)")
     parser.add_argument("--report-from", type=Path, default=None, metavar="JSON",
                         help="no sweep: rewrite the .md and .png in --out from a tuning_sweep.json "
                              "(the tuning file is not touched)")
@@ -826,9 +915,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenarios = tuning_scenarios(args.scenarios)
         tuning = load_tuning(args.tuning)
+        reuse = (None if args.reuse is None
+                 else reusable_evaluations(args.reuse, [s.name for s in scenarios], artefact_before))
         sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers, address=args.address,
                            show_progress=not args.no_progress, evaluate_before=True,
-                           extra_observer_starts=EXTRA_OBSERVER_STARTS)
+                           extra_observer_starts=EXTRA_OBSERVER_STARTS, reuse=reuse)
     except (HilError, ControllerError, ModelError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -839,8 +930,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{artefact_description(artefact)}); run make tune again", file=sys.stderr)
         return 1
     runs = sum(len(s.evaluations) + (s.before is not None) for s in sweeps) * len(scenarios)
+    reused = sum(1 for s in sweeps for e in (*s.evaluations, s.before) if e is not None and reuse
+                 and (s.controller, reuse_key(e.setting)) in {(n, reuse_key(k)) for n, k in reuse})
     context = {
         "Koopman artefact used": artefact_before,
+        **({"Reused": f"{reused} evaluations from {args.reuse} (--reuse: the same runs, not run again)"}
+           if reuse else {}),
         "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {runs} closed-loop runs",
     }
     write_reports(SweepRecord(sweeps, [s.name for s in scenarios], context, WEIGHT_GRID, OBSERVER_GRID,
@@ -850,7 +945,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{sweep.chosen.objective_m:.4f} m")
     print(f"wrote {args.out}/tuning_sweep.md, .json, .png in {elapsed / 60:.1f} min")
     if not args.no_write:
-        chosen = {sweep.controller: sweep.chosen.setting for sweep in sweeps}
+        chosen = {sweep.controller: with_low_speed_weights(sweep.chosen.setting) for sweep in sweeps}
         try:
             write_tuning_file(args.tuning, chosen)
             load_tuning(args.tuning)

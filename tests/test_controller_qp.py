@@ -20,7 +20,7 @@ from controller.lmpc import Lmpc
 from controller.pose_kinematics import rollout_pose
 from controller.reference import ReferencePath, lateral_error
 from controller.steering_qp import soft_steps
-from controller.tuning import load_tuning
+from controller.tuning import load_tuning, with_fixed_weights
 from models.measurement import wrap_angle
 from test_controller_doubles import TS, BicycleDouble, koopman_arrays, koopman_double
 
@@ -29,9 +29,10 @@ NAMES = ("lmpc", "dkmpc", "eso-dkmpc")
 
 
 def build(name: str, **overrides):
-    """Controller ``name`` on the doubles, with tuning fields overridden."""
+    """Controller ``name`` on the doubles, with tuning fields overridden (weights at every
+    speed: a weight given replaces its low-speed twin too)."""
     tuning = load_tuning()
-    table = dataclasses.replace(tuning.for_controller(name), **overrides)
+    table = with_fixed_weights(tuning.for_controller(name), **overrides)
     if name == "lmpc":
         return Lmpc(BicycleDouble(), table, tuning.longitudinal)
     if name == "dkmpc":

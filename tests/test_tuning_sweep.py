@@ -177,6 +177,8 @@ def _scenario(name: str) -> SimpleNamespace:
     return SimpleNamespace(name=name)
 
 
+#: No stage 4 (the tests of stages 1-3 check their exact evaluation lists).
+NO_LOW_SPEED = SweepGrid(())
 #: Small grids of the stand-in runner tests.
 STAND_IN_WEIGHTS = SweepGrid((("q_position", (30.0, 100.0, 1000.0)), ("q_yaw", (20.0,)),
                               ("r_steer", (1.0,)), ("p_steer_rate", (300.0,))))
@@ -206,7 +208,7 @@ def test_sweep_picks_the_lowest_objective_and_penalises_incomplete_runs() -> Non
     sweeps = run_sweep(["lmpc", "lmpc-eso"], [_scenario("a"), _scenario("b")], tuning,
                        weight_grid=weights, observer_grid=observer,
                        observer_start=(("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0)),
-                       runner=runner, show_progress=False, evaluate_before=True)
+                       runner=runner, show_progress=False, low_speed_grid=NO_LOW_SPEED, evaluate_before=True)
     lmpc, lmpc_eso = sweeps
     assert dict(lmpc.chosen.setting)["q_position"] == 100.0
     assert lmpc.chosen.objective_m == pytest.approx(0.01)
@@ -241,7 +243,7 @@ def test_alternation_leaves_the_basin_of_the_observer_start() -> None:
     (sweep,) = run_sweep(["lmpc-eso"], [_scenario("a")], tuning, weight_grid=weights,
                          observer_grid=observer,
                          observer_start=(("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0)),
-                         runner=runner, show_progress=False)
+                         runner=runner, show_progress=False, low_speed_grid=NO_LOW_SPEED)
     assert dict(sweep.chosen.setting)["q_position"] == 1000.0
     assert dict(sweep.chosen.setting)["eso_pole"] == 0.0
     assert sweep.chosen.objective_m == pytest.approx(0.0)
@@ -252,7 +254,7 @@ def test_alternation_leaves_the_basin_of_the_observer_start() -> None:
     (started,) = run_sweep(["lmpc-eso"], [_scenario("a")], tuning, weight_grid=weights,
                            observer_grid=observer,
                            observer_start=(("eso_pole", 0.3), ("eso_second_pole", 0.97), ("disturbance_decay", 1.0)),
-                           runner=runner, show_progress=False,
+                           runner=runner, show_progress=False, low_speed_grid=NO_LOW_SPEED,
                            extra_observer_starts=((("eso_pole", 0.0), ("eso_second_pole", 0.97),
                                                    ("disturbance_decay", 1.0)),))
     assert [e.stage for e in started.evaluations] == ["weights"] * 6
@@ -271,7 +273,7 @@ def test_report_rebuilds_from_the_stored_document(tmp_path: Path) -> None:
         return _fake_result(0.01 * controller.tuning.q_position ** 0.5, completed=controller.tuning.q_position < 500)
 
     sweeps = run_sweep(["lmpc"], [_scenario("a")], tuning, weight_grid=weights, runner=runner,
-                       show_progress=False, evaluate_before=True)
+                       show_progress=False, low_speed_grid=NO_LOW_SPEED, evaluate_before=True)
     context = {"Koopman artefact used": "none"}
     markdown = tuning_sweep.sweep_markdown(sweeps, ["a"], context, weights)
     document = json.loads(json.dumps(tuning_sweep.sweep_document(sweeps, ["a"], context, weights)))
@@ -291,7 +293,7 @@ def test_sweep_records_a_controller_that_cannot_be_built() -> None:
         raise RuntimeError("solver exploded")
 
     [sweep] = run_sweep(["lmpc"], [_scenario("a")], tuning, weight_grid=weights,
-                        runner=runner, show_progress=False)
+                        runner=runner, show_progress=False, low_speed_grid=NO_LOW_SPEED)
     assert sweep.chosen.objective_m == FAILURE_PENALTY_M
     assert "solver exploded" in sweep.chosen.failure["a"]
 
@@ -306,7 +308,7 @@ def test_tiny_real_sweep_returns_the_better_setting_and_repeats_exactly() -> Non
     weights = SweepGrid((("q_position", (30.0, 1000.0)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
                          ("p_steer_rate", (300.0,))))
     scenario = _short_tuning_scenario()
-    runs = [run_sweep(["lmpc"], [scenario], tuning, weight_grid=weights, show_progress=False)[0]
+    runs = [run_sweep(["lmpc"], [scenario], tuning, weight_grid=weights, show_progress=False, low_speed_grid=NO_LOW_SPEED)[0]
             for _ in range(2)]
     objectives = [[e.objective_m for e in sweep.evaluations] for sweep in runs]
     print(f"objectives {objectives[0]}")
@@ -324,7 +326,7 @@ def test_two_workers_give_the_same_sweep_as_one() -> None:
     scenario = _short_tuning_scenario(1.0)
     serial, parallel = (run_sweep(["lmpc", "lmpc-eso"], [scenario], tuning, weight_grid=weights,
                                   observer_grid=SweepGrid((("eso_pole", (0.0, 0.3)),)),
-                                  workers=workers, show_progress=False) for workers in (1, 2))
+                                  workers=workers, show_progress=False, low_speed_grid=NO_LOW_SPEED) for workers in (1, 2))
     for one, two in zip(serial, parallel):
         assert [(e.setting, e.objective_m) for e in one.evaluations] == \
             [(e.setting, e.objective_m) for e in two.evaluations]
@@ -339,3 +341,61 @@ def test_cli_names_a_bad_scenario_and_writes_nothing(tmp_path: Path, capsys) -> 
                                 str(tuning_copy), "--no-progress"])
     assert status == 1 and "no_such_road" in capsys.readouterr().err
     assert not out.exists() and tuning_copy.read_text() == DEFAULT_TUNING_PATH.read_text()
+
+
+def test_low_speed_stage_schedules_the_weights_below_the_low_knot() -> None:
+    """Stand-in runner: scenario "slow" is best at q_position 1000, "fast" at 30, and the
+    runner sees the weights the controller uses at each scenario's speed (weights_at). One
+    weighting must trade the two; stage 4 gives the slow one its own weights, and the
+    setting is written with its low-speed fields."""
+    tuning = load_tuning()
+    speeds = {"slow": 8.0, "fast": 25.0}  # m/s: below and above weight_schedule_speeds
+    best_q = {"slow": 1000.0, "fast": 30.0}
+
+    def runner(scenario, controller):
+        q = controller.tuning.weights_at(speeds[scenario.name]).q_position
+        return _fake_result(0.01 + 0.01 * abs(np.log10(q / best_q[scenario.name])))
+
+    low_speed = SweepGrid((("low_speed_q_position", (30.0, 100.0, 1000.0)), ("low_speed_q_yaw", (20.0,)),
+                           ("low_speed_r_steer", (1.0,))))
+    (sweep,) = run_sweep(["lmpc"], [_scenario("slow"), _scenario("fast")], tuning,
+                         weight_grid=STAND_IN_WEIGHTS, runner=runner, show_progress=False,
+                         low_speed_grid=low_speed)
+    stages = [e.stage for e in sweep.evaluations]
+    # The flat schedule at the best weights (q_position 30 everywhere) is not run again.
+    assert stages == ["weights"] * 3 + ["low-speed"] * 2
+    chosen = dict(sweep.chosen.setting)
+    assert chosen["q_position"] == 30.0 and chosen["low_speed_q_position"] == 1000.0
+    assert sweep.chosen.objective_m == pytest.approx(0.01)
+    flat_best = min(e.objective_m for e in sweep.evaluations if e.stage == "weights")
+    assert flat_best > sweep.chosen.objective_m
+    written = dict(tuning_sweep.with_low_speed_weights(sweep.chosen.setting))
+    assert written["low_speed_q_yaw"] == written["q_yaw"] == 20.0
+    # A stage-1 setting writes a flat schedule.
+    assert dict(tuning_sweep.with_low_speed_weights(((("q_position", 3.0)),)))["low_speed_q_position"] == 3.0
+
+
+def test_reuse_takes_stored_evaluations_and_runs_only_the_rest() -> None:
+    """--reuse: a second sweep over a larger grid runs only the new settings; the stored
+    ones come back unchanged, a stage-1 setting matching its flat-schedule twin."""
+    tuning = load_tuning()
+    calls = []
+
+    def runner(scenario, controller):
+        calls.append(controller.tuning.q_position)
+        return _fake_result(0.01 * abs(np.log10(controller.tuning.q_position / 100.0)) + 0.001)
+
+    small = SweepGrid((("q_position", (30.0, 100.0)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
+                       ("p_steer_rate", (300.0,))))
+    (first,) = run_sweep(["lmpc"], [_scenario("a")], tuning, weight_grid=small, runner=runner,
+                         show_progress=False, low_speed_grid=NO_LOW_SPEED)
+    stored = {("lmpc", e.setting): e for e in first.evaluations}
+    calls.clear()
+    (second,) = run_sweep(["lmpc"], [_scenario("a")], tuning, weight_grid=STAND_IN_WEIGHTS,
+                          runner=runner, show_progress=False, low_speed_grid=NO_LOW_SPEED, reuse=stored)
+    assert calls == [1000.0]  # 30 and 100 were stored
+    assert [e.objective_m for e in second.evaluations[:2]] == [e.objective_m for e in first.evaluations]
+    assert tuning_sweep.reuse_key((("q_position", 3.0), ("q_yaw", 20.0), ("r_steer", 1.0))) == \
+        tuning_sweep.reuse_key((("q_position", 3.0), ("q_yaw", 20.0), ("r_steer", 1.0),
+                                ("low_speed_q_position", 3.0), ("low_speed_q_yaw", 20.0),
+                                ("low_speed_r_steer", 1.0)))

@@ -487,8 +487,8 @@ static void make_plan(const ecu_sample_t *sample, double torque, double referenc
     }
   /* The QP's arrays are (Np * 3, Nc) row-major: jac, and gain / free of steps 1..Np. */
   int64_t start = os_monotonic_ns();
-  ecu_qp_solve(&jac[0][0][0], &pose_offset[0][0], previous_steer(sample), &gain[1][0][0], &free[1][0], nominal,
-               &solution);
+  ecu_qp_solve(sample->vx, &jac[0][0][0], &pose_offset[0][0], previous_steer(sample), &gain[1][0][0], &free[1][0],
+               nominal, &solution);
   plan->solve_time_s = 1e-9 * (double)(os_monotonic_ns() - start);
   plan->status = solution.status;
   plan->iterations = solution.iterations;

@@ -11,7 +11,7 @@
 #include "ecu_internal.h"
 
 #define NAME_BYTES 48
-#define N_TUNING_VALUES 20
+#define N_TUNING_VALUES 25
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
 static const char *const CONTROLLER_NAMES[ECU_N_CONTROLLERS] = {"eso-dkmpc", "dkmpc", "lmpc"};
@@ -67,11 +67,22 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->eso_pole = v[17];
   t->eso_second_pole = v[18];
   t->disturbance_decay = v[19];
-  for (int i = 2; i < 17; i++) {
+  t->low_q_position = v[20];
+  t->low_q_yaw = v[21];
+  t->low_r_steer = v[22];
+  t->schedule_low = v[23];
+  t->schedule_high = v[24];
+  for (int i = 2; i < N_TUNING_VALUES; i++) {
+    if (i >= 17 && i < 20) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {
       snprintf(err, err_len, "%s: [%s] value %d is not finite", path, CONTROLLER_NAMES[id], i);
       return -1;
     }
+  }
+  if (!(t->schedule_low >= 0.0 && t->schedule_low < t->schedule_high)) {
+    snprintf(err, err_len, "%s: [%s] weight_schedule_speeds [%g, %g] must be 0 <= low < high", path,
+             CONTROLLER_NAMES[id], t->schedule_low, t->schedule_high);
+    return -1;
   }
   return 0;
 }

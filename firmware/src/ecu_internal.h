@@ -21,6 +21,9 @@ typedef struct {
   int max_iter;
   double eps_abs, eps_rel;
   double eso_pole, eso_second_pole, disturbance_decay; /* NaN where the table has none */
+  /* Speed schedule of q_position, q_yaw, r_steer (MpcTuning.weights_at): the low_ weights
+   * at vx <= schedule_low, the others at vx >= schedule_high, linear between (m/s). */
+  double low_q_position, low_q_yaw, low_r_steer, schedule_low, schedule_high;
 } ecu_tuning_t;
 
 typedef struct {
@@ -71,8 +74,9 @@ typedef struct {
 int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t err_len);
 
 /* SteeringQp.solve: jac (Np*3 x Nc, row-major), offset (Np*3), gain (Np*3 x Nc, states at
- * steps 1..Np), free (Np*3), warm (Nc). */
-void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_steer,
+ * steps 1..Np), free (Np*3), warm (Nc); vx (m/s) the measured speed the weights are
+ * scheduled on. */
+void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, double previous_steer,
                   const double *gain, const double *free_states, const double *warm,
                   ecu_qp_solution_t *solution);
 

@@ -42,7 +42,7 @@ static OSQPSolver *solver;
 static const ecu_tuning_t *tun;
 static int n_pred, n_ctrl;
 static int constraints_were_active;
-static double fixed_hessian[NC][NC];
+static double fixed_hessian[NC][NC], rate_diagonal[NC];
 static double p_data[P_NNZ], a_data[A_NNZ], q[N_VAR], lower[N_CON], upper[N_CON];
 static double warm[N_VAR], initial_dual[N_CON], pose_weight[3 * NP];
 /* A's data: U column c starts at a_column[c] (its bound row; then the gain rows from
@@ -76,15 +76,11 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
              tuning->max_iter, tuning->eps_abs, tuning->eps_rel);
     return -1;
   }
-  /* r I + p D'D, D the increment operator (U_j - U_{j-1}). */
+  /* p D'D, D the increment operator (U_j - U_{j-1}); r I is added per step (use_weights). */
   memset(fixed_hessian, 0, sizeof fixed_hessian);
   for (int j = 0; j < n_ctrl; j++) {
-    fixed_hessian[j][j] = tuning->r_steer + tuning->p_steer_rate * (j + 1 < n_ctrl ? 2.0 : 1.0);
+    rate_diagonal[j] = tuning->p_steer_rate * (j + 1 < n_ctrl ? 2.0 : 1.0);
     if (j + 1 < n_ctrl) fixed_hessian[j][j + 1] = fixed_hessian[j + 1][j] = -tuning->p_steer_rate;
-  }
-  for (int i = 0; i < n_pred; i++) {
-    pose_weight[3 * i] = pose_weight[3 * i + 1] = tuning->q_position;
-    pose_weight[3 * i + 2] = tuning->q_yaw;
   }
   /* The parts of P, A, q, l, u that never change. */
   int upper_count = n_ctrl * (n_ctrl + 1) / 2;
@@ -162,11 +158,26 @@ static int map_status(OSQPInt status) {
   }
 }
 
-void ecu_qp_solve(const double *jac, const double *pose_offset, double previous_steer, const double *gain,
-                  const double *free_states, const double *warm_steer, ecu_qp_solution_t *sol) {
+/* MpcTuning.weights_at and SteeringQp._use_weights: the pose weights and r I + p D'D at
+ * measured speed vx, the same arithmetic as the Python (bit-identical weights). */
+static void use_weights(double vx) {
+  const double blend = fmin(fmax((vx - tun->schedule_low) / (tun->schedule_high - tun->schedule_low), 0.0), 1.0);
+  const double q_position = tun->low_q_position + blend * (tun->q_position - tun->low_q_position);
+  const double q_yaw = tun->low_q_yaw + blend * (tun->q_yaw - tun->low_q_yaw);
+  const double r_steer = tun->low_r_steer + blend * (tun->r_steer - tun->low_r_steer);
+  for (int j = 0; j < n_ctrl; j++) fixed_hessian[j][j] = r_steer + rate_diagonal[j];
+  for (int i = 0; i < n_pred; i++) {
+    pose_weight[3 * i] = pose_weight[3 * i + 1] = q_position;
+    pose_weight[3 * i + 2] = q_yaw;
+  }
+}
+
+void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, double previous_steer,
+                  const double *gain, const double *free_states, const double *warm_steer, ecu_qp_solution_t *sol) {
   const int rows = 3 * n_pred, soft_first = n_ctrl + N_SOFT;
   double weighted[3 * NP][NC];
   double hessian[NC][NC];
+  use_weights(vx);
   for (int r = 0; r < rows; r++)
     for (int c = 0; c < n_ctrl; c++) weighted[r][c] = jac[r * n_ctrl + c] * pose_weight[r];
   /* Half of OSQP's P: J' W J + the fixed part; its upper triangle in column order. */
