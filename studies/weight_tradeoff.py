@@ -5,8 +5,10 @@ An analysis of the two evaluation scenarios, never a tuning: nothing here is cho
 written into ``controller/tuning.toml`` (``make tune`` chooses on the tuning set alone).
 Each controller runs both double lane changes (``dlc_high_mu``, ``dlc_low_mu``) at each of
 the 36 MPC-weight settings of ``studies.tuning_sweep.WEIGHT_GRID``; its other fields
-(horizons, constraints, observer poles and decay) stay the tuning file's. The tuned
-weights are one of the grid's points, marked.
+(horizons, constraints, observer poles and decay) stay the tuning file's. The grid's
+settings use their weights at every speed; the tuned weights, scheduled over speed
+(``MpcTuning.weights_at``), are one more point, marked (a grid point when the tuned
+schedule is flat).
 
 What it reports, per controller:
 
@@ -41,8 +43,9 @@ from tqdm import tqdm
 from hil.errors import HilError
 from hil.scenario import load_scenario
 from studies.closed_loop import run_closed_loop
+from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS
 from studies.tuning_sweep import (FAILURE_PENALTY_M, WEIGHT_FIELDS, WEIGHT_GRID, Evaluation,
-                                  Setting, SweepExecutor, current_setting)
+                                  Setting, SweepExecutor, current_setting, reuse_key)
 
 #: The evaluation scenarios of Tables II (high mu) and III (low mu), in that order.
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
@@ -94,8 +97,12 @@ def run_tradeoff(controllers: Sequence[str], tuning: Any, *, workers: int = 2, a
     scenarios = [load_scenario(name) for name in SCENARIOS]
     jobs, tuned = [], {}
     for name in controllers:
-        tuned[name] = tuple((f, v) for f, v in current_setting(tuning, name) if f in WEIGHT_FIELDS)
-        jobs += [(name, "weights", setting) for setting in WEIGHT_GRID.settings()]
+        tuned[name] = tuple((f, v) for f, v in current_setting(tuning, name)
+                            if f in WEIGHT_FIELDS + LOW_SPEED_WEIGHTS)
+        grid = WEIGHT_GRID.settings()
+        jobs += [(name, "weights", setting) for setting in grid]
+        if all(reuse_key(setting) != reuse_key(tuned[name]) for setting in grid):
+            jobs.append((name, "tuned", tuned[name]))  # scheduled, or flat off the grid
     with tqdm(total=len(jobs) * len(scenarios), desc="make tradeoff", unit="run",
               disable=not show_progress, dynamic_ncols=True) as progress:
         executor = SweepExecutor(scenarios, tuning, run_closed_loop, workers, progress, address)
@@ -109,12 +116,18 @@ def run_tradeoff(controllers: Sequence[str], tuning: Any, *, workers: int = 2, a
         points[evaluation.controller].append(Point(
             evaluation.controller, evaluation.setting, high, low,
             tuple(bool(evaluation.completed[s]) for s in SCENARIOS),
-            evaluation.setting == tuned[evaluation.controller]))
+            reuse_key(evaluation.setting) == reuse_key(tuned[evaluation.controller])))
     return points
 
 
 def _weights_text(setting: Setting) -> str:
-    return ", ".join(f"{name} {value:g}" for name, value in setting if name != "p_steer_rate")
+    """The weights but p_steer_rate (the normalisation); low-speed weights only where they
+    differ from the others (a scheduled setting)."""
+    named = dict(setting)
+    shown = [(name, value) for name, value in setting
+             if name in SCHEDULED_WEIGHTS
+             or name in LOW_SPEED_WEIGHTS and value != named.get(name.removeprefix("low_speed_"))]
+    return ", ".join(f"{name} {value:g}" for name, value in shown)
 
 
 def _m(value: float) -> str:
@@ -130,8 +143,10 @@ def markdown(points: Mapping[str, list[Point]], *, command: str, wall_s: float, 
         "",
         f"Each controller at the {len(WEIGHT_GRID)} MPC-weight settings of the tuning sweep "
         f"(q_position x q_yaw x r_steer, p_steer_rate 300) on both double lane changes; observer "
-        f"poles and decay as tuned. **An analysis of the evaluation scenarios, not a tuning**: the "
-        f"tuned weights (`make tune`, tuning set only) are one grid point, marked. A run that does "
+        f"poles and decay as tuned; each setting's weights at every speed. **An analysis of the "
+        f"evaluation scenarios, not a tuning**: the tuned weights (`make tune`, tuning set only), "
+        f"scheduled over speed, are one more point of each controller, marked, and count among its "
+        f"settings below (fronts, iso-robustness). A run that does "
         f"not complete counts {FAILURE_PENALTY_M:g} m. {command}: "
         f"{sum(len(v) for v in points.values()) * len(SCENARIOS)} runs in {wall_s / 60:.1f} min "
         f"on {workers} worker(s).",

@@ -32,3 +32,13 @@ def test_the_report_marks_the_tuned_setting_and_failures() -> None:
     assert "| LMPC | q_position 10, q_yaw 20, r_steer 0.3 | 0.0200 / 0.1000 | yes |" in text
     assert "not a tuning" in text
     assert "0.0050 (did not complete)" in text
+
+
+def test_a_scheduled_tuned_setting_is_reported_with_its_low_speed_weights() -> None:
+    """The tuned point of a scheduled tuning names the low-speed weights that differ."""
+    scheduled = (("q_position", 3.0), ("q_yaw", 80.0), ("r_steer", 3.0), ("p_steer_rate", 300.0),
+                 ("low_speed_q_position", 10.0), ("low_speed_q_yaw", 80.0), ("low_speed_r_steer", 0.3))
+    points = POINTS[:1] + [Point("lmpc", scheduled, 0.015, 0.09, (True, True), True)]
+    text = markdown({"lmpc": points}, command="make tradeoff", wall_s=60.0, workers=2)
+    assert ("| LMPC | q_position 3, q_yaw 80, r_steer 3, low_speed_q_position 10, low_speed_r_steer 0.3 "
+            "| 0.0150 / 0.0900 | yes |") in text
