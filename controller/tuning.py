@@ -94,7 +94,7 @@ class MpcTuning:
     def weights_at(self, vx: float) -> StageWeights:
         """The scheduled weights at measured speed ``vx`` (m/s); held for the whole horizon.
 
-        The C core computes the same (firmware/src/ecu_qp.c, ``scheduled_weights``)."""
+        The C core computes the same (firmware/src/ecu_qp.c, ``use_weights``)."""
         low, high = self.weight_schedule_speeds
         # Fraction of the way from the low-speed weights to the others; a NaN speed never
         # reaches here (the MPC falls back on a non-finite sample first).

@@ -929,14 +929,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {artefact} changed during the sweep ({artefact_before} -> "
               f"{artefact_description(artefact)}); run make tune again", file=sys.stderr)
         return 1
-    runs = sum(len(s.evaluations) + (s.before is not None) for s in sweeps) * len(scenarios)
-    reused = sum(1 for s in sweeps for e in (*s.evaluations, s.before) if e is not None and reuse
-                 and (s.controller, reuse_key(e.setting)) in {(n, reuse_key(k)) for n, k in reuse})
+    stored = {(name, reuse_key(setting)) for name, setting in (reuse or {})}
+    evaluated = [(s.controller, e) for s in sweeps for e in (*s.evaluations, *filter(None, (s.before,)))]
+    reused = sum((name, reuse_key(e.setting)) in stored for name, e in evaluated)
+    run_now = (len(evaluated) - reused) * len(scenarios)
     context = {
         "Koopman artefact used": artefact_before,
-        **({"Reused": f"{reused} evaluations from {args.reuse} (--reuse: the same runs, not run again)"}
-           if reuse else {}),
-        "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {runs} closed-loop runs",
+        **({"Reused": f"{reused} evaluations ({reused * len(scenarios)} runs) from {args.reuse} "
+                      "(--reuse: the same runs, not run again)"} if reuse else {}),
+        "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {run_now} closed-loop runs",
     }
     write_reports(SweepRecord(sweeps, [s.name for s in scenarios], context, WEIGHT_GRID, OBSERVER_GRID,
                               OBSERVER_START), args.out)
