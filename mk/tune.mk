@@ -8,9 +8,10 @@ TUNE_ARGS ?=
 # The tuning set's files (beside, not among, PROVENANCE_SCENARIOS / PROVENANCE_PATHS).
 PROVENANCE_TUNING_SET := $(sort $(wildcard hil/scenarios/tuning/*.toml)) $(sort $(wildcard hil/paths/tuning/*.csv))
 
-# About 30 min with 2 workers on 2 cores (8 tuning scenarios of 10 s; NMPC takes most of it).
+# About 50 min with 2 workers on 2 cores (8 tuning scenarios of 10 s; NMPC takes most of it);
+# TUNE_ARGS="--reuse results/tuning_sweep.json" runs only the settings not stored there.
 # Then regenerate the evaluation with the tuned values: make tables run.
-## tune every controller on the tuning set -> controller/tuning.toml, results/tuning_sweep.* (~30 min)
+## tune every controller on the tuning set -> controller/tuning.toml, results/tuning_sweep.* (~50 min)
 tune: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.tuning_sweep --out results --workers 2 $(TUNE_ARGS)
 	$(PROVENANCE_STAMP) $(addprefix results/tuning_sweep.,md json png) \
