@@ -99,36 +99,28 @@ def test_step_equals_python_in_closed_loop(native, name: str) -> None:
 def test_scheduled_weights_equal_python_in_closed_loop(native, name: str, tmp_path: Path) -> None:
     """A tuning whose weights change with speed across dlc_smoke's 9.7 m/s (knots 8 and 12
     m/s: about half way) gives the same steps in C as in Python, and other commands than
-    the flat tuning (so the schedule is in use in both)."""
-    import tomllib
-
+    the committed tuning (so the edited schedule is in use in both)."""
+    from controller.tuning import load_tuning
     from hil.scenario import load_scenario
     from studies.closed_loop import run_closed_loop
+    from studies.tuning_sweep import build_controller, with_setting
 
-    document = tomllib.loads((ROOT / "controller" / "tuning.toml").read_text())
-    table = document[name]
-    edits = {"low_speed_q_position": 10.0 * table["q_position"], "low_speed_q_yaw": 0.25 * table["q_yaw"],
-             "low_speed_r_steer": 3.0 * table["r_steer"], "weight_schedule_speeds": [8.0, 12.0]}
-    lines = []
-    section = None
-    for line in (ROOT / "controller" / "tuning.toml").read_text().splitlines():
-        if line.startswith("["):
-            section = line.split("]")[0].strip("[")
-        key = line.split("=")[0].strip()
-        if section == name and key in edits:
-            line = f"{key} = {edits[key]}"
-        lines.append(line)
-    tuning = tmp_path / "tuning.toml"
-    tuning.write_text("\n".join(lines) + "\n")
+    committed = load_tuning()
+    table = committed.for_controller(name)
+    schedule = (("low_speed_q_position", 10.0 * table.q_position), ("low_speed_q_yaw", 0.25 * table.q_yaw),
+                ("low_speed_r_steer", 3.0 * table.r_steer), ("weight_schedule_speeds", (8.0, 12.0)))
+    tuning = with_setting(committed, name, schedule)
     ecu_data = _tool("ecu_data")
-    ecu_data.write_data(ecu_data.collect(tuning, ecu_data.DEFAULT_ARTIFACT), tmp_path / "scheduled.bin")
-    twin = Twin(create_controller(name, tuning), native.NativeController(name, tmp_path / "scheduled.bin"))
+    records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
+    records[f"tuning.{name}"] = ecu_data.tuning_vector(tuning, name)
+    ecu_data.write_data(records, tmp_path / "scheduled.bin")
+    twin = Twin(build_controller(name, tuning), native.NativeController(name, tmp_path / "scheduled.bin"))
     assert run_closed_loop(load_scenario("dlc_smoke"), twin).completed
     assert_twin_steps_equal(name, twin)
-    flat = Twin(create_controller(name), native.NativeController(name))
-    run_closed_loop(load_scenario("dlc_smoke"), flat)
-    change = max(abs(a[0].steer_angle - b[0].steer_angle) for a, b in zip(twin.pairs, flat.pairs))
-    print(f"{name}: largest steer change against the flat tuning {change:.2e} rad")
+    before = Twin(create_controller(name), native.NativeController(name))
+    run_closed_loop(load_scenario("dlc_smoke"), before)
+    change = max(abs(a[0].steer_angle - b[0].steer_angle) for a, b in zip(twin.pairs, before.pairs))
+    print(f"{name}: largest steer change against the committed tuning {change:.2e} rad")
     assert change > 1e-4
 
 

@@ -372,7 +372,7 @@ def test_low_speed_stage_schedules_the_weights_below_the_low_knot() -> None:
     written = dict(tuning_sweep.with_low_speed_weights(sweep.chosen.setting))
     assert written["low_speed_q_yaw"] == written["q_yaw"] == 20.0
     # A stage-1 setting writes a flat schedule.
-    assert dict(tuning_sweep.with_low_speed_weights(((("q_position", 3.0)),)))["low_speed_q_position"] == 3.0
+    assert dict(tuning_sweep.with_low_speed_weights((("q_position", 3.0),)))["low_speed_q_position"] == 3.0
 
 
 def test_reuse_takes_stored_evaluations_and_runs_only_the_rest() -> None:

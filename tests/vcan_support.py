@@ -228,8 +228,10 @@ def drive_lost_interface(scenario_file: str, controller: str, ecu_log: str, ecu_
         try:
             if not realtime:
                 bus = can.Bus(interface="socketcan", channel="vcan0")
-                run_lockstep(bus, scenario, ecu)
-                bus.shutdown()
+                try:
+                    run_lockstep(bus, scenario, ecu)
+                finally:
+                    bus.shutdown()
             else:
                 wait_for_ecu_frame(ecu)  # running, not still starting (seconds in UML under load)
                 # the baseline: its CPU time over as long with vcan0 up
