@@ -1,5 +1,5 @@
 # Deep Koopman model (issue 4): training of the default artefact and Table I.
-.PHONY: train table1 test-koopman model-fidelity dmdc seed-spread
+.PHONY: train table1 test-koopman model-fidelity dmdc seed-spread step-steer-spread
 
 KOOPMAN_DATA ?= data/nominal
 # The default artefact's data: the wide profile (3-35 m/s, mu 0.3-1.0, into saturation).
@@ -43,6 +43,18 @@ model-fidelity: setup
 	$(PY) -m studies.model_fidelity --data $(TRAIN_DATA) --out results
 	$(PROVENANCE_STAMP) results/model_fidelity.md results/model_fidelity.json --command "make model-fidelity" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.model_fidelity
+
+# Step steer of the default training and two variants (small-signal weighting; one wheel-angle
+# row for all speeds) over the 5 seeds of Table I: is the step-steer error a bias or the
+# seed? results/step_steer_spread.{md,json,png}. Shares Table I's cache (build/table1/);
+# about 25 min on 2 cores when nothing is cached.
+## step steer over 5 seeds, default training and two variants -> results/step_steer_spread.*
+step-steer-spread: setup
+	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
+	$(PY) -m studies.step_steer_spread --data $(TRAIN_DATA)
+	$(PROVENANCE_STAMP) $(addprefix results/step_steer_spread.,md json png) \
+		--command "$(call provenance_command,step-steer-spread,TRAIN_DATA)" \
+		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.step_steer_spread models.data
 
 # The DMDc model of the dmdc-eso ablation (ESO-DKMPC with no lift): least squares on the
 # training runs of the default artefact's data and split (its JSON's data_dir and split),

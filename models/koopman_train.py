@@ -65,6 +65,14 @@ class TrainingSettings:
     horizon of 30). One epoch = ``steps_per_epoch`` Adam steps on batches drawn with
     replacement. ``form``: "linear" (the paper's eq. 5) or "bilinear"; ``dictionary``:
     fixed lifting functions (names of ``models.koopman.DICTIONARY``), () for none.
+
+    Two options of the step-steer study (``studies.step_steer_spread``), off by default:
+    ``small_signal_accel`` a0 > 0 weighs each window's prediction error by
+    1 / (1 + (a / a0)^2), a the window's peak |vx r| (m/s^2), so windows in the tyres' linear
+    range count more than those at the limit; ``unscheduled_states`` names states whose row
+    of (A, B, c) is one for all speed knots (the wheel angle: the servo does not depend on
+    speed). Both are left out of the artefact's settings record while off, so artefacts
+    trained before them still match their settings.
     """
 
     n_features: int = 5
@@ -82,6 +90,8 @@ class TrainingSettings:
     speed_knots: tuple[float, ...] = DEFAULT_SPEED_KNOTS
     recon_weight: float = 1.0
     lifted_weight: float = 1.0
+    small_signal_accel: float = 0.0
+    unscheduled_states: tuple[str, ...] = ()
     val_fraction: float = 0.15
     test_fraction: float = 0.15
     val_windows: int = 4096
@@ -108,6 +118,8 @@ class TrainingSettings:
             "threads": self.threads >= 1,
             "recon_weight": self.recon_weight >= 0,
             "lifted_weight": self.lifted_weight >= 0,
+            "small_signal_accel": self.small_signal_accel >= 0,
+            "unscheduled_states": self.form == "scheduled" or not self.unscheduled_states,
             "val_fraction": 0 < self.val_fraction < 0.5,
             "test_fraction": 0 < self.test_fraction < 0.5,
             "device": self.device in ("auto", "cpu", "cuda"),
@@ -230,6 +242,16 @@ class SequenceSet:
         self.inputs = torch.as_tensor(inputs, dtype=torch.float32, device=device)
         self.starts = torch.as_tensor(np.concatenate(starts), dtype=torch.long, device=device)
         self.offsets = torch.arange(seq_len, device=device)
+        # Peak |vx r| (m/s^2) over each window: the lateral acceleration of steady cornering,
+        # how far into the tyres' nonlinear range the window goes (for window_weights).
+        names = runs[0].state_names
+        if "vx" in names and "yaw_rate" in names:
+            accel = np.concatenate([np.abs(r.states[:, names.index("vx")] * r.states[:, names.index("yaw_rate")])
+                                    for r in runs])
+        else:
+            accel = np.zeros(len(states))
+        peak = accel[np.concatenate(starts)[:, None] + np.arange(seq_len)].max(axis=1)
+        self.peak_accel = torch.as_tensor(peak, dtype=torch.float32, device=device)
 
     def __len__(self) -> int:
         return int(self.starts.numel())
@@ -292,6 +314,9 @@ def train(
             raise KoopmanError(f"run {run.name}: columns differ from run {runs[0].name}")
     seed_everything(settings.seed, settings.threads)
     device = pick_device(settings.device)
+    missing = [name for name in settings.unscheduled_states if name not in state_names]
+    if missing:
+        raise KoopmanError(f"unscheduled_states {missing} are not among the states {state_names}")
     train_runs, val_runs, test_runs = split_runs(runs, settings)
     dictionary = check_dictionary(settings.dictionary, state_names)
     # The scheduled form schedules on the first state: the data's longitudinal speed.
@@ -318,7 +343,8 @@ def train(
 
     bilinear = settings.form == "bilinear"
     net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden,
-                     len(dictionary), bilinear, len(knots))
+                     len(dictionary), bilinear, len(knots),
+                     [state_names.index(name) for name in settings.unscheduled_states])
     if settings.warm_start:
         net.warm_start(least_squares_start(
             [_known_coordinates(r, state_scaling, dictionary, dictionary_scaling) for r in train_runs],
@@ -346,6 +372,11 @@ def train(
             which = torch.randint(len(train_set), (settings.batch_size,), generator=sampler).to(device)
             x_n, psi_n, u_n, weights = train_set.batch(which)
             losses = net.losses(x_n, psi_n, u_n, state_weights, weights)
+            if settings.small_signal_accel > 0:
+                window = window_weights(train_set.peak_accel[which], settings.small_signal_accel)
+                # Normalised by the batch's mean weight: the loss keeps its scale.
+                losses["prediction"] = (torch.mean(window[:, None, None] * losses["error"] ** 2)
+                                        / torch.mean(window))
             loss = _total(losses, settings)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -412,6 +443,12 @@ def train(
     )
 
 
+def window_weights(peak_accel: torch.Tensor, small_signal_accel: float) -> torch.Tensor:
+    """Weights (b,) of windows with peak |vx r| ``peak_accel`` (b,) in m/s^2:
+    1 / (1 + (a / a0)^2), a0 = ``small_signal_accel``. The validation loss stays unweighted."""
+    return 1.0 / (1.0 + (peak_accel / small_signal_accel) ** 2)
+
+
 @torch.no_grad()
 def _validation(net: KoopmanNet, val_set: SequenceSet, index: torch.Tensor, state_weights: torch.Tensor,
                 span: np.ndarray) -> tuple[float, np.ndarray]:
@@ -434,6 +471,11 @@ def settings_json(settings: TrainingSettings) -> dict:
     out["hidden"] = list(settings.hidden)
     out["dictionary"] = list(settings.dictionary)
     out["speed_knots"] = list(settings.speed_knots)
+    out["unscheduled_states"] = list(settings.unscheduled_states)
+    # Options added after artefacts were committed: recorded only when on (see the class).
+    for name in ("small_signal_accel", "unscheduled_states"):
+        if not out[name]:
+            del out[name]
     return out
 
 
@@ -513,6 +555,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"fixed lifting functions, comma-separated, '' for none (known: {','.join(DICTIONARY)})")
     p.add_argument("--speed-knots", type=lambda t: tuple(float(v) for v in t.split(",")),
                    default=defaults.speed_knots, help="speed knots in m/s of the scheduled form, comma-separated")
+    p.add_argument("--small-signal-accel", type=float, default=defaults.small_signal_accel, metavar="A0",
+                   help="weigh windows by 1 / (1 + (peak |vx r| / A0)^2), A0 in m/s^2; 0 (default) for off")
+    p.add_argument("--unscheduled-states", type=lambda t: tuple(n for n in t.split(",") if n),
+                   default=defaults.unscheduled_states, metavar="NAMES",
+                   help="states whose dynamics row is one for all speed knots (scheduled form), comma-separated")
     p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
     p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
     p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
@@ -544,7 +591,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
             max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,
             form=args.form, dictionary=args.dictionary, patience=args.patience,
-            speed_knots=args.speed_knots,
+            speed_knots=args.speed_knots, small_signal_accel=args.small_signal_accel,
+            unscheduled_states=args.unscheduled_states,
             learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )

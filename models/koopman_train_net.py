@@ -11,6 +11,8 @@ Dynamics (``form``):
   state (why: ``models/koopman.py``), with a learned constant c;
 - ``scheduled``: z+ = A(v) z + B(v) u + c(v), one (A, B, c) per speed knot, interpolated
   at the speed v of the sequence's first sample and held over the sequence (as the MPC).
+  ``shared_rows`` (state indices) keep one row of (A, B, c) for all knots: the mean of the
+  knots' rows is used everywhere, so those states' dynamics do not depend on speed.
 
 Loss per sequence x_k..x_{k+p-1}, u_k..u_{k+p-2} (means over their terms):
 - L1, multi-step prediction (eqs. 9-10), rolled out in the LIFTED space from z_k, as the MPC
@@ -35,8 +37,10 @@ class KoopmanNet(nn.Module):
     """Encoder, decoder and the dynamics A, B (and N, c for the bilinear form), normalised units."""
 
     def __init__(self, n_x: int, n_u: int, n_features: int, hidden: Sequence[int],
-                 n_dictionary: int = 0, bilinear: bool = False, n_knots: int = 0) -> None:
+                 n_dictionary: int = 0, bilinear: bool = False, n_knots: int = 0,
+                 shared_rows: Sequence[int] = ()) -> None:
         super().__init__()
+        self.shared_rows = list(shared_rows)
         self.n_x, self.n_u, self.n_features = n_x, n_u, n_features
         self.n_known = n_x + n_dictionary
         self.n_z = self.n_known + n_features
@@ -100,9 +104,10 @@ class KoopmanNet(nn.Module):
         z = z0
         out = []
         if self.n_knots:
-            A = torch.einsum("bk,kij->bij", knot_weights, self.A_knots)
-            forced = (torch.einsum("bk,kij,bsj->bsi", knot_weights, self.B_knots, inputs_n)
-                      + (knot_weights @ self.c_knots)[:, None])
+            A_knots, B_knots, c_knots = self.knot_matrices()
+            A = torch.einsum("bk,kij->bij", knot_weights, A_knots)
+            forced = (torch.einsum("bk,kij,bsj->bsi", knot_weights, B_knots, inputs_n)
+                      + (knot_weights @ c_knots)[:, None])
             for i in range(inputs_n.shape[1]):
                 z = torch.einsum("bij,bj->bi", A, z) + forced[:, i]
                 out.append(z)
@@ -111,6 +116,19 @@ class KoopmanNet(nn.Module):
             z = self.step(z, inputs_n[:, i])
             out.append(z)
         return torch.stack(out, dim=1)
+
+    def knot_matrices(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A (K, n_z, n_z), B (K, n_z, n_u), c (K, n_z) of the scheduled form, the rows of
+        ``shared_rows`` replaced by their mean over the knots (not scheduled on speed)."""
+        A, B, c = self.A_knots, self.B_knots, self.c_knots
+        if not self.shared_rows:
+            return A, B, c
+        rows = self.shared_rows
+        A, B, c = A.clone(), B.clone(), c.clone()
+        A[:, rows] = self.A_knots[:, rows].mean(dim=0)
+        B[:, rows] = self.B_knots[:, rows].mean(dim=0)
+        c[:, rows] = self.c_knots[:, rows].mean(dim=0)
+        return A, B, c
 
     def losses(self, x_n: torch.Tensor, psi_n: torch.Tensor, u_n: torch.Tensor,
                state_weights: torch.Tensor, knot_weights: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -140,11 +158,12 @@ class KoopmanNet(nn.Module):
 
         layers = [m for m in self.encoder if isinstance(m, nn.Linear)]
         if self.n_knots:
+            A_knots, B_knots, c_knots = self.knot_matrices()
             return NormalisedKoopman(
                 encoder=tuple((array(layer.weight), array(layer.bias)) for layer in layers),
-                A_n=array(self.A_knots), B_n=array(self.B_knots), state_scaling=state_scaling,
+                A_n=array(A_knots), B_n=array(B_knots), state_scaling=state_scaling,
                 input_scaling=input_scaling, dictionary=dictionary, dictionary_scaling=dictionary_scaling,
-                affine_n=array(self.c_knots), speed_knots=tuple(float(v) for v in speed_knots))
+                affine_n=array(c_knots), speed_knots=tuple(float(v) for v in speed_knots))
         return NormalisedKoopman(
             encoder=tuple((array(layer.weight), array(layer.bias)) for layer in layers),
             A_n=array(self.A.weight),

@@ -12,11 +12,14 @@ torch = pytest.importorskip("torch")
 from models.koopman import KoopmanError, KoopmanModel, dictionary_features, knot_weights  # noqa: E402
 from models.koopman_metrics import Trajectory  # noqa: E402
 from models.koopman_train import (  # noqa: E402
+    SequenceSet,
     TrainingSettings,
     fit_scaling,
     main,
+    settings_json,
     split_runs,
     train,
+    window_weights,
     write_artifact,
 )
 from test_koopman_synthetic import INPUTS, STATES, synthetic_runs  # noqa: E402
@@ -133,6 +136,48 @@ def test_nan_rows_are_refused_naming_run_column_and_row(runs) -> None:
 def test_bad_settings_name_the_field() -> None:
     with pytest.raises(KoopmanError, match="seq_len=1"):
         TrainingSettings(seq_len=1)
+
+
+def test_an_unscheduled_state_has_one_row_for_every_speed_knot(runs, tiny_result) -> None:
+    """The yaw-rate row of (A, B, c) is the same at every knot; the others still differ."""
+    result = train(runs, 0.025, TrainingSettings(**{**TINY.__dict__, "unscheduled_states": ("yaw_rate",)}),
+                   progress=False)
+    learned, row = result.learned, STATES.index("yaw_rate")
+    for name, matrix in (("A", learned.A_n), ("B", learned.B_n), ("c", learned.affine_n)):
+        spread = np.abs(matrix[:, row] - matrix[:1, row]).max()
+        print(f"{name}: largest difference of the yaw-rate row between knots {spread:.1e}")
+        assert spread < 1e-6
+    assert np.abs(learned.A_n[:, 1] - learned.A_n[:1, 1]).max() > 1e-4  # vy stays scheduled
+    assert np.abs(tiny_result.learned.A_n[:, row] - tiny_result.learned.A_n[:1, row]).max() > 1e-4
+
+
+def test_small_signal_weighting_weighs_windows_by_their_peak_lateral_acceleration(runs, tiny_result) -> None:
+    weights = window_weights(torch.tensor([0.0, 3.0, 6.0, 30.0]), 3.0).numpy()
+    assert weights == pytest.approx([1.0, 0.5, 0.2, 1.0 / 101.0])
+    state_scaling, input_scaling = fit_scaling(runs)
+    windows = SequenceSet(runs[:1], 6, state_scaling, input_scaling, torch.device("cpu"), "training")
+    lateral = np.abs(runs[0].states[:, 0] * runs[0].states[:, 2])
+    expected = [lateral[k:k + 6].max() for k in range(len(runs[0]) - 5)]
+    assert windows.peak_accel.numpy() == pytest.approx(expected, rel=1e-6)
+    weighted = train(runs, 0.025, TrainingSettings(**{**TINY.__dict__, "small_signal_accel": 1.0}), progress=False)
+    assert np.abs(weighted.learned.A_n - tiny_result.learned.A_n).max() > 1e-4  # the option acts
+
+
+def test_training_options_are_recorded_only_when_on() -> None:
+    assert "small_signal_accel" not in settings_json(TrainingSettings())
+    assert "unscheduled_states" not in settings_json(TrainingSettings())
+    on = settings_json(TrainingSettings(small_signal_accel=3.0, unscheduled_states=("steer_measured",)))
+    assert on["small_signal_accel"] == 3.0 and on["unscheduled_states"] == ["steer_measured"]
+
+
+def test_bad_training_options_are_refused(runs) -> None:
+    with pytest.raises(KoopmanError, match="small_signal_accel=-1.0"):
+        TrainingSettings(small_signal_accel=-1.0)
+    with pytest.raises(KoopmanError, match="unscheduled_states"):
+        TrainingSettings(form="linear", unscheduled_states=("vy",))
+    with pytest.raises(KoopmanError, match=r"unscheduled_states \['steer_measured'\] are not among the states"):
+        train(runs, 0.025, TrainingSettings(**{**TINY.__dict__, "unscheduled_states": ("steer_measured",)}),
+              progress=False)
 
 
 def test_cli_reports_a_missing_directory(tmp_path: Path, capsys) -> None:

@@ -1,0 +1,215 @@
+"""Step steer over seeds: how much of the learned model's step-steer error is the seed.
+
+``make model-fidelity`` measures the step steer of one artefact (seed 0). This study asks
+whether that error is a bias of the training or the spread of one draw: for the default
+row of Table I and two training variants, each trained with the 5 seeds of Table I on the
+same data (the seed draws the weights and the train / validation / test split), it runs
+the step steer of ``studies.model_fidelity`` (0.02 rad from straight driving at 10, 15,
+20, 25 m/s, open loop with the plant's torque, yaw rate after 1 s) and the 1 s open-loop
+RMSE of vy and r on each seed's test runs (as Table I, the linear bicycle beside).
+
+Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings``'):
+
+- the default training (Table I's default row: its models and cache are shared);
+- small-signal weighting: each window's prediction error weighted by 1 / (1 + (a/a0)^2),
+  a the window's peak |vx r|, a0 = 3 m/s^2, so windows in the tyres' linear range (where a
+  step steer lives) count more than those at the limit;
+- the same plus one (A, B, c) row of the wheel angle for all speed knots (the servo does
+  not depend on speed; the default learns it per knot).
+
+Writes ``results/step_steer_spread.{md,json,png}``. Trainings are cached in ``build/table1/``
+beside Table I's and run as tasks of the campaigns' executors (a local Ray by default);
+about 25 min on 2 cores when nothing is cached.
+CLI: ``python -m studies.step_steer_spread [--data data/wide] [--seeds 0,1,2,3,4]
+[--address ADDR] [--workers N] [--serial]``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from hil.errors import HilError
+from models.errors import ModelError
+from models.koopman import KoopmanError
+from studies.model_fidelity import BicyclePredictor, plant_step_steer, STEP_SPEEDS
+from studies.table1 import (ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
+                            train_missing)
+
+#: Within this of the plant's yaw rate (%) counts as a match (issue 14's target).
+TOLERANCE_PCT = 5.0
+SMALL_SIGNAL_ACCEL = 3.0  # m/s^2, a0 of the weighting
+
+VARIANTS = (
+    ROWS[0],
+    Row("default + small-signal weighting (a0 = 3 m/s²)", {"small_signal_accel": SMALL_SIGNAL_ACCEL}),
+    Row("default + small-signal weighting + one wheel-angle row for all speeds",
+        {"small_signal_accel": SMALL_SIGNAL_ACCEL, "unscheduled_states": ("steer_measured",)}),
+)
+
+
+def plant_responses() -> dict[float, tuple[np.ndarray, np.ndarray]]:
+    """{speed: (states (n + 1, 4), commands (n, 2))} of the plant's step steer."""
+    return {speed: plant_step_steer(speed) for speed in STEP_SPEEDS}
+
+
+def yaw_errors_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]) -> list[float]:
+    """The model's yaw-rate error (%) against the plant 1 s after the step, per speed."""
+    errors = []
+    for states, commands in plant.values():
+        final = model.predict(states[:1, : model.n_x], commands[None])[0, -1]
+        errors.append(float(100.0 * (final[2] / states[-1, 2] - 1.0)))
+    return errors
+
+
+def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, models_dir: Path,
+            executor_options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train what is missing, then {variants: [{label, seeds: [{seed, yaw_error_pct (4,),
+    rmse_1s {vy, yaw_rate}}]}], bicycle: [{seed, rmse_1s}]}."""
+    from models.koopman_train import TrainingSettings, dataset_hash, load_trajectories, split_runs
+
+    runs = load_trajectories(data_dir, states=WHEEL_STATES)
+    data_hash = dataset_hash(data_dir)
+    models_dir.mkdir(parents=True, exist_ok=True)
+    train_missing(variants, seeds, data_dir, data_hash, models_dir, executor_options)
+    plant = plant_responses()
+    out: dict[str, Any] = {"variants": [], "bicycle": [], "seeds": list(seeds), "data_dir": str(data_dir),
+                           "data_hash": data_hash, "speeds": list(STEP_SPEEDS),
+                           "plant_yaw_rate": [float(plant[v][0][-1, 2]) for v in STEP_SPEEDS]}
+    splits = {seed: split_runs(runs, TrainingSettings(seed=seed))[2] for seed in seeds}
+    for seed in seeds:
+        figures = evaluate(VehicleStates(BicyclePredictor(), 3), splits[seed])
+        out["bicycle"].append({"seed": seed, "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")}})
+    for row in variants:
+        entry = {"label": row.label, "overrides": {k: list(v) if isinstance(v, tuple) else v
+                                                   for k, v in row.overrides.items()}, "seeds": []}
+        for seed in seeds:
+            model = cached_model(row, seed, data_hash, models_dir)
+            if model is None:
+                raise KoopmanError(f"{row.label} seed {seed}: no model after training; delete {models_dir}")
+            figures = evaluate(VehicleStates(model, len(row.states)), splits[seed])
+            entry["seeds"].append({
+                "seed": seed, "yaw_error_pct": yaw_errors_pct(model, plant),
+                "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")},
+                "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}"})
+        out["variants"].append(entry)
+        print(f"{row.label}: evaluated {len(seeds)} seeds", flush=True)
+    return out
+
+
+def _mean_sd(values: Sequence[float], digits: int) -> str:
+    values = np.asarray(values, dtype=float)
+    spread = f" ± {values.std(ddof=1):.{digits}f}" if values.size > 1 else ""
+    return f"{values.mean():+.{digits}f}{spread}" if digits == 1 else f"{values.mean():.{digits}f}{spread}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The study's tables: yaw-rate error per speed and per seed, then the summary per variant."""
+    speeds = result["speeds"]
+    lines = [
+        "# Step steer over seeds",
+        "",
+        "Written by `make step-steer-spread` (studies/step_steer_spread.py). Yaw-rate error (%) against the "
+        "plant 1 s after a 0.02 rad steer step from straight driving (open loop, the plant's torque), for the "
+        f"default training and two variants, each with seeds {', '.join(map(str, result['seeds']))} "
+        f"(weights and train / validation / test split) on `{result['data_dir']}`. Plant yaw rate after 1 s: "
+        + ", ".join(f"{r:.3f} rad/s at {v:g} m/s" for v, r in zip(speeds, result["plant_yaw_rate"])) + ".",
+        "",
+        "| variant | seed | " + " | ".join(f"{v:g} m/s" for v in speeds) + " | max abs error | 1 s RMSE vy / r |",
+        "|---|---|" + "---|" * len(speeds) + "---|---|",
+    ]
+    for entry in result["variants"]:
+        for s in entry["seeds"]:
+            errors = s["yaw_error_pct"]
+            lines.append(f"| {entry['label']} | {s['seed']} | " + " | ".join(f"{e:+.1f}" for e in errors)
+                         + f" | {max(map(abs, errors)):.1f} | {s['rmse_1s']['vy']:.4f} / {s['rmse_1s']['yaw_rate']:.4f} |")
+    bicycle = result["bicycle"]
+    lines += [
+        "",
+        "## Per variant over the seeds",
+        "",
+        f"Mean ± standard deviation over the seeds; 'seeds within {TOLERANCE_PCT:g} %' counts the seeds whose "
+        "error is within the tolerance at all four speeds. The linear bicycle's 1 s RMSE on the same test runs: "
+        f"vy {_mean_sd([b['rmse_1s']['vy'] for b in bicycle], 4)} m/s, "
+        f"r {_mean_sd([b['rmse_1s']['yaw_rate'] for b in bicycle], 4)} rad/s.",
+        "",
+        "| variant | " + " | ".join(f"{v:g} m/s" for v in speeds)
+        + f" | seeds within {TOLERANCE_PCT:g} % | 1 s RMSE vy (m/s) | 1 s RMSE r (rad/s) |",
+        "|---|" + "---|" * len(speeds) + "---|---|---|",
+    ]
+    for entry in result["variants"]:
+        errors = np.array([s["yaw_error_pct"] for s in entry["seeds"]])
+        within = int(np.sum(np.all(np.abs(errors) <= TOLERANCE_PCT, axis=1)))
+        lines.append(f"| {entry['label']} | " + " | ".join(_mean_sd(errors[:, j], 1) for j in range(len(speeds)))
+                     + f" | {within} of {len(errors)} | {_mean_sd([s['rmse_1s']['vy'] for s in entry['seeds']], 4)}"
+                     f" | {_mean_sd([s['rmse_1s']['yaw_rate'] for s in entry['seeds']], 4)} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Yaw-rate error (%) against speed: one dot per seed, the mean as a line, per variant."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    speeds = np.array(result["speeds"])
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    ax.axhspan(-TOLERANCE_PCT, TOLERANCE_PCT, color="0.9", label=f"±{TOLERANCE_PCT:g} % of the plant")
+    for i, entry in enumerate(result["variants"]):
+        errors = np.array([s["yaw_error_pct"] for s in entry["seeds"]])
+        offset = (i - 1) * 0.35  # side by side, so the dots of a speed do not overlap
+        line, = ax.plot(speeds + offset, errors.mean(axis=0), marker="_", markersize=14, linestyle="-",
+                        label=entry["label"])
+        for row in errors:
+            ax.plot(speeds + offset, row, linestyle="none", marker="o", markersize=4, alpha=0.6,
+                    color=line.get_color())
+    ax.axhline(0.0, color="k", linewidth=0.8)
+    ax.set_xticks(speeds)
+    ax.set_xlabel("speed (m/s)")
+    ax.set_ylabel("yaw-rate error after 1 s (%)")
+    ax.set_title("Step steer 0.02 rad: learned model vs plant, one dot per seed")
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.step_steer_spread",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path("data/wide"))
+    parser.add_argument("--seeds", type=_indices, default=SEEDS)
+    parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
+    parser.add_argument("--out", type=Path, default=Path("results"))
+    parser.add_argument("--address", default=None, help="Ray cluster: auto, HOST:PORT or ray://HOST:PORT")
+    parser.add_argument("--workers", type=int, default=None, help="local Ray workers (default: one per core)")
+    parser.add_argument("--serial", action="store_true", help="no Ray: train in this process")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    args = parser.parse_args(argv)
+    try:
+        if not args.seeds:
+            raise KoopmanError("--seeds must name at least one seed")
+        if not (args.data / "READY").is_file():
+            raise KoopmanError(f"{args.data}: no data set (READY missing); make train generates data/wide")
+        result = measure(VARIANTS, args.seeds, args.data, args.models_dir,
+                         dict(address=args.address, workers=args.workers, serial=args.serial))
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "step_steer_spread.md").write_text(markdown(result))
+        (args.out / "step_steer_spread.json").write_text(json.dumps(result, indent=1) + "\n")
+        plot(result, args.out / "step_steer_spread.png")
+    except (ModelError, HilError, OSError, ValueError) as e:
+        if args.debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out / 'step_steer_spread.md'}, .json and .png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
