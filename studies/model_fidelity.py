@@ -106,10 +106,16 @@ def step_steer_table(models: dict[str, object]) -> list[dict]:
         plant_r, plant_vy = states[-1, 2], states[-1, 1]
         rows.append({"speed": speed, "model": "plant", "yaw_rate": plant_r, "vy": plant_vy, "yaw_error_pct": 0.0})
         for name, model in models.items():
-            final = model.predict(states[:1, :_n_states(model)], commands[None])[0, -1]
+            final = step_steer_final(model, states, commands)
             rows.append({"speed": speed, "model": name, "yaw_rate": float(final[2]), "vy": float(final[1]),
                          "yaw_error_pct": float(100.0 * (final[2] / plant_r - 1.0))})
     return rows
+
+
+def step_steer_final(model: object, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
+    """The model's state 1 s after the step: open loop from the plant's first state
+    (``states`` (n + 1, 4)) with the plant's ``commands`` (n, 2) -> (>= 3,) [vx, vy, r, ...]."""
+    return model.predict(states[:1, :_n_states(model)], commands[None])[0, -1]
 
 
 def _n_states(model: object) -> int:

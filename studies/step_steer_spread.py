@@ -36,7 +36,7 @@ import numpy as np
 from hil.errors import HilError
 from models.errors import ModelError
 from models.koopman import KoopmanError
-from studies.model_fidelity import BicyclePredictor, plant_step_steer, STEP_SPEEDS
+from studies.model_fidelity import STEP_SPEEDS, BicyclePredictor, plant_step_steer, step_steer_final
 from studies.table1 import (ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
                             train_missing)
 
@@ -61,7 +61,7 @@ def yaw_errors_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]
     """The model's yaw-rate error (%) against the plant 1 s after the step, per speed."""
     errors = []
     for states, commands in plant.values():
-        final = model.predict(states[:1, : model.n_x], commands[None])[0, -1]
+        final = step_steer_final(model, states, commands)
         errors.append(float(100.0 * (final[2] / states[-1, 2] - 1.0)))
     return errors
 
