@@ -113,7 +113,7 @@ def read_report(output: str) -> dict:
 def frames_by_phase(candump_log: Path, report: dict) -> dict[str, dict[int, list[bytes]]]:
     """The ECU's payloads by ID in the phases "before" (vcan0 up), "down" (from
     DOWN_MARGIN_S after ``ip link set vcan0 down`` returned to up), "up" (the 1.2 s after
-    up) and "after"; frames within the margin are in none."""
+    up) and "after"; frames within the margin, or while ``ip link set vcan0 up`` runs, are in none."""
     phases: dict[str, dict[int, list[bytes]]] = {
         name: {FrameId.STEER_TORQUE_CMD: [], FrameId.CTRL_DIAG: []} for name in ("before", "down", "up", "after")}
     for message in can.LogReader(candump_log):
@@ -121,6 +121,9 @@ def frames_by_phase(candump_log: Path, report: dict) -> dict[str, dict[int, list
             continue
         t = message.timestamp
         if report["down_done_at"] <= t < report["down_done_at"] + DOWN_MARGIN_S:
+            continue
+        # vcan0 is up somewhere inside `ip link set vcan0 up`: a frame then is in no phase.
+        if report["up_started_at"] <= t < report["up_at"]:
             continue
         phase = ("before" if t < report["down_done_at"] else "down" if t < report["up_at"]
                  else "up" if t < report["rerun_at"] else "after")

@@ -244,6 +244,7 @@ def drive_lost_interface(scenario_file: str, controller: str, ecu_log: str, ecu_
             report["down_done_at"] = time.time()
             time.sleep(down_s)
             report["down_cpu_s"] = process_cpu_s(ecu.pid) - before
+            report["up_started_at"] = time.time()
             subprocess.run(["ip", "link", "set", "vcan0", "up"], check=True)
             report["up_at"], report["log_at_up"] = time.time(), Path(ecu_log).stat().st_size
             report["alive_after_down"] = ecu.poll() is None
