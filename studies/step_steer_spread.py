@@ -17,6 +17,12 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
 - the same plus one (A, B, c) row of the wheel angle for all speed knots (the servo does
   not depend on speed; the default learns it per knot).
 
+Each seed's error is also split into its parts (``error_parts_pct``): the yaw rate the model
+predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
+is a drift that breaks the left / right symmetry), the antisymmetric response (half the
+difference of the +0.02 and -0.02 rad steps: the gain), and the wheel angle after 1 s
+against the plant's (the learned servo's steady state).
+
 Writes ``results/step_steer_spread.{md,json,png}``. Trainings are cached in ``build/table1/``
 beside Table I's and run as tasks of the campaigns' executors (a local Ray by default);
 about 25 min on 2 cores when nothing is cached.
@@ -66,6 +72,32 @@ def yaw_errors_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]
     return errors
 
 
+def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]) -> dict[str, list[float]]:
+    """Per speed, % of the plant's yaw rate (wheel angle: % error against the plant's) after 1 s:
+
+    - ``drift``: the model's yaw rate with the steer command held at 0 (same torque);
+    - ``antisymmetric``: (r(+step) - r(-step)) / 2 against the plant's r, minus 100;
+    - ``wheel_angle``: the model's wheel angle after the +step against the plant's, minus
+      100 (NaN for a model without the wheel angle in its state).
+
+    The total error of ``yaw_errors_pct`` is drift + antisymmetric + an even remainder
+    ((r(+) + r(-)) / 2 - r(0), second order in the step).
+    """
+    parts: dict[str, list[float]] = {"drift": [], "antisymmetric": [], "wheel_angle": []}
+    for states, commands in plant.values():
+        finals = {}
+        for name, sign in (("plus", 1.0), ("zero", 0.0), ("minus", -1.0)):
+            steered = commands.copy()
+            steered[:, 1] *= sign
+            finals[name] = step_steer_final(model, states, steered)
+        plant_r = states[-1, 2]
+        parts["drift"].append(float(100.0 * finals["zero"][2] / plant_r))
+        parts["antisymmetric"].append(float(100.0 * ((finals["plus"][2] - finals["minus"][2]) / 2.0 / plant_r - 1.0)))
+        parts["wheel_angle"].append(float(100.0 * (finals["plus"][3] / states[-1, 3] - 1.0))
+                                    if len(finals["plus"]) > 3 else float("nan"))
+    return parts
+
+
 def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, models_dir: Path,
             executor_options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train what is missing, then {variants: [{label, seeds: [{seed, yaw_error_pct (4,),
@@ -94,6 +126,7 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
             figures = evaluate(VehicleStates(model, len(row.states)), splits[seed])
             entry["seeds"].append({
                 "seed": seed, "yaw_error_pct": yaw_errors_pct(model, plant),
+                "error_parts_pct": error_parts_pct(model, plant),
                 "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")},
                 "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}"})
         out["variants"].append(entry)
@@ -147,7 +180,32 @@ def markdown(result: dict[str, Any]) -> str:
         lines.append(f"| {entry['label']} | " + " | ".join(_mean_sd(errors[:, j], 1) for j in range(len(speeds)))
                      + f" | {within} of {len(errors)} | {_mean_sd([s['rmse_1s']['vy'] for s in entry['seeds']], 4)}"
                      f" | {_mean_sd([s['rmse_1s']['yaw_rate'] for s in entry['seeds']], 4)} |")
+    lines += _parts_table(result)
     return "\n".join(lines) + "\n"
+
+
+PART_LABELS = {"drift": "yaw rate with the steer at 0 (drift, % of the plant's r)",
+               "antisymmetric": "antisymmetric response (gain error, %)",
+               "wheel_angle": "wheel angle after 1 s (error, %)"}
+
+
+def _parts_table(result: dict[str, Any]) -> list[str]:
+    """Markdown lines: each variant's error split into drift, gain and wheel angle, over the seeds."""
+    speeds = result["speeds"]
+    lines = ["", "## Where the error comes from", "",
+             "Mean ± standard deviation over the seeds (`error_parts_pct`). The total error is the drift plus the "
+             "antisymmetric part plus a small even remainder. A symmetric car driving straight with the steer at 0 "
+             "does not turn, so a drift is an error of the model's left / right symmetry.", "",
+             "| variant | part | " + " | ".join(f"{v:g} m/s" for v in speeds) + " |",
+             "|---|---|" + "---|" * len(speeds)]
+    for entry in result["variants"]:
+        for part, label in PART_LABELS.items():
+            values = np.array([s["error_parts_pct"][part] for s in entry["seeds"] if "error_parts_pct" in s])
+            if values.size == 0 or np.isnan(values).all():
+                continue
+            lines.append(f"| {entry['label']} | {label} | "
+                         + " | ".join(_mean_sd(values[:, j], 1) for j in range(len(speeds))) + " |")
+    return lines
 
 
 def plot(result: dict[str, Any], path: Path) -> None:

@@ -24,6 +24,25 @@ class Scaled:
         return states[None]
 
 
+class GainAndDrift:
+    """A 'model' whose yaw rate is ``gain`` times the plant's response to the command's
+    steer (linear in the steer: the plant's at +0.02 rad scaled) plus ``drift`` rad/s, and
+    whose wheel angle is ``wheel`` times the plant's."""
+
+    n_x = 4
+
+    def __init__(self, plant: dict, gain: float, drift: float, wheel: float = 1.0) -> None:
+        self.by_speed = {round(float(states[0, 0]), 3): states for states, _ in plant.values()}
+        self.gain, self.drift, self.wheel = gain, drift, wheel
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        states = self.by_speed[round(float(x0[0, 0]), 3)][1:].copy()
+        share = inputs[0, -1, 1] / 0.02  # +1, 0 or -1: the step, no steer, the mirrored step
+        states[:, 2] = self.gain * share * states[:, 2] + self.drift
+        states[:, 3] *= self.wheel * share
+        return states[None]
+
+
 @pytest.fixture(scope="module")
 def plant() -> dict:
     return study.plant_responses()
@@ -37,13 +56,31 @@ def test_yaw_error_is_measured_against_the_plant_after_one_second(plant) -> None
     assert all(b > a for a, b in zip(finals, finals[1:]))
 
 
+def test_error_splits_into_drift_and_antisymmetric_gain(plant) -> None:
+    model = GainAndDrift(plant, gain=0.92, drift=-0.004, wheel=0.95)
+    parts = study.error_parts_pct(model, plant)
+    finals = [states[-1, 2] for states, _ in plant.values()]
+    assert parts["antisymmetric"] == pytest.approx([-8.0] * 4)
+    assert parts["drift"] == pytest.approx([-0.4 / r for r in finals])
+    assert parts["wheel_angle"] == pytest.approx([-5.0] * 4)
+    # For a model linear in the steer the two parts add up to the total error.
+    total = study.yaw_errors_pct(model, plant)
+    assert total == pytest.approx([a + d for a, d in zip(parts["antisymmetric"], parts["drift"])])
+    symmetric = study.error_parts_pct(GainAndDrift(plant, gain=1.0, drift=0.0), plant)
+    assert symmetric["drift"] == pytest.approx([0.0] * 4, abs=1e-12)
+    assert symmetric["antisymmetric"] == pytest.approx([0.0] * 4, abs=1e-9)
+
+
 def _result(errors: dict[str, list[list[float]]]) -> dict:
     seeds = list(range(len(next(iter(errors.values())))))
     rmse = {"vy": 0.15, "yaw_rate": 0.05}
     return {"speeds": [10.0, 15.0, 20.0, 25.0], "plant_yaw_rate": [0.067, 0.094, 0.114, 0.128],
             "seeds": seeds, "data_dir": "data/wide",
             "bicycle": [{"seed": s, "rmse_1s": {"vy": 0.23, "yaw_rate": 0.08}} for s in seeds],
-            "variants": [{"label": label, "seeds": [{"seed": s, "yaw_error_pct": e, "rmse_1s": rmse, "epochs": "9/12"}
+            "variants": [{"label": label, "seeds": [{"seed": s, "yaw_error_pct": e, "rmse_1s": rmse, "epochs": "9/12",
+                                                     "error_parts_pct": {"drift": [s, 0.0, 0.0, 0.0],
+                                                                         "antisymmetric": list(e),
+                                                                         "wheel_angle": [float("nan")] * 4}}
                                                     for s, e in enumerate(rows)]}
                          for label, rows in errors.items()]}
 
@@ -52,10 +89,13 @@ def test_tables_count_the_seeds_within_tolerance_at_every_speed(tmp_path: Path) 
     result = _result({"a": [[1.0, -2.0, 4.9, 0.0], [-12.4, -2.7, -1.7, 1.2], [6.0, 0.0, 0.0, 0.0]],
                       "b": [[0.0, 0.0, 0.0, 0.0]] * 3})
     text = study.markdown(result)
-    summary = {line.split(" | ")[0].strip("| "): line for line in text.splitlines()[-2:]}
+    summary = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if " of 3 |" in line}
     assert "| 1 of 3 |" in summary["a"] and "| 3 of 3 |" in summary["b"]
     assert "| a | 1 | -12.4 | -2.7 | -1.7 | +1.2 | 12.4 |" in text
     assert "-1.8 ± 9.5" in summary["a"]  # mean and sample sd over the seeds at 10 m/s
+    assert "## Where the error comes from" in text
+    assert "| a | yaw rate with the steer at 0 (drift, % of the plant's r) | +1.0 ± 1.0 | +0.0 ± 0.0 |" in text
+    assert "wheel angle after 1 s" not in text  # no model here has a wheel angle
     study.plot(result, tmp_path / "spread.png")
     assert (tmp_path / "spread.png").stat().st_size > 10_000
 
