@@ -63,27 +63,19 @@ def plant_responses() -> dict[float, tuple[np.ndarray, np.ndarray]]:
     return {speed: plant_step_steer(speed) for speed in STEP_SPEEDS}
 
 
-def yaw_errors_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]) -> list[float]:
-    """The model's yaw-rate error (%) against the plant 1 s after the step, per speed."""
-    errors = []
-    for states, commands in plant.values():
-        final = step_steer_final(model, states, commands)
-        errors.append(float(100.0 * (final[2] / states[-1, 2] - 1.0)))
-    return errors
-
-
 def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]) -> dict[str, list[float]]:
     """Per speed, % of the plant's yaw rate (wheel angle: % error against the plant's) after 1 s:
 
+    - ``total``: the model's yaw-rate error after the +step (the study's headline error);
     - ``drift``: the model's yaw rate with the steer command held at 0 (same torque);
     - ``antisymmetric``: (r(+step) - r(-step)) / 2 against the plant's r, minus 100;
     - ``wheel_angle``: the model's wheel angle after the +step against the plant's, minus
       100 (NaN for a model without the wheel angle in its state).
 
-    The total error of ``yaw_errors_pct`` is drift + antisymmetric + an even remainder
+    The total is drift + antisymmetric + an even remainder
     ((r(+) + r(-)) / 2 - r(0), second order in the step).
     """
-    parts: dict[str, list[float]] = {"drift": [], "antisymmetric": [], "wheel_angle": []}
+    parts: dict[str, list[float]] = {"total": [], "drift": [], "antisymmetric": [], "wheel_angle": []}
     for states, commands in plant.values():
         finals = {}
         for name, sign in (("plus", 1.0), ("zero", 0.0), ("minus", -1.0)):
@@ -91,6 +83,7 @@ def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]
             steered[:, 1] *= sign
             finals[name] = step_steer_final(model, states, steered)
         plant_r = states[-1, 2]
+        parts["total"].append(float(100.0 * (finals["plus"][2] / plant_r - 1.0)))
         parts["drift"].append(float(100.0 * finals["zero"][2] / plant_r))
         parts["antisymmetric"].append(float(100.0 * ((finals["plus"][2] - finals["minus"][2]) / 2.0 / plant_r - 1.0)))
         parts["wheel_angle"].append(float(100.0 * (finals["plus"][3] / states[-1, 3] - 1.0))
@@ -124,9 +117,9 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
             if model is None:
                 raise KoopmanError(f"{row.label} seed {seed}: no model after training; delete {models_dir}")
             figures = evaluate(VehicleStates(model, len(row.states)), splits[seed])
+            parts = error_parts_pct(model, plant)
             entry["seeds"].append({
-                "seed": seed, "yaw_error_pct": yaw_errors_pct(model, plant),
-                "error_parts_pct": error_parts_pct(model, plant),
+                "seed": seed, "yaw_error_pct": parts.pop("total"), "error_parts_pct": parts,
                 "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")},
                 "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}"})
         out["variants"].append(entry)

@@ -49,8 +49,8 @@ def plant() -> dict:
 
 
 def test_yaw_error_is_measured_against_the_plant_after_one_second(plant) -> None:
-    assert study.yaw_errors_pct(Scaled(plant, 1.0), plant) == pytest.approx([0.0] * 4, abs=1e-9)
-    assert study.yaw_errors_pct(Scaled(plant, 0.9), plant) == pytest.approx([-10.0] * 4)
+    assert study.error_parts_pct(Scaled(plant, 1.0), plant)["total"] == pytest.approx([0.0] * 4, abs=1e-9)
+    assert study.error_parts_pct(Scaled(plant, 0.9), plant)["total"] == pytest.approx([-10.0] * 4)
     # The plant's yaw response grows with speed: the learned models must follow it.
     finals = [states[-1, 2] for states, _ in plant.values()]
     assert all(b > a for a, b in zip(finals, finals[1:]))
@@ -64,7 +64,7 @@ def test_error_splits_into_drift_and_antisymmetric_gain(plant) -> None:
     assert parts["drift"] == pytest.approx([-0.4 / r for r in finals])
     assert parts["wheel_angle"] == pytest.approx([-5.0] * 4)
     # For a model linear in the steer the two parts add up to the total error.
-    total = study.yaw_errors_pct(model, plant)
+    total = parts["total"]
     assert total == pytest.approx([a + d for a, d in zip(parts["antisymmetric"], parts["drift"])])
     symmetric = study.error_parts_pct(GainAndDrift(plant, gain=1.0, drift=0.0), plant)
     assert symmetric["drift"] == pytest.approx([0.0] * 4, abs=1e-12)
