@@ -50,6 +50,7 @@ from models.koopman import (DEFAULT_SPEED_KNOTS, DICTIONARY, DICTIONARY_STATES, 
                             check_dictionary, dictionary_features, save_artifact)
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
 from models.koopman_train_net import KoopmanNet, least_squares_start
+from models.koopman_train_symmetric import SERVO_INPUT, SERVO_STATE, MirrorKoopmanNet, parities, shared_servo_scaling
 
 #: The measured front wheel angle (the steering actuator's state) joins the vehicle states:
 #: with it the lift sees the tyres' slip angles and the actuator lag (docs/koopman.md).
@@ -73,6 +74,12 @@ class TrainingSettings:
     of (A, B, c) is one for all speed knots (the wheel angle: the servo does not depend on
     speed). Both are left out of the artefact's settings record while off, so artefacts
     trained before them still match their settings.
+
+    ``mirror_symmetric`` (scheduled form only) builds the left / right mirror symmetry into
+    the model (``models/koopman_train_symmetric.py``): ``even_features`` of the d features
+    are even, the rest odd; ``servo_lag`` makes the wheel-angle row a lag of unit DC gain
+    from the steer command; ``lateral_per_step`` schedules the lateral rows on each step's
+    measured speed in training. Recorded only when ``mirror_symmetric`` is on.
     """
 
     n_features: int = 5
@@ -92,6 +99,10 @@ class TrainingSettings:
     lifted_weight: float = 1.0
     small_signal_accel: float = 0.0
     unscheduled_states: tuple[str, ...] = ()
+    mirror_symmetric: bool = False
+    even_features: int = 2
+    servo_lag: bool = False
+    lateral_per_step: bool = False
     val_fraction: float = 0.15
     test_fraction: float = 0.15
     val_windows: int = 4096
@@ -120,6 +131,10 @@ class TrainingSettings:
             "lifted_weight": self.lifted_weight >= 0,
             "small_signal_accel": self.small_signal_accel >= 0,
             "unscheduled_states": self.form == "scheduled" or not self.unscheduled_states,
+            "mirror_symmetric": self.form == "scheduled" or not self.mirror_symmetric,
+            "even_features": 0 <= self.even_features <= self.n_features,
+            "servo_lag": self.mirror_symmetric or not self.servo_lag,
+            "lateral_per_step": self.mirror_symmetric or not self.lateral_per_step,
             "val_fraction": 0 < self.val_fraction < 0.5,
             "test_fraction": 0 < self.test_fraction < 0.5,
             "device": self.device in ("auto", "cpu", "cuda"),
@@ -262,6 +277,10 @@ class SequenceSet:
         rows = self.starts[which][:, None] + self.offsets
         return self.states[rows], self.psi[rows], self.inputs[rows[:, :-1]], self.knot_weights[rows[:, 0]]
 
+    def step_knot_weights(self, which: torch.Tensor) -> torch.Tensor:
+        """Window indices (b,) -> knot weights of the speed at the start of each step (b, p - 1, K)."""
+        return self.knot_weights[self.starts[which][:, None] + self.offsets[:-1]]
+
 
 # ---------------------------------------------------------------------- training
 def pick_device(name: str) -> torch.device:
@@ -321,6 +340,8 @@ def train(
     dictionary = check_dictionary(settings.dictionary, state_names)
     # The scheduled form schedules on the first state: the data's longitudinal speed.
     state_scaling, input_scaling = fit_scaling(train_runs)
+    if settings.servo_lag:
+        state_scaling, input_scaling = shared_servo_scaling(state_scaling, input_scaling, state_names, input_names)
     dictionary_scaling = dictionary_scaling_of(train_runs, dictionary)
     knots = settings.speed_knots if settings.form == "scheduled" else ()
     sets = [SequenceSet(group, settings.seq_len, state_scaling, input_scaling, device, role, dictionary,
@@ -342,9 +363,16 @@ def train(
     )
 
     bilinear = settings.form == "bilinear"
-    net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden,
-                     len(dictionary), bilinear, len(knots),
-                     [state_names.index(name) for name in settings.unscheduled_states])
+    shared_rows = [state_names.index(name) for name in settings.unscheduled_states]
+    if settings.mirror_symmetric:
+        net = MirrorKoopmanNet(
+            len(state_names), len(input_names), settings.n_features, settings.hidden, len(knots),
+            settings.even_features, parities(state_names), parities(dictionary), parities(input_names),
+            state_scaling.shift, dictionary_scaling.shift if dictionary else np.zeros(0), input_scaling.shift,
+            shared_rows, (state_names.index(SERVO_STATE), input_names.index(SERVO_INPUT)) if settings.servo_lag else None)
+    else:
+        net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden,
+                         len(dictionary), bilinear, len(knots), shared_rows)
     if settings.warm_start:
         net.warm_start(least_squares_start(
             [_known_coordinates(r, state_scaling, dictionary, dictionary_scaling) for r in train_runs],
@@ -371,7 +399,8 @@ def train(
         for step in range(settings.steps_per_epoch):
             which = torch.randint(len(train_set), (settings.batch_size,), generator=sampler).to(device)
             x_n, psi_n, u_n, weights = train_set.batch(which)
-            losses = net.losses(x_n, psi_n, u_n, state_weights, weights)
+            step_weights = train_set.step_knot_weights(which) if settings.lateral_per_step else None
+            losses = net.losses(x_n, psi_n, u_n, state_weights, weights, step_weights)
             if settings.small_signal_accel > 0:
                 window = window_weights(train_set.peak_accel[which], settings.small_signal_accel)
                 # Normalised by the batch's mean weight: the loss keeps its scale.
@@ -476,6 +505,9 @@ def settings_json(settings: TrainingSettings) -> dict:
     for name in ("small_signal_accel", "unscheduled_states"):
         if not out[name]:
             del out[name]
+    if not settings.mirror_symmetric:
+        for name in ("mirror_symmetric", "even_features", "servo_lag", "lateral_per_step"):
+            del out[name]
     return out
 
 
@@ -560,6 +592,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unscheduled-states", type=lambda t: tuple(n for n in t.split(",") if n),
                    default=defaults.unscheduled_states, metavar="NAMES",
                    help="states whose dynamics row is one for all speed knots (scheduled form), comma-separated")
+    p.add_argument("--mirror-symmetric", action="store_true",
+                   help="build the left / right mirror symmetry into the model (scheduled form)")
+    p.add_argument("--even-features", type=int, default=defaults.even_features,
+                   help="with --mirror-symmetric: how many of the d features are even (the rest odd)")
+    p.add_argument("--servo-lag", action="store_true",
+                   help="with --mirror-symmetric: the wheel-angle row is a lag of unit DC gain from the steer command")
+    p.add_argument("--lateral-per-step", action="store_true",
+                   help="with --mirror-symmetric: schedule the lateral rows on each step's speed in training")
     p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
     p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
     p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
@@ -593,6 +633,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             form=args.form, dictionary=args.dictionary, patience=args.patience,
             speed_knots=args.speed_knots, small_signal_accel=args.small_signal_accel,
             unscheduled_states=args.unscheduled_states,
+            mirror_symmetric=args.mirror_symmetric, even_features=args.even_features,
+            servo_lag=args.servo_lag, lateral_per_step=args.lateral_per_step,
             learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )

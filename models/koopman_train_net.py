@@ -86,7 +86,11 @@ class KoopmanNet(nn.Module):
 
     def lift(self, x_n: torch.Tensor, psi_n: torch.Tensor) -> torch.Tensor:
         """x_n (..., n_x), psi_n (..., n_dict) -> z_n (..., n_z) = [x_n; psi_n; Phi(x_n)] (eq. 6)."""
-        return torch.cat([x_n, psi_n, self.encoder(x_n)], dim=-1)
+        return torch.cat([x_n, psi_n, self.features(x_n)], dim=-1)
+
+    def features(self, x_n: torch.Tensor) -> torch.Tensor:
+        """The learned features Phi: x_n (..., n_x) -> (..., d)."""
+        return self.encoder(x_n)
 
     def step(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """One step of the dynamics: z (batch, n_z), u (batch, n_u) -> (batch, n_z)."""
@@ -131,13 +135,16 @@ class KoopmanNet(nn.Module):
         return A, B, c
 
     def losses(self, x_n: torch.Tensor, psi_n: torch.Tensor, u_n: torch.Tensor,
-               state_weights: torch.Tensor, knot_weights: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+               state_weights: torch.Tensor, knot_weights: torch.Tensor | None = None,
+               step_knot_weights: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """x_n (batch, p, n_x), psi_n (batch, p, n_dict), u_n (batch, p - 1, n_u),
-        state_weights (n_x,), knot_weights (batch, K) or None -> the three loss terms
-        (scalars) and the weighted errors (batch, p - 1, n_x)."""
-        features = self.encoder(x_n)
+        state_weights (n_x,), knot_weights (batch, K) or None, step_knot_weights (batch,
+        p - 1, K) or None (each step's own speed, for networks whose ``rollout`` takes them)
+        -> the three loss terms (scalars) and the weighted errors (batch, p - 1, n_x)."""
+        features = self.features(x_n)
         z0 = torch.cat([x_n[:, 0], psi_n[:, 0], features[:, 0]], dim=-1)
-        z_hat = self.rollout(z0, u_n, knot_weights)
+        z_hat = (self.rollout(z0, u_n, knot_weights) if step_knot_weights is None
+                 else self.rollout(z0, u_n, knot_weights, step_knot_weights))
         error = (z_hat[..., : self.n_x] - x_n[:, 1:]) * state_weights
         prediction = torch.mean(error ** 2)  # eqs. 9-10
         # eq. 11 as printed reconstructs x_k, the first state of the sequence; the batch's

@@ -15,7 +15,11 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
   a the window's peak |vx r|, a0 = 3 m/s^2, so windows in the tyres' linear range (where a
   step steer lives) count more than those at the limit;
 - the same plus one (A, B, c) row of the wheel angle for all speed knots (the servo does
-  not depend on speed; the default learns it per knot).
+  not depend on speed; the default learns it per knot);
+- the mirror-symmetric form (``models/koopman_train_symmetric.py``): left / right symmetry
+  by construction (no drift), d = 8 features of which 2 even and 6 odd, the wheel angle a
+  lag of unit DC gain from the steer command, and the lateral rows scheduled on each step's
+  measured speed in training.
 
 Each seed's error is also split into its parts (``error_parts_pct``): the yaw rate the model
 predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
@@ -55,6 +59,9 @@ VARIANTS = (
     Row("default + small-signal weighting (a0 = 3 m/s²)", {"small_signal_accel": SMALL_SIGNAL_ACCEL}),
     Row("default + small-signal weighting + one wheel-angle row for all speeds",
         {"small_signal_accel": SMALL_SIGNAL_ACCEL, "unscheduled_states": ("steer_measured",)}),
+    Row("mirror-symmetric, d=8 (2 even), servo lag, lateral rows per step",
+        {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
+         "lateral_per_step": True}),
 )
 
 
@@ -141,7 +148,7 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "Written by `make step-steer-spread` (studies/step_steer_spread.py). Yaw-rate error (%) against the "
         "plant 1 s after a 0.02 rad steer step from straight driving (open loop, the plant's torque), for the "
-        f"default training and two variants, each with seeds {', '.join(map(str, result['seeds']))} "
+        f"default training and {len(result['variants']) - 1} variants, each with seeds {', '.join(map(str, result['seeds']))} "
         f"(weights and train / validation / test split) on `{result['data_dir']}`. Plant yaw rate after 1 s: "
         + ", ".join(f"{r:.3f} rad/s at {v:g} m/s" for v, r in zip(speeds, result["plant_yaw_rate"])) + ".",
         "",
@@ -213,7 +220,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     ax.axhspan(-TOLERANCE_PCT, TOLERANCE_PCT, color="0.9", label=f"±{TOLERANCE_PCT:g} % of the plant")
     for i, entry in enumerate(result["variants"]):
         errors = np.array([s["yaw_error_pct"] for s in entry["seeds"]])
-        offset = (i - 1) * 0.35  # side by side, so the dots of a speed do not overlap
+        offset = (i - (len(result["variants"]) - 1) / 2) * 0.3  # side by side: the dots of a speed apart
         line, = ax.plot(speeds + offset, errors.mean(axis=0), marker="_", markersize=14, linestyle="-",
                         label=entry["label"])
         for row in errors:
