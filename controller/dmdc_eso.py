@@ -20,7 +20,7 @@ class DmdcEso(EsoDkmpc):
 
     @classmethod
     def from_tuning(cls, tuning: ControllerTuning) -> "DmdcEso":
-        """Build with the DMDc artefact (``models.dmdc_artifact.load_dmdc_model()``)."""
-        from models.dmdc_artifact import load_dmdc_model
+        """Build with the DMDc artefact (``models.dmdc_model.load_dmdc_model()``)."""
+        from models.dmdc_model import load_dmdc_model
 
         return cls(load_dmdc_model(), tuning.dmdc_eso, tuning.longitudinal)

@@ -11,7 +11,7 @@ import math
 import tomllib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 from controller.errors import TuningError
 
@@ -173,14 +173,20 @@ LOW_SPEED_WEIGHTS = tuple(f"low_speed_{name}" for name in SCHEDULED_WEIGHTS)
 _Table = TypeVar("_Table", bound=MpcTuning)
 
 
+def low_speed_twins(weights: Mapping[str, float]) -> dict[str, float]:
+    """The low-speed weights that a flat schedule adds to ``weights`` (tuning fields to
+    values): ``low_speed_<name>`` equal to each scheduled weight given whose twin is not
+    given itself (an explicit low-speed weight wins), in ``SCHEDULED_WEIGHTS`` order."""
+    return {f"low_speed_{name}": weights[name] for name in SCHEDULED_WEIGHTS
+            if name in weights and f"low_speed_{name}" not in weights}
+
+
 def with_fixed_weights(table: _Table, **weights: float) -> _Table:
     """``table`` with ``weights`` (fields of eq. 15's weights, e.g. ``q_position=10``) at
     every speed: each scheduled weight given also replaces its low-speed twin, unless that
     twin is given too (``low_speed_q_position=...``). Other fields (``p_steer_rate``,
     observer fields) pass through as given."""
-    low_speed = {f"low_speed_{name}": value for name, value in weights.items() if name in SCHEDULED_WEIGHTS}
-    # A low-speed weight given explicitly wins over its twin's copy.
-    return replace(table, **(low_speed | weights))
+    return replace(table, **weights, **low_speed_twins(weights))
 
 
 _RULES: dict[str, _Rule] = {

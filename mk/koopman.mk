@@ -44,11 +44,11 @@ model-fidelity: setup
 	$(PROVENANCE_STAMP) results/model_fidelity.md results/model_fidelity.json --command "make model-fidelity" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.model_fidelity
 
-# Step steer of the default training and two variants (small-signal weighting; one wheel-angle
-# row for all speeds) over the 5 seeds of Table I: is the step-steer error a bias or the
+# Step steer of the default training and three variants (small-signal weighting; one wheel-angle
+# row for all speeds; the mirror-symmetric form) over the 5 seeds of Table I: is the step-steer error a bias or the
 # seed? results/step_steer_spread.{md,json,png}. Shares Table I's cache (build/table1/);
-# about 25 min on 2 cores when nothing is cached.
-## step steer over 5 seeds, default training and two variants -> results/step_steer_spread.*
+# about 20 min on 2 cores when nothing is cached (19 trainings on 2 Ray workers, 2026-12-02).
+## step steer over 5 seeds, default training and three variants -> results/step_steer_spread.*
 step-steer-spread: setup
 	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
 	$(PY) -m studies.step_steer_spread --data $(TRAIN_DATA)

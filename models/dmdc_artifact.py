@@ -13,7 +13,10 @@ writes ``models/artifacts/dmdc.{npz,json}`` in the format of ``models.koopman.sa
 (a linear model with no encoder and no dictionary: normalised A_n (3, 3), B_n (3, 2), the
 affine term affine_n (3,) and the min-max bounds of the training runs), so
 ``KoopmanModel.load`` validates and folds it back to physical units exactly as it does the
-deep model. ``load_dmdc_model`` adds the checks that it IS such a model.
+deep model. The ECU loads it with ``models.dmdc_model.load_dmdc_model``, which adds the
+checks that it IS such a model; that loader lives in its own module so that the run time
+(and the provenance of every result the ECU produces) does not depend on the training
+code this builder reads its data with.
 """
 from __future__ import annotations
 
@@ -25,15 +28,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from models.koopman import (ARTIFACT_DIR, DEFAULT_ARTIFACT, KoopmanError, KoopmanModel, MinMaxScaling,
-                            NormalisedKoopman, save_artifact)
+from models.dmdc_model import DMDC_ARTIFACT, DMDC_KIND, TS, load_dmdc_model
+from models.koopman import DEFAULT_ARTIFACT, KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman, save_artifact
 from models.koopman_metrics import OPEN_LOOP_STEPS
-
-#: The committed artefact (``<name>.npz`` + ``<name>.json``).
-DMDC_ARTIFACT = ARTIFACT_DIR / "dmdc.npz"
-#: ``kind`` in the artefact's JSON; ``load_dmdc_model`` refuses other artefacts.
-DMDC_KIND = "DMDc"
-TS = 0.025
 
 
 def to_normalised(A: np.ndarray, B: np.ndarray, offset: np.ndarray, state_scaling: MinMaxScaling,
@@ -126,33 +123,6 @@ def build_dmdc_artifact(out: str | Path = DMDC_ARTIFACT, *, reference: str | Pat
             raise KoopmanError(f"{npz_path}: saved {name} does not reproduce the fit "
                                f"(max diff {np.max(np.abs(fitted_value - loaded)):.3g})")
     return model, model.metadata
-
-
-def load_dmdc_model(path: str | Path = DMDC_ARTIFACT) -> KoopmanModel:
-    """The DMDc artefact as a linear ``KoopmanModel`` with z = x (n_z = n_x = 3).
-
-    Raises ``KoopmanError`` naming the file for a missing or unreadable artefact (with the
-    command that builds it) and for one that is not a plain DMDc model.
-    """
-    npz_path = Path(path).with_suffix(".npz")
-    try:
-        model = KoopmanModel.load(npz_path)
-    except KoopmanError as e:
-        if not (npz_path.is_file() and npz_path.with_suffix(".json").is_file()):
-            raise KoopmanError(f"{e}; build it with `make dmdc` (python -m models.dmdc_artifact)") from e
-        raise
-    kind = model.metadata.get("kind")
-    if kind != DMDC_KIND:
-        raise KoopmanError(f"{npz_path}: kind {kind!r} is not {DMDC_KIND!r}: not a DMDc artefact")
-    if model.form != "linear" or model.n_z != model.n_x:
-        raise KoopmanError(f"{npz_path}: a DMDc model is linear with z = x, got form {model.form!r}, "
-                           f"n_z {model.n_z} for n_x {model.n_x}")
-    if model.state_names != ("vx", "vy", "yaw_rate") or model.input_names != ("torque", "steer"):
-        raise KoopmanError(f"{npz_path}: states {model.state_names} / inputs {model.input_names} are not "
-                           "[vx, vy, yaw_rate] / [torque, steer], which the controller needs")
-    if abs(model.ts - TS) > 1e-12:
-        raise KoopmanError(f"{npz_path}: ts {model.ts} s is not the controller's {TS} s")
-    return model
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -2,7 +2,7 @@
 
 ``make model-fidelity`` measures the step steer of one artefact (seed 0). This study asks
 whether that error is a bias of the training or the spread of one draw: for the default
-row of Table I and two training variants, each trained with the 5 seeds of Table I on the
+row of Table I and three training variants, each trained with the 5 seeds of Table I on the
 same data (the seed draws the weights and the train / validation / test split), it runs
 the step steer of ``studies.model_fidelity`` (0.02 rad from straight driving at 10, 15,
 20, 25 m/s, open loop with the plant's torque, yaw rate after 1 s) and the 1 s open-loop
@@ -25,11 +25,13 @@ Each seed's error is also split into its parts (``error_parts_pct``): the yaw ra
 predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
 is a drift that breaks the left / right symmetry), the antisymmetric response (half the
 difference of the +0.02 and -0.02 rad steps: the gain), and the wheel angle after 1 s
-against the plant's (the learned servo's steady state).
+against the plant's (the learned servo's steady state). The gain is also swept over speed
+(``GAIN_SPEEDS``: every 2 m/s from 4 to 34 m/s), so a reader sees whether the gain error sits
+at the speed knots of the scheduled form, between them, or over a whole speed range.
 
 Writes ``results/step_steer_spread.{md,json,png}``. Trainings are cached in ``build/table1/``
 beside Table I's and run as tasks of the campaigns' executors (a local Ray by default);
-about 25 min on 2 cores when nothing is cached.
+about 20 min on 2 cores when nothing is cached (19 trainings on 2 Ray workers), under a minute when all are.
 CLI: ``python -m studies.step_steer_spread [--data data/wide] [--seeds 0,1,2,3,4]
 [--address ADDR] [--workers N] [--serial]``.
 """
@@ -45,7 +47,7 @@ import numpy as np
 
 from hil.errors import HilError
 from models.errors import ModelError
-from models.koopman import KoopmanError
+from models.koopman import DEFAULT_SPEED_KNOTS, KoopmanError
 from studies.model_fidelity import STEP_SPEEDS, BicyclePredictor, plant_step_steer, step_steer_final
 from studies.table1 import (ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
                             train_missing)
@@ -53,6 +55,9 @@ from studies.table1 import (ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indi
 #: Within this of the plant's yaw rate (%) counts as a match (issue 14's target).
 TOLERANCE_PCT = 5.0
 SMALL_SIGNAL_ACCEL = 3.0  # m/s^2, a0 of the weighting
+#: Speeds (m/s) of the gain sweep: every 2 m/s over the training data's range, so that the
+#: gain between the knots of the scheduled form (``DEFAULT_SPEED_KNOTS``) shows as well.
+GAIN_SPEEDS = tuple(float(v) for v in range(4, 36, 2))
 
 VARIANTS = (
     ROWS[0],
@@ -65,9 +70,9 @@ VARIANTS = (
 )
 
 
-def plant_responses() -> dict[float, tuple[np.ndarray, np.ndarray]]:
-    """{speed: (states (n + 1, 4), commands (n, 2))} of the plant's step steer."""
-    return {speed: plant_step_steer(speed) for speed in STEP_SPEEDS}
+def plant_responses(speeds: Sequence[float] = STEP_SPEEDS) -> dict[float, tuple[np.ndarray, np.ndarray]]:
+    """{speed: (states (n + 1, 4), commands (n, 2))} of the plant's step steer at ``speeds``."""
+    return {speed: plant_step_steer(speed) for speed in speeds}
 
 
 def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]) -> dict[str, list[float]]:
@@ -101,7 +106,8 @@ def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]
 def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, models_dir: Path,
             executor_options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train what is missing, then {variants: [{label, seeds: [{seed, yaw_error_pct (4,),
-    rmse_1s {vy, yaw_rate}}]}], bicycle: [{seed, rmse_1s}]}."""
+    error_parts_pct, gain_error_pct (len(GAIN_SPEEDS),), rmse_1s {vy, yaw_rate}}]}],
+    bicycle: [{seed, rmse_1s}]}."""
     from models.koopman_train import TrainingSettings, dataset_hash, load_trajectories, split_runs
 
     runs = load_trajectories(data_dir, states=WHEEL_STATES)
@@ -109,8 +115,10 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
     models_dir.mkdir(parents=True, exist_ok=True)
     train_missing(variants, seeds, data_dir, data_hash, models_dir, executor_options)
     plant = plant_responses()
+    sweep = plant_responses(GAIN_SPEEDS)
     out: dict[str, Any] = {"variants": [], "bicycle": [], "seeds": list(seeds), "data_dir": str(data_dir),
-                           "data_hash": data_hash, "speeds": list(STEP_SPEEDS),
+                           "data_hash": data_hash, "speeds": list(STEP_SPEEDS), "gain_speeds": list(GAIN_SPEEDS),
+                           "speed_knots": list(DEFAULT_SPEED_KNOTS),
                            "plant_yaw_rate": [float(plant[v][0][-1, 2]) for v in STEP_SPEEDS]}
     splits = {seed: split_runs(runs, TrainingSettings(seed=seed))[2] for seed in seeds}
     for seed in seeds:
@@ -127,6 +135,7 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
             parts = error_parts_pct(model, plant)
             entry["seeds"].append({
                 "seed": seed, "yaw_error_pct": parts.pop("total"), "error_parts_pct": parts,
+                "gain_error_pct": error_parts_pct(model, sweep)["antisymmetric"],
                 "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")},
                 "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}"})
         out["variants"].append(entry)
@@ -181,6 +190,7 @@ def markdown(result: dict[str, Any]) -> str:
                      + f" | {within} of {len(errors)} | {_mean_sd([s['rmse_1s']['vy'] for s in entry['seeds']], 4)}"
                      f" | {_mean_sd([s['rmse_1s']['yaw_rate'] for s in entry['seeds']], 4)} |")
     lines += _parts_table(result)
+    lines += _gain_sweep_table(result)
     return "\n".join(lines) + "\n"
 
 
@@ -208,15 +218,49 @@ def _parts_table(result: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _gain_errors(entry: dict[str, Any]) -> np.ndarray:
+    """(n_seeds, n_gain_speeds) gain errors (%) of a variant; (0, 0) when not measured."""
+    rows = [s["gain_error_pct"] for s in entry["seeds"] if "gain_error_pct" in s]
+    return np.array(rows, dtype=float) if rows else np.zeros((0, 0))
+
+
+def _gain_sweep_table(result: dict[str, Any]) -> list[str]:
+    """Markdown lines: each variant's antisymmetric gain error over ``GAIN_SPEEDS``, mean (sd)."""
+    speeds = result.get("gain_speeds")
+    if not speeds:
+        return []
+    knots = result.get("speed_knots", [])
+    lines = ["", "## The gain over speed", "",
+             "Antisymmetric response (gain error, %) 1 s after the step, every 2 m/s: mean (sample sd) over the "
+             f"seeds. The scheduled form's speed knots are {', '.join(f'{k:g}' for k in knots)} m/s "
+             "(its matrices are interpolated linearly between them).", "",
+             "| variant | " + " | ".join(f"{v:g}" for v in speeds) + " |",
+             "|---|" + "---|" * len(speeds)]
+    for entry in result["variants"]:
+        errors = _gain_errors(entry)
+        if errors.size == 0:
+            continue
+        spread = errors.std(axis=0, ddof=1) if len(errors) > 1 else np.zeros(errors.shape[1])
+        lines.append(f"| {entry['label']} | " + " | ".join(f"{m:+.1f} ({d:.1f})" for m, d
+                                                          in zip(errors.mean(axis=0), spread)) + " |")
+    return lines
+
+
 def plot(result: dict[str, Any], path: Path) -> None:
-    """Yaw-rate error (%) against speed: one dot per seed, the mean as a line, per variant."""
+    """Top: yaw-rate error (%) at the four speeds, one dot per seed, the mean as a line, per
+    variant. Bottom (when measured): the gain error over ``GAIN_SPEEDS``, mean and its
+    spread over the seeds, with the speed knots marked."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     speeds = np.array(result["speeds"])
-    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    sweep = result.get("gain_speeds")
+    if sweep:
+        fig, (ax, gain_ax) = plt.subplots(2, 1, figsize=(7.5, 7.8))
+    else:
+        fig, ax = plt.subplots(figsize=(7.5, 4.2))
     ax.axhspan(-TOLERANCE_PCT, TOLERANCE_PCT, color="0.9", label=f"±{TOLERANCE_PCT:g} % of the plant")
     for i, entry in enumerate(result["variants"]):
         errors = np.array([s["yaw_error_pct"] for s in entry["seeds"]])
@@ -232,6 +276,23 @@ def plot(result: dict[str, Any], path: Path) -> None:
     ax.set_ylabel("yaw-rate error after 1 s (%)")
     ax.set_title("Step steer 0.02 rad: learned model vs plant, one dot per seed")
     ax.legend(fontsize=7, loc="best")
+    if sweep:
+        gain_ax.axhspan(-TOLERANCE_PCT, TOLERANCE_PCT, color="0.9")
+        for knot in result.get("speed_knots", []):
+            gain_ax.axvline(knot, color="0.6", linestyle=":", linewidth=0.8)
+        for entry in result["variants"]:
+            errors = _gain_errors(entry)
+            if errors.size == 0:
+                continue
+            mean = errors.mean(axis=0)
+            line, = gain_ax.plot(sweep, mean, marker=".", label=entry["label"])
+            if len(errors) > 1:
+                spread = errors.std(axis=0, ddof=1)
+                gain_ax.fill_between(sweep, mean - spread, mean + spread, color=line.get_color(), alpha=0.15)
+        gain_ax.axhline(0.0, color="k", linewidth=0.8)
+        gain_ax.set_xlabel("speed (m/s); dotted: the scheduled form's speed knots")
+        gain_ax.set_ylabel("gain error after 1 s (%)")
+        gain_ax.set_title("Antisymmetric step response over speed: mean ± sd over the seeds")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -77,7 +77,7 @@ from tqdm import tqdm
 from hil.errors import HilError, StudyError
 from hil.scenario import Scenario
 from studies.closed_loop import ABORT_LATERAL_ERROR_M, ClosedLoopResult, run_closed_loop
-from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, with_fixed_weights
+from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, low_speed_twins, with_fixed_weights
 from studies.tuning_set import TUNING_SET, tuning_scenarios
 
 #: One setting of the swept fields: ``((field, value), ...)`` in grid order (hashable).
@@ -214,10 +214,7 @@ def with_setting(tuning: Any, name: str, setting: Setting) -> Any:
 def with_low_speed_weights(setting: Setting) -> Setting:
     """``setting`` with its low-speed weights named: as given, else equal to its weights
     (the flat schedule ``with_setting`` applies). What is written to the tuning file."""
-    named = dict(setting)
-    extra = tuple((f"low_speed_{name}", named[name]) for name in SCHEDULED_WEIGHTS
-                  if name in named and f"low_speed_{name}" not in named)
-    return setting + extra
+    return setting + tuple(low_speed_twins(dict(setting)).items())
 
 
 def build_controller(name: str, tuning: Any) -> Any:

@@ -23,7 +23,8 @@ from controller.reference import ReferencePath
 from controller.registry import ABLATION_NAMES, create_controller
 from controller.tuning import parse_tuning
 from models.bicycle import LinearBicycle
-from models.dmdc_artifact import DMDC_ARTIFACT, build_dmdc_artifact, load_dmdc_model, to_normalised
+from models.dmdc_artifact import build_dmdc_artifact, to_normalised
+from models.dmdc_model import DMDC_ARTIFACT, load_dmdc_model
 from models.koopman import DEFAULT_ARTIFACT, KoopmanError, MinMaxScaling, save_artifact
 from test_controller_doubles import koopman_double
 from test_controller_tuning import document

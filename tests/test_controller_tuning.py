@@ -8,7 +8,7 @@ import pytest
 from controller.errors import TuningError
 from controller.longitudinal import SpeedController
 from controller.tuning import (DEFAULT_TUNING_PATH, LongitudinalTuning, StageWeights, load_tuning,
-                               parse_tuning, with_fixed_weights)
+                               low_speed_twins, parse_tuning, with_fixed_weights)
 
 
 def document() -> dict:
@@ -95,3 +95,6 @@ def test_weights_follow_the_speed_schedule() -> None:
     assert flat.weights_at(5.0).q_position == flat.weights_at(30.0).q_position == 3.0
     explicit = with_fixed_weights(table, q_position=3.0, low_speed_q_position=30.0)
     assert explicit.weights_at(5.0).q_position == 30.0 and explicit.weights_at(30.0).q_position == 3.0
+    # The rule on its own (the tuning sweep writes these twins to the tuning file).
+    assert low_speed_twins({"q_yaw": 2.0, "q_position": 1.0, "low_speed_q_yaw": 5.0, "p_steer_rate": 0.5}) \
+        == {"low_speed_q_position": 1.0}

@@ -16,10 +16,14 @@ from pathlib import Path
 
 import pytest
 
+from studies.provenance import module_sources
+
 ROOT = Path(__file__).resolve().parent.parent
 LAYERS = ("can_defs", "models", "controller", "firmware_sim", "hil", "studies")
 TORCH_ALLOWED = "models/koopman_train*.py"
 LAZY_STUDY_IMPORTS_ALLOWED = "hil/commands/*.py"
+#: What runs in the ECU process and the lockstep loop around it.
+RUN_TIME_ENTRY_POINTS = ("firmware_sim.ecu", "hil.session")
 
 
 def _modules() -> list[Path]:
@@ -70,6 +74,18 @@ def test_every_package_is_scanned() -> None:
 def test_imports_never_run_back_up_the_layers() -> None:
     problems = [problem for path in _modules() for problem in _violations(path)]
     assert not problems, "imports against the package order:\n" + "\n".join(problems)
+
+
+def test_the_ecu_run_time_reaches_no_training_code() -> None:
+    """The ECU and the HIL session import no training module, not even lazily inside a
+    function: the provenance stamps of every closed-loop result follow those imports, so a
+    change to the training code would otherwise mark all of them stale (the DMDc artefact's
+    loader is in models/dmdc_model.py, apart from its builder, for this reason)."""
+    reached = [path.relative_to(ROOT).as_posix() for path in module_sources(RUN_TIME_ENTRY_POINTS)]
+    assert any(name.endswith("models/koopman.py") for name in reached)  # the tracer follows models
+    assert any(name.endswith("controller/dmdc_eso.py") for name in reached)
+    training = [name for name in reached if fnmatch.fnmatch(name, TORCH_ALLOWED)]
+    assert not training, f"the ECU's run time reaches training code: {training}"
 
 
 @pytest.mark.parametrize(("relative", "source", "expected"), [

@@ -100,6 +100,35 @@ def test_tables_count_the_seeds_within_tolerance_at_every_speed(tmp_path: Path) 
     assert (tmp_path / "spread.png").stat().st_size > 10_000
 
 
+def test_the_gain_sweep_measures_the_gain_at_every_speed(plant) -> None:
+    """The sweep's speeds reach past the four of the target and cover the knots' range; a
+    model with 0.92 times the plant's antisymmetric response reads -8 % at each of them."""
+    speeds = (4.0, 13.0, 34.0)
+    sweep = study.plant_responses(speeds)
+    assert list(sweep) == list(speeds)
+    assert study.error_parts_pct(GainAndDrift(sweep, gain=0.92, drift=0.003), sweep)["antisymmetric"] \
+        == pytest.approx([-8.0] * 3)
+    assert min(study.GAIN_SPEEDS) < 10.0 and max(study.GAIN_SPEEDS) > 25.0
+    assert all(b - a == 2.0 for a, b in zip(study.GAIN_SPEEDS, study.GAIN_SPEEDS[1:]))
+
+
+def test_the_gain_sweep_table_and_panel(tmp_path: Path) -> None:
+    result = _result({"a": [[1.0, -2.0, 4.9, 0.0], [-12.4, -2.7, -1.7, 1.2]], "b": [[0.0, 0.0, 0.0, 0.0]] * 2})
+    result["gain_speeds"], result["speed_knots"] = [4.0, 6.0, 8.0], [3.0, 6.0, 10.0]
+    for entry, rows in zip(result["variants"], ([[-4.0, -8.0, 2.0], [-6.0, -6.0, 0.0]], [[0.0, 0.0, 0.0]] * 2)):
+        for seed, row in zip(entry["seeds"], rows):
+            seed["gain_error_pct"] = row
+    text = study.markdown(result)
+    assert "## The gain over speed" in text and "knots are 3, 6, 10 m/s" in text
+    assert "| a | -5.0 (1.4) | -7.0 (1.4) | +1.0 (1.4) |" in text
+    assert "| b | +0.0 (0.0) | +0.0 (0.0) | +0.0 (0.0) |" in text
+    study.plot(result, tmp_path / "sweep.png")
+    assert (tmp_path / "sweep.png").stat().st_size > 10_000
+    # A result written before the sweep existed renders without it.
+    del result["gain_speeds"]
+    assert "## The gain over speed" not in study.markdown(result)
+
+
 def test_cli_refuses_a_missing_data_set_and_no_seeds(tmp_path: Path, capsys) -> None:
     assert study.main(["--data", str(tmp_path / "absent"), "--out", str(tmp_path)]) == 2
     assert "no data set (READY missing)" in capsys.readouterr().err
