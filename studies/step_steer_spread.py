@@ -224,6 +224,12 @@ def _gain_errors(entry: dict[str, Any]) -> np.ndarray:
     return np.array(rows, dtype=float) if rows else np.zeros((0, 0))
 
 
+def _over_seeds(errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and sample sd over the seeds (axis 0) of ``errors`` (n_seeds, n); sd 0 for one seed."""
+    spread = errors.std(axis=0, ddof=1) if len(errors) > 1 else np.zeros(errors.shape[1])
+    return errors.mean(axis=0), spread
+
+
 def _gain_sweep_table(result: dict[str, Any]) -> list[str]:
     """Markdown lines: each variant's antisymmetric gain error over ``GAIN_SPEEDS``, mean (sd)."""
     speeds = result.get("gain_speeds")
@@ -240,9 +246,8 @@ def _gain_sweep_table(result: dict[str, Any]) -> list[str]:
         errors = _gain_errors(entry)
         if errors.size == 0:
             continue
-        spread = errors.std(axis=0, ddof=1) if len(errors) > 1 else np.zeros(errors.shape[1])
         lines.append(f"| {entry['label']} | " + " | ".join(f"{m:+.1f} ({d:.1f})" for m, d
-                                                          in zip(errors.mean(axis=0), spread)) + " |")
+                                                          in zip(*_over_seeds(errors))) + " |")
     return lines
 
 
@@ -284,11 +289,9 @@ def plot(result: dict[str, Any], path: Path) -> None:
             errors = _gain_errors(entry)
             if errors.size == 0:
                 continue
-            mean = errors.mean(axis=0)
+            mean, spread = _over_seeds(errors)
             line, = gain_ax.plot(sweep, mean, marker=".", label=entry["label"])
-            if len(errors) > 1:
-                spread = errors.std(axis=0, ddof=1)
-                gain_ax.fill_between(sweep, mean - spread, mean + spread, color=line.get_color(), alpha=0.15)
+            gain_ax.fill_between(sweep, mean - spread, mean + spread, color=line.get_color(), alpha=0.15)
         gain_ax.axhline(0.0, color="k", linewidth=0.8)
         gain_ax.set_xlabel("speed (m/s); dotted: the scheduled form's speed knots")
         gain_ax.set_ylabel("gain error after 1 s (%)")
