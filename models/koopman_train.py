@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -257,16 +258,22 @@ class SequenceSet:
         self.inputs = torch.as_tensor(inputs, dtype=torch.float32, device=device)
         self.starts = torch.as_tensor(np.concatenate(starts), dtype=torch.long, device=device)
         self.offsets = torch.arange(seq_len, device=device)
-        # Peak |vx r| (m/s^2) over each window: the lateral acceleration of steady cornering,
-        # how far into the tyres' nonlinear range the window goes (for window_weights).
+        # |vx r| (m/s^2) per sample, the lateral acceleration of steady cornering; its peak over
+        # each window (``peak_accel``) is worked out only when small-signal weighting asks.
         names = runs[0].state_names
         if "vx" in names and "yaw_rate" in names:
-            accel = np.concatenate([np.abs(r.states[:, names.index("vx")] * r.states[:, names.index("yaw_rate")])
-                                    for r in runs])
+            self._lateral_accel = np.concatenate(
+                [np.abs(r.states[:, names.index("vx")] * r.states[:, names.index("yaw_rate")]) for r in runs])
         else:
-            accel = np.zeros(len(states))
-        peak = accel[np.concatenate(starts)[:, None] + np.arange(seq_len)].max(axis=1)
-        self.peak_accel = torch.as_tensor(peak, dtype=torch.float32, device=device)
+            self._lateral_accel = np.zeros(len(states))
+
+    @functools.cached_property
+    def peak_accel(self) -> torch.Tensor:
+        """Peak |vx r| (m/s^2) over each window (n_windows,): how far into the tyres'
+        nonlinear range the window goes (for ``window_weights``)."""
+        rows = self.starts.cpu().numpy()[:, None] + np.arange(len(self.offsets))
+        peak = self._lateral_accel[rows].max(axis=1)
+        return torch.as_tensor(peak, dtype=torch.float32, device=self.states.device)
 
     def __len__(self) -> int:
         return int(self.starts.numel())

@@ -1,0 +1,223 @@
+"""The small-signal yaw gain the training data hold, by longitudinal regime.
+
+The default learned model's step-steer yaw rate is 5-13 % low at 10-15 m/s over every seed
+and training variant tried (``make step-steer-spread``). This study asks whether the data
+themselves say so. At each step-steer speed it fits, by one-step least squares on the
+default artefact's training runs within +-``BAND`` m/s of that speed, a local linear model
+of the lateral states and the wheel angle,
+
+    [vy, r, delta]_(k+1) = A [vy, r, delta]_k + B [torque, steer]_k + c,
+
+once per regime of the samples (``REGIMES``: all of them, steady speed, braking, traction,
+and gentle driving well inside the friction circle). It then drives each fit with the
+plant's step steer (``studies.model_fidelity``: 0.02 rad from straight driving, the plant's
+own torque) and reports the antisymmetric response 1 s later (half the difference of the
++0.02 and -0.02 rad steps) against the plant's: the yaw rate as an error in %, the lateral
+velocity in m/s. The default artefact's antisymmetric response stands beside them.
+
+A fit is one draw from a few thousand samples of a few dozen runs: read differences of a
+few % between rows as noise; the sign and size of the braking / traction split is the
+finding. Longitudinal acceleration ax is the central difference of vx over Ts; grip use is
+|vx r| / (mu g) (lateral) or hypot(ax, vx r) / (mu g) (combined), mu from the data set's
+manifest.
+
+Writes ``results/lateral_regimes.{md,json}``. A few seconds.
+CLI: ``python -m studies.lateral_regimes [--data data/wide] [--artifact models/artifacts/dk_d5.npz]``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from models.errors import ModelError
+from models.koopman import DEFAULT_ARTIFACT, KoopmanModel, KoopmanError
+from models.koopman_metrics import Trajectory
+from studies.model_fidelity import STEP_SPEEDS, TS, plant_step_steer, step_steer_final
+
+GRAVITY = 9.81
+#: Half-width (m/s) of the speed band whose samples a local fit uses.
+BAND = 0.7
+#: Fewest samples a fit needs (3 states + 2 inputs + 1 constant regressors, with margin).
+MIN_SAMPLES = 200
+LATERAL = ("vy", "yaw_rate", "steer_measured")
+STATES = ("vx", *LATERAL)
+INPUTS = ("torque", "steer")
+
+
+@dataclass(frozen=True)
+class SampleSignals:
+    """Per-sample signals of one run that the regimes select on (each (n,))."""
+
+    ax: np.ndarray
+    lateral_grip: np.ndarray
+    combined_grip: np.ndarray
+
+
+#: Regime name -> which samples (a boolean mask of SampleSignals' length).
+REGIMES: dict[str, Callable[[SampleSignals], np.ndarray]] = {
+    "all samples": lambda s: np.ones(s.ax.shape, dtype=bool),
+    "steady speed, ax within ±0.2 m/s²": lambda s: np.abs(s.ax) < 0.2,
+    "lateral grip use < 0.3": lambda s: s.lateral_grip < 0.3,
+    "steady speed, ax within ±0.2 m/s², lateral grip use < 0.3": lambda s: (np.abs(s.ax) < 0.2) & (s.lateral_grip < 0.3),
+    "steady speed, ax within ±0.2 m/s², lateral grip use < 0.1": lambda s: (np.abs(s.ax) < 0.2) & (s.lateral_grip < 0.1),
+    "braking, ax < -0.5 m/s², lateral grip use < 0.3": lambda s: (s.ax < -0.5) & (s.lateral_grip < 0.3),
+    "traction, ax > 0.5 m/s², lateral grip use < 0.3": lambda s: (s.ax > 0.5) & (s.lateral_grip < 0.3),
+    "gentle, combined grip use < 0.1": lambda s: s.combined_grip < 0.1,
+}
+
+
+def signals(run: Trajectory, mu: float) -> SampleSignals:
+    """ax (central difference of vx, m/s^2) and the grip use of a run on friction ``mu``."""
+    vx = run.states[:, run.state_names.index("vx")]
+    lateral = vx * run.states[:, run.state_names.index("yaw_rate")]
+    ax = np.gradient(vx, TS)
+    return SampleSignals(ax, np.abs(lateral) / (mu * GRAVITY), np.hypot(ax, lateral) / (mu * GRAVITY))
+
+
+def local_fit(runs: Sequence[Trajectory], masks: Sequence[np.ndarray], speed: float) -> tuple[np.ndarray, int]:
+    """One-step least squares of [vy, r, delta]+ on [vy, r, delta, torque, steer, 1] over the
+    samples k with mask[k] and |vx_k - speed| < BAND (the step k -> k + 1 within one run).
+
+    ``runs`` carry STATES and INPUTS; ``masks`` one (n,) bool per run. Returns (coefficients
+    (6, 3), number of samples); (empty, n) when n < MIN_SAMPLES.
+    """
+    regressors, targets = [], []
+    for run, mask in zip(runs, masks):
+        lateral = run.states[:, 1:]
+        vx = run.states[:-1, 0]
+        take = mask[:-1] & (np.abs(vx - speed) < BAND)
+        regressors.append(np.hstack([lateral[:-1][take], run.inputs[:-1][take], np.ones((take.sum(), 1))]))
+        targets.append(lateral[1:][take])
+    x, y = np.concatenate(regressors), np.concatenate(targets)
+    if len(x) < MIN_SAMPLES:
+        return np.zeros((0, 3)), len(x)
+    return np.linalg.lstsq(x, y, rcond=None)[0], len(x)
+
+
+class LocalLateralModel:
+    """A local fit as a predictor for ``step_steer_final``: vx held, [vy, r, delta] linear."""
+
+    n_x = 4
+
+    def __init__(self, coefficients: np.ndarray) -> None:
+        self.coefficients = coefficients
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """x0 (batch, 4) [vx, vy, r, delta], inputs (batch, n, 2) -> (batch, n, 4)."""
+        out = np.empty(inputs.shape[:2] + (4,))
+        lateral = np.asarray(x0, dtype=float)[:, 1:]
+        out[..., 0] = np.asarray(x0, dtype=float)[:, :1]
+        for i in range(inputs.shape[1]):
+            lateral = np.hstack([lateral, inputs[:, i], np.ones((len(lateral), 1))]) @ self.coefficients
+            out[:, i, 1:] = lateral
+        return out
+
+
+def antisymmetric_response(model: Any, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
+    """(final(+step) - final(-step)) / 2 of ``model`` on the plant's step (``states`` (n + 1, 4),
+    ``commands`` (n, 2)): the linear part of its response, [vx, vy, r, ...] after the step."""
+    mirrored = commands.copy()
+    mirrored[:, 1] *= -1.0
+    return (step_steer_final(model, states, commands) - step_steer_final(model, states, mirrored)) / 2.0
+
+
+def friction_of_runs(data_dir: Path) -> dict[str, float]:
+    """Run name -> mu from the data set's manifest (runs without a file were dropped)."""
+    manifest = json.loads((data_dir / "manifest.json").read_text())
+    return {Path(e["file"]).stem: float(e.get("mu", manifest["params"]["mu"]))
+            for e in manifest["runs"] if e.get("file")}
+
+
+def measure(data_dir: Path, artifact: Path) -> dict[str, Any]:
+    """Fit every regime at every speed on ``artifact``'s training runs of ``data_dir``."""
+    from models.koopman_train import load_trajectories
+
+    model = KoopmanModel.load(artifact)
+    train_names = set(model.metadata.get("split", {}).get("train", []))
+    if not train_names:
+        raise KoopmanError(f"{artifact}: its JSON names no training runs (split.train)")
+    mu = friction_of_runs(data_dir)
+    runs = [r for r in load_trajectories(data_dir, STATES, INPUTS) if r.name in train_names]
+    if not runs:
+        raise KoopmanError(f"{data_dir}: none of {artifact.name}'s training runs are in this data set")
+    per_run = [signals(run, mu[run.name]) for run in runs]
+    out: dict[str, Any] = {"data_dir": str(data_dir), "artifact": str(artifact), "band": BAND,
+                           "n_runs": len(runs), "speeds": list(STEP_SPEEDS), "plant": [], "model": [], "regimes": []}
+    plant = {speed: plant_step_steer(speed) for speed in STEP_SPEEDS}
+    for speed, (states, commands) in plant.items():
+        out["plant"].append({"yaw_rate": float(states[-1, 2]), "vy": float(states[-1, 1])})
+        learned = antisymmetric_response(model, states, commands)
+        out["model"].append({"yaw_error_pct": float(100.0 * (learned[2] / states[-1, 2] - 1.0)), "vy": float(learned[1])})
+    for name, select in REGIMES.items():
+        cells = []
+        masks = [select(s) for s in per_run]
+        for speed, (states, commands) in plant.items():
+            coefficients, n = local_fit(runs, masks, speed)
+            if not coefficients.size:
+                cells.append({"samples": n})
+                continue
+            fitted = antisymmetric_response(LocalLateralModel(coefficients), states, commands)
+            cells.append({"samples": n, "yaw_error_pct": float(100.0 * (fitted[2] / states[-1, 2] - 1.0)),
+                          "vy": float(fitted[1])})
+        out["regimes"].append({"regime": name, "cells": cells})
+    return out
+
+
+def _cell(cell: dict[str, Any]) -> str:
+    if "yaw_error_pct" not in cell:
+        return f"too few samples ({cell['samples']})"
+    return f"{cell['yaw_error_pct']:+.1f} % / {cell['vy']:+.3f} ({cell['samples']})"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The study's tables as markdown."""
+    speeds = result["speeds"]
+    lines = ["# The small-signal yaw gain the data hold, by longitudinal regime", "",
+             "Generated by `make lateral-regimes` (`studies/lateral_regimes.py`). Local one-step least-squares "
+             f"fits of [vy, r, wheel angle] on {result['n_runs']} training runs of `{Path(result['artifact']).name}` "
+             f"in `{result['data_dir']}`, samples within ±{result['band']:g} m/s of each speed, driven by the "
+             "plant's 0.02 rad step steer. Each cell: the antisymmetric yaw-rate error 1 s after the step "
+             "against the plant's / the antisymmetric lateral velocity (m/s) / (samples). The fits are noisy: "
+             "read the sign and size of the braking / traction split, not a few % between rows.", "",
+             "| | " + " | ".join(f"{v:g} m/s" for v in speeds) + " |",
+             "|---|" + "---|" * len(speeds),
+             "| plant: yaw rate (rad/s) / vy (m/s) | "
+             + " | ".join(f"{p['yaw_rate']:.4f} / {p['vy']:+.3f}" for p in result["plant"]) + " |",
+             f"| learned model `{Path(result['artifact']).name}` | "
+             + " | ".join(f"{m['yaw_error_pct']:+.1f} % / {m['vy']:+.3f}" for m in result["model"]) + " |"]
+    for entry in result["regimes"]:
+        lines.append(f"| local fit, {entry['regime']} | " + " | ".join(_cell(c) for c in entry["cells"]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.lateral_regimes", description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path("data/wide"))
+    parser.add_argument("--artifact", type=Path, default=DEFAULT_ARTIFACT)
+    parser.add_argument("--out", type=Path, default=Path("results"))
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    args = parser.parse_args(argv)
+    try:
+        if not (args.data / "READY").is_file():
+            raise KoopmanError(f"{args.data}: no data set (READY missing); make train generates data/wide")
+        result = measure(args.data, args.artifact)
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "lateral_regimes.md").write_text(markdown(result))
+        (args.out / "lateral_regimes.json").write_text(json.dumps(result, indent=1) + "\n")
+    except (ModelError, OSError, ValueError, KeyError) as e:
+        if args.debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out / 'lateral_regimes.md'} and .json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
