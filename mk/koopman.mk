@@ -58,12 +58,12 @@ step-steer-spread: setup
 
 # Why the learned step steer is low at 10-15 m/s: local least-squares fits of the lateral
 # dynamics on the default artefact's training runs, per speed and per longitudinal / lateral
-# regime, driven by the plant's step steer: results/lateral_regimes.{md,json}. Seconds.
+# regime, driven by the plant's step steer: results/lateral_regimes.{md,json,png}. Seconds.
 ## the small-signal yaw gain the data hold, by regime -> results/lateral_regimes.*
 lateral-regimes: setup
 	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
 	$(PY) -m studies.lateral_regimes --data $(TRAIN_DATA)
-	$(PROVENANCE_STAMP) results/lateral_regimes.md results/lateral_regimes.json \
+	$(PROVENANCE_STAMP) $(addprefix results/lateral_regimes.,md json png) \
 		--command "$(call provenance_command,lateral-regimes,TRAIN_DATA)" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.lateral_regimes models.data
 

@@ -21,7 +21,7 @@ finding. Longitudinal acceleration ax is the central difference of vx over Ts; g
 |vx r| / (mu g) (lateral) or hypot(ax, vx r) / (mu g) (combined), mu from the data set's
 manifest.
 
-Writes ``results/lateral_regimes.{md,json}``. A few seconds.
+Writes ``results/lateral_regimes.{md,json,png}``. A few seconds.
 CLI: ``python -m studies.lateral_regimes [--data data/wide] [--artifact models/artifacts/dk_d5.npz]``.
 """
 from __future__ import annotations
@@ -185,6 +185,7 @@ def markdown(result: dict[str, Any]) -> str:
              "plant's 0.02 rad step steer. Each cell: the antisymmetric yaw-rate error 1 s after the step "
              "against the plant's / the antisymmetric lateral velocity (m/s) / (samples). The fits are noisy: "
              "read the sign and size of the braking / traction split, not a few % between rows.", "",
+             "![lateral regimes](lateral_regimes.png)", "",
              "| | " + " | ".join(f"{v:g} m/s" for v in speeds) + " |",
              "|---|" + "---|" * len(speeds),
              "| plant: yaw rate (rad/s) / vy (m/s) | "
@@ -194,6 +195,47 @@ def markdown(result: dict[str, Any]) -> str:
     for entry in result["regimes"]:
         lines.append(f"| local fit, {entry['regime']} | " + " | ".join(_cell(c) for c in entry["cells"]) + " |")
     return "\n".join(lines) + "\n"
+
+
+#: Regimes drawn in the figure beside the learned model (the table has them all).
+PLOTTED = ("all samples", "steady speed, ax within ±0.2 m/s²",
+           "steady speed, ax within ±0.2 m/s², lateral grip use < 0.3", "gentle, combined grip use < 0.1")
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Left: antisymmetric yaw-rate error (%) per speed of the learned model and of the local
+    fits of ``PLOTTED``; right: the antisymmetric lateral velocity (m/s), the plant's as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    speeds = np.array(result["speeds"])
+    series = [(f"learned model ({Path(result['artifact']).name})", result["model"])]
+    series += [(f"local fit, {e['regime']}", e["cells"]) for e in result["regimes"] if e["regime"] in PLOTTED]
+    fig, (yaw_ax, vy_ax) = plt.subplots(1, 2, figsize=(11.0, 4.2))
+    width = 3.5 / len(series)
+    for i, (label, cells) in enumerate(series):
+        x = speeds + (i - (len(series) - 1) / 2) * width
+        yaw = [c.get("yaw_error_pct", np.nan) for c in cells]
+        vy = [c.get("vy", np.nan) for c in cells]
+        yaw_ax.bar(x, yaw, width=width * 0.9, label=label)
+        vy_ax.bar(x, vy, width=width * 0.9, label=label)
+    yaw_ax.axhspan(-5.0, 5.0, color="0.9", zorder=0)
+    yaw_ax.axhline(0.0, color="k", linewidth=0.8)
+    yaw_ax.set_ylabel("yaw-rate error 1 s after the step (%)")
+    vy_ax.plot(speeds, [p["vy"] for p in result["plant"]], "k_", markersize=30, markeredgewidth=2, label="plant")
+    vy_ax.axhline(0.0, color="k", linewidth=0.8)
+    vy_ax.set_ylabel("lateral velocity 1 s after the step (m/s)")
+    for ax in (yaw_ax, vy_ax):
+        ax.set_xticks(speeds)
+        ax.set_xlabel("speed (m/s)")
+    yaw_ax.set_title("Antisymmetric step-steer response: yaw rate vs plant")
+    vy_ax.set_title("... and lateral velocity")
+    vy_ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -210,12 +252,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "lateral_regimes.md").write_text(markdown(result))
         (args.out / "lateral_regimes.json").write_text(json.dumps(result, indent=1) + "\n")
+        plot(result, args.out / "lateral_regimes.png")
     except (ModelError, OSError, ValueError, KeyError) as e:
         if args.debug:
             raise
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(f"wrote {args.out / 'lateral_regimes.md'} and .json")
+    print(f"wrote {args.out / 'lateral_regimes.md'}, .json and .png")
     return 0
 
 

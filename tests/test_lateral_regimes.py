@@ -68,7 +68,7 @@ def test_signals_and_regimes_select_by_longitudinal_and_lateral_grip_use() -> No
     assert not lr.REGIMES["traction, ax > 0.5 m/s², lateral grip use < 0.3"](s).any()
 
 
-def test_the_table_names_each_regime_and_the_cells_without_enough_samples() -> None:
+def test_the_table_and_figure_name_each_regime_and_the_cells_without_enough_samples(tmp_path) -> None:
     result = {"data_dir": "data/wide", "artifact": "models/artifacts/dk_d5.npz", "band": 0.7, "n_runs": 3,
               "speeds": [10.0, 15.0],
               "plant": [{"yaw_rate": 0.0673, "vy": 0.072}, {"yaw_rate": 0.094, "vy": 0.038}],
@@ -79,3 +79,5 @@ def test_the_table_names_each_regime_and_the_cells_without_enough_samples() -> N
     assert "| local fit, all samples | -4.6 % / +0.062 (7074) | too few samples (12) |" in text
     assert "| learned model `dk_d5.npz` | -6.8 % / +0.059 | -6.4 % / -0.005 |" in text
     assert "0.0673 / +0.072" in text
+    lr.plot(result, tmp_path / "regimes.png")  # a cell without a fit is drawn as a gap, not an error
+    assert (tmp_path / "regimes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
