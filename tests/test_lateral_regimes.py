@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.koopman_baselines import DMDc
 from models.koopman_metrics import Trajectory
 from studies import lateral_regimes as lr
 
@@ -27,19 +28,22 @@ def _run(name: str, speed: float, n: int, seed: int) -> Trajectory:
 def test_a_local_fit_recovers_a_linear_system_from_the_samples_of_its_speed_band() -> None:
     runs = [_run("a", 10.0, 400, 0), _run("b", 20.0, 400, 1), _run("c", 10.3, 300, 2)]
     masks = [np.ones(len(r), dtype=bool) for r in runs]
-    coefficients, n = lr.local_fit(runs, masks, 10.0)
+    fit, n = lr.local_fit(runs, masks, 10.0)
     assert n == 399 + 299  # run b is outside the band; the last sample of a run has no successor
-    assert coefficients.T[:, :3] == pytest.approx(A, abs=1e-9)
-    assert coefficients.T[:, 3:5] == pytest.approx(B, abs=1e-9)
-    assert coefficients[5] == pytest.approx(C, abs=1e-9)
+    assert fit.A_ == pytest.approx(A, abs=1e-9)
+    assert fit.B_ == pytest.approx(B, abs=1e-9)
+    assert fit.offset_ == pytest.approx(C, abs=1e-9)
     few = [np.arange(len(r)) < 50 for r in runs]
     empty, n_few = lr.local_fit(runs, few, 10.0)
-    assert empty.size == 0 and n_few == 50 + 50  # fewer than MIN_SAMPLES: no fit
+    assert empty is None and n_few == 50 + 50  # fewer than MIN_SAMPLES: no fit
+    gaps = [np.arange(len(r)) % 10 < 5 for r in runs]  # stretches of 5 samples, each with its successor
+    assert sum(len(s) - 1 for s in lr.band_segments(runs, gaps, 10.0)) == 200 + 150
 
 
 def test_the_antisymmetric_response_keeps_only_the_steer_part() -> None:
-    coefficients = np.vstack([A.T, B.T, C])
-    model = lr.LocalLateralModel(coefficients)
+    lateral = DMDc()
+    lateral.A_, lateral.B_, lateral.offset_, lateral.n_x_ = A, B, C, 3
+    model = lr.LocalLateralModel(lateral)
     n = 40
     commands = np.column_stack([np.full(n, 250.0), np.full(n, 0.02)])
     states = np.zeros((n + 1, 4))
