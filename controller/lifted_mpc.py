@@ -86,7 +86,8 @@ class LiftedMpc(QpSteeringMpc):
     """Steering MPC on a ``KoopmanModel`` (A, B, offset, C_P, lift). DKMPC as is.
 
     The scheduled form's maps are those of ``model.at_speed(vx)`` at the measured speed,
-    built on first use and cached per speed quantum (as LMPC caches its bicycle).
+    built on first use and cached per speed quantum (as LMPC caches its bicycle). A bilinear
+    model (or a scheduled one with a bilinear term) holds its B(z_k) over the horizon.
     """
 
     def __init__(self, model: "KoopmanModel", tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
@@ -98,7 +99,6 @@ class LiftedMpc(QpSteeringMpc):
         self._measured_fields = tuple(MEASURED_STATES[n] for n in names)
         super().__init__(tuning, longitudinal)
         self._scheduled = model.form == "scheduled"
-        self._bilinear = model.form == "bilinear"
         self._maps_cache: dict[int, PredictionMaps] = {}
         self._fixed_maps = None if self._scheduled else PredictionMaps.build(model, self.hold)
         self.lifted_state: np.ndarray | None = None  # z_k of the last step
@@ -125,8 +125,8 @@ class LiftedMpc(QpSteeringMpc):
         self.lifted_state = lifted
         maps = self.prediction_maps(sample.vx)
         input_matrix, gain = maps.model.B, maps.gain
-        if self._bilinear:
-            input_matrix = self.model.input_matrix(lifted)
+        if maps.model.form == "bilinear":  # B(z_k), held over the horizon (also a scheduled model's at_speed)
+            input_matrix = maps.model.input_matrix(lifted)
             gain = maps.gain_basis @ input_matrix[:, STEER]
         drift = input_matrix[:, TORQUE] * drive_torque + maps.model.offset
         free = (maps.free_from_lifted @ lifted + maps.free_from_drift @ drift

@@ -16,6 +16,11 @@
 	firmware-cross firmware-vcan bench-native
 
 FW_DIR := build/firmware
+# The Koopman artefact (path without .npz/.json) the build's shapes and data file are for.
+# Shapes are compile-time, so another model is another build: a test builds one with
+# make firmware FW_DIR=build/firmware-bilinear FW_MODEL=build/firmware-bilinear/scheduled_bilinear
+# (tests/test_firmware_c_bilinear.py); the default is the committed model.
+FW_MODEL := models/artifacts/dk_d5
 FW_GEN := $(FW_DIR)/gen
 FW_CC ?= gcc
 # -O3: the step 5-10 % faster than -O2 with the same results to the bit (no -ffast-math;
@@ -36,7 +41,7 @@ FW_HEADERS := $(wildcard firmware/src/*.h)
 FW_TOOLS := firmware/tools/ecu_data.py firmware/tools/generate.py
 # Generator inputs: a change of any regenerates (their hashes are in ecu_version()).
 FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py models/vehicle.toml can_defs/vehicle.dbc \
-	models/artifacts/dk_d5.npz models/artifacts/dk_d5.json
+	$(FW_MODEL).npz $(FW_MODEL).json
 FW_PACKAGES := gcc cmake
 
 ## build the C control core build/firmware/libecu.so, the executable ecu and the data file
@@ -59,11 +64,11 @@ firmware-deps:
 	else echo "note: not root; the firmware needs: sudo apt-get install $(FW_PACKAGES)"; fi
 
 $(FW_GEN)/stamp: $(FW_GEN_INPUTS) | $(STAMP)
-	$(PY) firmware/tools/generate.py --out $(FW_GEN)
+	$(PY) firmware/tools/generate.py --out $(FW_GEN) --model $(FW_MODEL)
 	touch $@
 
 $(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) | $(STAMP)
-	$(PY) firmware/tools/ecu_data.py --out $@
+	$(PY) firmware/tools/ecu_data.py --out $@ --model $(FW_MODEL)
 
 # One shared object from the core, the generated version source and the OSQP sources.
 # (mk/firmware.mk too: a change of the compiler flags rebuilds)

@@ -12,7 +12,10 @@ Two model forms share this class (``form`` in the artefact):
 - ``scheduled`` (a speed-scheduled lift, an LPV Koopman model): z+ = A(v) z + B(v) u +
   offset(v), the matrices interpolated linearly between speed knots, v the measured speed
   at the start of the prediction, held over it (as LMPC holds its bicycle's speed).
-  ``at_speed(v)`` gives the linear model of that speed, so the MPC stays a QP.
+  ``at_speed(v)`` gives the linear model of that speed, so the MPC stays a QP. It may carry a
+  bilinear term too, N(v) per knot (the mirror form's steer-bilinear term,
+  ``models/koopman_train_symmetric.py``): ``at_speed(v)`` is then the bilinear model of
+  that speed, whose B(z_k) the MPC holds over the horizon.
 
 The lifted state is z = [x; psi(x); Phi(x)]: the physical state, an optional fixed
 dictionary psi of physics-motivated functions (``DICTIONARY``: vy/vx, r/vx, vx r, vx^2,
@@ -190,7 +193,7 @@ class NormalisedKoopman:
     B_n: np.ndarray
     state_scaling: MinMaxScaling
     input_scaling: MinMaxScaling
-    #: Bilinear matrices (n_u, n_z, n_z); None for the linear form.
+    #: Bilinear matrices (n_u, n_z, n_z), (K, n_u, n_z, n_z) scheduled; None for none.
     N_n: np.ndarray | None = None
     dictionary: tuple[str, ...] = ()
     #: Min-max bounds of the dictionary features (len(dictionary),); None without one.
@@ -207,15 +210,16 @@ class NormalisedKoopman:
         Returns (encoder acting on physical x, A (n_z, n_z), B (n_z, n_u), offset (n_z,),
         N (n_u, n_z, n_z) or None). The scheduled form folds each knot alike (the weights
         sum to one, so interpolating the physical matrices interpolates the model): A (K,
-        n_z, n_z), B (K, n_z, n_u), offset (K, n_z).
+        n_z, n_z), B (K, n_z, n_u), offset (K, n_z), N (K, n_u, n_z, n_z) or None.
         """
         if self.speed_knots:
             parts = [dataclasses.replace(self, A_n=self.A_n[m], B_n=self.B_n[m], speed_knots=(),
-                                         affine_n=None if self.affine_n is None else self.affine_n[m])
+                                         affine_n=None if self.affine_n is None else self.affine_n[m],
+                                         N_n=None if self.N_n is None else self.N_n[m])
                      .to_physical() for m in range(len(self.speed_knots))]
             encoder = parts[0][0]
             return (encoder, np.stack([p[1] for p in parts]), np.stack([p[2] for p in parts]),
-                    np.stack([p[3] for p in parts]), None)
+                    np.stack([p[3] for p in parts]), None if self.N_n is None else np.stack([p[4] for p in parts]))
         n_z = self.A_n.shape[0]
         low, high = [self.state_scaling.low], [self.state_scaling.high]
         if self.dictionary_scaling is not None:
@@ -277,15 +281,15 @@ class KoopmanModel:
         ``bilinear``: N (n_u, n_z, n_z), or None for the linear form. ``dictionary``: names
         from ``DICTIONARY`` lifted between x and the learned features. ``speed_knots`` (K,)
         increasing: the scheduled form, A (K, n_z, n_z), B (K, n_z, n_u), offset (K, n_z)
-        one per knot; ``A``/``B``/``offset`` then hold the matrices of the first knot and
-        ``at_speed(v)`` those of speed v.
+        one per knot (and ``bilinear`` N (K, n_u, n_z, n_z) or None); ``A``/``B``/``offset``/
+        ``N`` then hold the matrices of the first knot and ``at_speed(v)`` those of speed v.
         """
         self.state_names = tuple(state_names)
         self.input_names = tuple(input_names)
         self.n_x = len(self.state_names)
         self.n_u = len(self.input_names)
         self.speed_knots = np.asarray(speed_knots, dtype=float).reshape(-1)
-        self.A_knots = self.B_knots = self.offset_knots = None
+        self.A_knots = self.B_knots = self.offset_knots = self.N_knots = None
         if self.speed_knots.size:
             if self.speed_knots.size < 2 or np.any(np.diff(self.speed_knots) <= 0):
                 raise KoopmanError(f"speed knots must be >= 2 increasing speeds (of the first state, "
@@ -299,6 +303,12 @@ class KoopmanModel:
                 raise KoopmanError(f"a scheduled model needs one A, B, offset per knot ({self.speed_knots.size}), "
                                    f"got A {self.A_knots.shape}, B {self.B_knots.shape}, offset {self.offset_knots.shape}")
             A, B, offset = self.A_knots[0], self.B_knots[0], self.offset_knots[0]
+            if bilinear is not None:
+                self.N_knots = np.ascontiguousarray(bilinear, dtype=float)
+                if self.N_knots.ndim != 4 or self.N_knots.shape[0] != self.speed_knots.size:
+                    raise KoopmanError(f"a scheduled bilinear model needs one N per knot ({self.speed_knots.size}), "
+                                       f"got N {self.N_knots.shape}")
+                bilinear = self.N_knots[0]
         self.A = np.ascontiguousarray(A, dtype=float)
         self.B = np.ascontiguousarray(B, dtype=float)
         self.n_z = self.A.shape[0] if self.A.ndim == 2 else -1
@@ -351,7 +361,7 @@ class KoopmanModel:
             raise KoopmanError(f"N must be (n_u, n_z, n_z)=({self.n_u}, {self.n_z}, {self.n_z}), got {self.N.shape}")
         for name, arr in (("A", self.A), ("B", self.B), ("offset", self.offset), ("N", self.N),
                           ("A (knots)", self.A_knots), ("B (knots)", self.B_knots),
-                          ("offset (knots)", self.offset_knots)):
+                          ("offset (knots)", self.offset_knots), ("N (knots)", self.N_knots)):
             if arr is None:
                 continue
             if not np.all(np.isfinite(arr)):
@@ -411,7 +421,7 @@ class KoopmanModel:
                 B_n=arrays["B_n"],
                 state_scaling=MinMaxScaling(np.array(meta["state_min"]), np.array(meta["state_max"])),
                 input_scaling=MinMaxScaling(np.array(meta["input_min"]), np.array(meta["input_max"])),
-                N_n=arrays["N_n"] if form == "bilinear" else None,
+                N_n=arrays["N_n"] if form == "bilinear" or "N_n" in arrays else None,
                 affine_n=arrays.get("affine_n"),
                 speed_knots=tuple(meta.get("speed_knots", ())) if form == "scheduled" else (),
                 dictionary=dictionary,
@@ -469,9 +479,15 @@ class KoopmanModel:
             z[n_known:] = h
         return z
 
+    @property
+    def scheduled_bilinear(self) -> bool:
+        """True for the scheduled form with a bilinear term N(v)."""
+        return self.N_knots is not None
+
     def at_speed(self, speed: float) -> "KoopmanModel":
-        """The linear model of the scheduled form at ``speed`` (m/s, rounded to SPEED_QUANTUM,
-        cached); any other form returns itself."""
+        """The model of the scheduled form at ``speed`` (m/s, rounded to SPEED_QUANTUM, cached):
+        linear, or bilinear with N(v) if the form has a bilinear term; any other form returns
+        itself."""
         if self.form != "scheduled":
             return self
         key = round(float(np.clip(speed, self.speed_knots[0], self.speed_knots[-1])) / SPEED_QUANTUM)
@@ -479,7 +495,8 @@ class KoopmanModel:
         if model is None:
             a, b, offset = self.matrices_for(np.asarray(key * SPEED_QUANTUM))
             model = KoopmanModel(a, b, offset, self._layers, self.ts, self.state_names,
-                                 self.input_names, self.metadata, dictionary=self.dictionary)
+                                 self.input_names, self.metadata, dictionary=self.dictionary,
+                                 bilinear=self.bilinear_for(np.asarray(key * SPEED_QUANTUM)))
             if len(self._at_speed) > 2048:
                 self._at_speed.clear()
             self._at_speed[key] = model
@@ -495,6 +512,15 @@ class KoopmanModel:
         return (np.tensordot(weights, self.A_knots, 1), np.tensordot(weights, self.B_knots, 1),
                 weights @ self.offset_knots)
 
+    def bilinear_for(self, speed: np.ndarray) -> np.ndarray | None:
+        """N (..., n_u, n_z, n_z) at speeds (...,) of a scheduled bilinear model; N of any
+        other bilinear model (broadcast); None without a bilinear term."""
+        if self.N_knots is not None:
+            return np.tensordot(knot_weights(self.speed_knots, speed), self.N_knots, 1)
+        if self.form == "bilinear":
+            return np.broadcast_to(self.N, np.shape(speed) + self.N.shape)
+        return None
+
     def input_matrix(self, lifted_state: np.ndarray) -> np.ndarray:
         """B(z) = B + [N_1 z, ..., N_m z]: lifted_state (n_z,) -> (n_z, n_u).
 
@@ -509,7 +535,10 @@ class KoopmanModel:
         """One step of eq. 5 with the affine (and bilinear) terms: z (..., n_z), u (..., n_u) -> (..., n_z)."""
         if self.form == "scheduled":  # the matrices of z's own speed
             A, B, offset = self.matrices_for(np.asarray(z)[..., 0])
-            return np.einsum("...ab,...b->...a", A, z) + np.einsum("...ab,...b->...a", B, u) + offset
+            z_next = np.einsum("...ab,...b->...a", A, z) + np.einsum("...ab,...b->...a", B, u) + offset
+            if self.N_knots is not None:
+                z_next = z_next + np.einsum("...j,...jab,...b->...a", u, self.bilinear_for(np.asarray(z)[..., 0]), z)
+            return z_next
         z_next = z @ self.A.T + u @ self.B.T + self.offset
         if self.form == "bilinear":
             z_next = z_next + np.einsum("...j,jab,...b->...a", u, self.N, z)
@@ -532,10 +561,14 @@ class KoopmanModel:
         z = self.lift(x0)
         if self.form == "scheduled":  # matrices of each start's speed, held (as the MPC does)
             A, B, offset = self.matrices_for(x0[:, 0])
+            N = self.bilinear_for(x0[:, 0])
             forced = np.einsum("kab,ksb->ksa", B, inputs) + offset[:, None]
             out = np.empty((x0.shape[0], inputs.shape[1], self.n_x))
             for i in range(inputs.shape[1]):
-                z = np.einsum("kab,kb->ka", A, z) + forced[:, i]
+                z_next = np.einsum("kab,kb->ka", A, z) + forced[:, i]
+                if N is not None:
+                    z_next += np.einsum("kj,kjac,kc->ka", inputs[:, i], N, z)
+                z = z_next
                 out[:, i] = z[:, : self.n_x]
             return out
         # The input contribution of all steps at once, then the cheap recursion.

@@ -80,7 +80,10 @@ class TrainingSettings:
     the model (``models/koopman_train_symmetric.py``): ``even_features`` of the d features
     are even, the rest odd; ``servo_lag`` makes the wheel-angle row a lag of unit DC gain
     from the steer command; ``lateral_per_step`` schedules the lateral rows on each step's
-    measured speed in training. Recorded only when ``mirror_symmetric`` is on.
+    measured speed in training; ``steer_bilinear`` adds a steer-bilinear term
+    (u_steer - u0) N(v) (z - z0) whose N maps even to odd coordinates and back, so the
+    response to a steer change depends on the state at a given speed. Recorded only when
+    ``mirror_symmetric`` is on (``steer_bilinear`` only when on).
     """
 
     n_features: int = 5
@@ -104,6 +107,7 @@ class TrainingSettings:
     even_features: int = 2
     servo_lag: bool = False
     lateral_per_step: bool = False
+    steer_bilinear: bool = False
     val_fraction: float = 0.15
     test_fraction: float = 0.15
     val_windows: int = 4096
@@ -136,6 +140,7 @@ class TrainingSettings:
             "even_features": 0 <= self.even_features <= self.n_features,
             "servo_lag": self.mirror_symmetric or not self.servo_lag,
             "lateral_per_step": self.mirror_symmetric or not self.lateral_per_step,
+            "steer_bilinear": self.mirror_symmetric or not self.steer_bilinear,
             "val_fraction": 0 < self.val_fraction < 0.5,
             "test_fraction": 0 < self.test_fraction < 0.5,
             "device": self.device in ("auto", "cpu", "cuda"),
@@ -376,7 +381,8 @@ def train(
             len(state_names), len(input_names), settings.n_features, settings.hidden, len(knots),
             settings.even_features, parities(state_names), parities(dictionary), parities(input_names),
             state_scaling.shift, dictionary_scaling.shift if dictionary else np.zeros(0), input_scaling.shift,
-            shared_rows, (state_names.index(SERVO_STATE), input_names.index(SERVO_INPUT)) if settings.servo_lag else None)
+            shared_rows, (state_names.index(SERVO_STATE), input_names.index(SERVO_INPUT)) if settings.servo_lag else None,
+            _steer_input(input_names) if settings.steer_bilinear else None)
     else:
         net = KoopmanNet(len(state_names), len(input_names), settings.n_features, settings.hidden,
                          len(dictionary), bilinear, len(knots), shared_rows)
@@ -515,7 +521,16 @@ def settings_json(settings: TrainingSettings) -> dict:
     if not settings.mirror_symmetric:
         for name in ("mirror_symmetric", "even_features", "servo_lag", "lateral_per_step"):
             del out[name]
+    if not settings.steer_bilinear:
+        del out["steer_bilinear"]
     return out
+
+
+def _steer_input(input_names: Sequence[str]) -> int:
+    """Index of the steer command (the steer-bilinear term's input); KoopmanError without one."""
+    if SERVO_INPUT not in input_names:
+        raise KoopmanError(f"steer_bilinear needs {SERVO_INPUT!r} among the inputs {tuple(input_names)}")
+    return list(input_names).index(SERVO_INPUT)
 
 
 def write_artifact(result: TrainingResult, out: str | Path) -> tuple[Path, Path]:
@@ -607,6 +622,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --mirror-symmetric: the wheel-angle row is a lag of unit DC gain from the steer command")
     p.add_argument("--lateral-per-step", action="store_true",
                    help="with --mirror-symmetric: schedule the lateral rows on each step's speed in training")
+    p.add_argument("--steer-bilinear", action="store_true",
+                   help="with --mirror-symmetric: add a steer-bilinear term, so the steer response depends "
+                        "on the state at a given speed")
     p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
     p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
     p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
@@ -642,7 +660,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             unscheduled_states=args.unscheduled_states,
             mirror_symmetric=args.mirror_symmetric, even_features=args.even_features,
             servo_lag=args.servo_lag, lateral_per_step=args.lateral_per_step,
-            learning_rate=args.learning_rate, lr_decay=args.lr_decay,
+            steer_bilinear=args.steer_bilinear, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )
         if args.logs:  # issue 20: the data come from CAN logs; --out is a folder

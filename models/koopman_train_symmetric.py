@@ -24,6 +24,12 @@ x0_n = -lo / (hi - lo).
 - Optional ``servo_lag``: the wheel-angle row is a first-order lag of unit DC gain from the
   steer command, delta+ = a delta + (1 - a) u, one a in (0, 1) per knot; the state and the
   input then share their min-max bounds so that the unit gain holds in physical units too.
+- Optional ``steer_bilinear``: a steer-bilinear term (u_s - u0_s) N(v) (z_n - z0_n), N per
+  knot, so that the response to a steer change depends on the state at a given speed
+  (docs/koopman.md, "What the data hold"): the linear-range gain near straight driving,
+  a lower one near the limit. Equivariance needs N to map even coordinates to odd rows and
+  odd ones to even rows (the steer is odd); the wheel-angle row keeps its lag. Still linear
+  in the input at each step, so the MPC stays a QP with B(z_k) held over the horizon.
 - Optional per-step schedule of the lateral (odd) rows in training: their (A, B, c) are
   those of each step's measured speed instead of the window's first speed, so each knot
   learns the lateral dynamics of its own speed rather than an average over a braking or
@@ -33,7 +39,8 @@ x0_n = -lo / (hi - lo).
 
 The export is an ordinary scheduled artefact: the two encoder passes become one MLP of twice
 the width with block-diagonal hidden layers (``export``), so ``models/koopman.py``, the ECU
-and the C firmware load it unchanged.
+and the C firmware load it unchanged. With ``steer_bilinear`` the centred term is folded
+into the artefact's per-knot (A_n, B_n, affine_n, N_n) of the plain bilinear form.
 """
 from __future__ import annotations
 
@@ -89,14 +96,15 @@ class MirrorKoopmanNet(KoopmanNet):
     ``state_parity`` (n_x,), ``dictionary_parity`` (n_dict,), ``input_parity`` (n_u,): +1 / -1;
     ``state_zero`` (n_x,), ``dictionary_zero`` (n_dict,), ``input_zero`` (n_u,): the normalised
     image of physical 0 of each channel. ``servo``: (state index, input index) of the wheel
-    angle and the steer command, or None.
+    angle and the steer command, or None. ``steer_input``: index of the steer command whose
+    bilinear term N (K, n_z, n_z) is learned, or None for none.
     """
 
     def __init__(self, n_x: int, n_u: int, n_features: int, hidden: Sequence[int], n_knots: int,
                  even_features: int, state_parity: np.ndarray, dictionary_parity: np.ndarray,
                  input_parity: np.ndarray, state_zero: np.ndarray, dictionary_zero: np.ndarray,
                  input_zero: np.ndarray, shared_rows: Sequence[int] = (),
-                 servo: tuple[int, int] | None = None) -> None:
+                 servo: tuple[int, int] | None = None, steer_input: int | None = None) -> None:
         if n_knots < 2:
             raise KoopmanError("mirror symmetry is built for the scheduled form (speed knots)")
         if not 0 <= even_features <= n_features:
@@ -123,6 +131,16 @@ class MirrorKoopmanNet(KoopmanNet):
         if servo is not None:
             # logit of the lag's pole per knot; 0.8 per 25 ms (a 0.11 s time constant) to start.
             self.servo_logit = nn.Parameter(torch.full((n_knots,), float(np.log(0.8 / 0.2))))
+        self.steer_input = steer_input
+        if steer_input is not None:
+            if np.asarray(input_parity)[steer_input] >= 0:
+                raise KoopmanError("the steer-bilinear term needs an odd (steer) input")
+            n_mask = parity[:, None] != parity[None, :]  # even -> odd rows, odd -> even rows
+            if servo is not None:
+                n_mask[servo[0]] = False  # the wheel angle keeps its lag of unit DC gain
+            self.register_buffer("N_mask", as_tensor(n_mask))
+            # Zero to start: training begins at the warm-started model without the term.
+            self.N_knots = nn.Parameter(torch.zeros(n_knots, self.n_z, self.n_z))
 
     @torch.no_grad()
     def warm_start(self, fit: dict[str, np.ndarray]) -> None:
@@ -157,24 +175,37 @@ class MirrorKoopmanNet(KoopmanNet):
         odd_c = self.lifted_zero - A @ self.lifted_zero - B @ self.input_zero  # (K, n_z)
         return A, B, torch.where(self.odd_rows > 0, odd_c, c)
 
+    def bilinear_knots(self) -> torch.Tensor:
+        """N (K, n_z, n_z) of the steer-bilinear term, masked by parity."""
+        return self.N_knots * self.N_mask
+
     def rollout(self, z0: torch.Tensor, inputs_n: torch.Tensor, knot_weights: torch.Tensor | None = None,
                 step_knot_weights: torch.Tensor | None = None) -> torch.Tensor:
         """As ``KoopmanNet.rollout``; with ``step_knot_weights`` (batch, n_steps, K) the odd
-        rows take the matrices of each step's speed, the even rows those of the first."""
-        if step_knot_weights is None:
+        rows take the matrices of each step's speed, the even rows those of the first. The
+        steer-bilinear term, if any, is held at the first speed (as at run time)."""
+        if step_knot_weights is None and self.steer_input is None:
             return super().rollout(z0, inputs_n, knot_weights)
         A_knots, B_knots, c_knots = self.knot_matrices()
         odd = self.odd_rows[:, None] > 0
         A_held = torch.einsum("bk,kij->bij", knot_weights, A_knots)
-        forced_held = (torch.einsum("bk,kij,bsj->bsi", knot_weights, B_knots, inputs_n)
-                       + (knot_weights @ c_knots)[:, None])
-        forced_step = (torch.einsum("bsk,kij,bsj->bsi", step_knot_weights, B_knots, inputs_n)
-                       + step_knot_weights @ c_knots)
-        forced = torch.where(self.odd_rows > 0, forced_step, forced_held)
+        forced = (torch.einsum("bk,kij,bsj->bsi", knot_weights, B_knots, inputs_n)
+                  + (knot_weights @ c_knots)[:, None])
+        if step_knot_weights is not None:
+            forced_step = (torch.einsum("bsk,kij,bsj->bsi", step_knot_weights, B_knots, inputs_n)
+                           + step_knot_weights @ c_knots)
+            forced = torch.where(self.odd_rows > 0, forced_step, forced)
+        if self.steer_input is not None:
+            N = torch.einsum("bk,kij->bij", knot_weights, self.bilinear_knots())
+            steer = inputs_n[..., self.steer_input] - self.input_zero[self.steer_input]  # (batch, n_steps)
         z, out = z0, []
         for i in range(inputs_n.shape[1]):
-            A = torch.where(odd, torch.einsum("bk,kij->bij", step_knot_weights[:, i], A_knots), A_held)
-            z = torch.einsum("bij,bj->bi", A, z) + forced[:, i]
+            A = (A_held if step_knot_weights is None
+                 else torch.where(odd, torch.einsum("bk,kij->bij", step_knot_weights[:, i], A_knots), A_held))
+            z_next = torch.einsum("bij,bj->bi", A, z) + forced[:, i]
+            if self.steer_input is not None:
+                z_next = z_next + steer[:, i, None] * torch.einsum("bij,bj->bi", N, z - self.lifted_zero)
+            z = z_next
             out.append(z)
         return torch.stack(out, dim=1)
 
@@ -207,7 +238,24 @@ class MirrorKoopmanNet(KoopmanNet):
                 w_new = 0.5 * (w + parity[:, None] * w * flip[None, :])
                 b_new = 0.5 * (b + parity * (b + w @ shift))
             folded.append((w_new, b_new))
-        return NormalisedKoopman(encoder=tuple(folded), A_n=learned.A_n, B_n=learned.B_n,
+        A_n, B_n, affine_n, N_n = learned.A_n, learned.B_n, learned.affine_n, None
+        if self.steer_input is not None:
+            A_n, B_n, affine_n, N_n = self._fold_bilinear(in_double, A_n, B_n, affine_n)
+        return NormalisedKoopman(encoder=tuple(folded), A_n=A_n, B_n=B_n, N_n=N_n,
                                  state_scaling=state_scaling, input_scaling=input_scaling, dictionary=dictionary,
-                                 dictionary_scaling=dictionary_scaling, affine_n=learned.affine_n,
+                                 dictionary_scaling=dictionary_scaling, affine_n=affine_n,
                                  speed_knots=learned.speed_knots)
+
+    def _fold_bilinear(self, in_double: "MirrorKoopmanNet", A_n: np.ndarray, B_n: np.ndarray,
+                       affine_n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The centred term (u_j - u0_j) N (z - z0) as the plain bilinear form's per-knot
+        u_j N z: A_n - u0_j N, B_n[:, j] - N z0, affine_n + u0_j N z0; N_n (K, n_u, n_z, n_z)."""
+        j = self.steer_input
+        N = in_double.bilinear_knots().detach().numpy()  # (K, n_z, n_z), float64
+        z0 = self._exact_buffers["lifted_zero"]
+        u0 = self._exact_buffers["input_zero"][j]
+        N_n = np.zeros((N.shape[0], B_n.shape[2], N.shape[1], N.shape[2]))
+        N_n[:, j] = N
+        B_n = B_n.copy()
+        B_n[:, :, j] -= N @ z0
+        return A_n - u0 * N, B_n, affine_n + u0 * (N @ z0), N_n

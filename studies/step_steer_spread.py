@@ -19,7 +19,12 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
 - the mirror-symmetric form (``models/koopman_train_symmetric.py``): left / right symmetry
   by construction (no drift), d = 8 features of which 2 even and 6 odd, the wheel angle a
   lag of unit DC gain from the steer command, and the lateral rows scheduled on each step's
-  measured speed in training.
+  measured speed in training;
+- the mirror-symmetric form with a steer-bilinear term (u_steer - u0) N(v) (z - z0) and every
+  row held at the window's first speed: the response to a steer change then depends on the
+  state at a given speed (the linear-range gain near straight driving, a lower one near the
+  limit; ``make lateral-regimes`` shows the data hold both), which a model linear in the
+  input cannot have.
 
 Each seed's error is also split into its parts (``error_parts_pct``): the yaw rate the model
 predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
@@ -31,7 +36,7 @@ at the speed knots of the scheduled form, between them, or over a whole speed ra
 
 Writes ``results/step_steer_spread.{md,json,png}``. Trainings are cached in ``build/table1/``
 beside Table I's and run as tasks of the campaigns' executors (a local Ray by default);
-about 20 min on 2 cores when nothing is cached (19 trainings on 2 Ray workers), under a minute when all are.
+about 25 min on 2 cores when nothing is cached (24 trainings on 2 Ray workers), under a minute when all are.
 CLI: ``python -m studies.step_steer_spread [--data data/wide] [--seeds 0,1,2,3,4]
 [--address ADDR] [--workers N] [--serial]``.
 """
@@ -67,6 +72,7 @@ VARIANTS = (
     Row("mirror-symmetric, d=8 (2 even), servo lag, lateral rows per step",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "lateral_per_step": True}),
+    ROWS[-1],  # Table I's row of the mirror form with its steer-bilinear term
 )
 
 

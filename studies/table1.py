@@ -2,7 +2,8 @@
 
 Rows (``ROWS``): the default model (speed-scheduled lift with the measured wheel angle in the
 state), the scheduled form on [vx, vy, r] alone (what the wheel angle adds), the bilinear
-form with the dictionary, and the paper's linear form (eq. 5); each trained with ``SEEDS``
+form with the dictionary, the paper's linear form (eq. 5), and the mirror-symmetric form
+with its steer-bilinear term (the candidate of issue 14's step steer); each trained with ``SEEDS``
 (5 seeds: the seed draws the weights AND the train / validation / test split by run) on the
 same data set (default ``data/wide``, the default artefact's). Beside them, fitted or built
 on each seed's split: DMDc, EDMDc, LMPC's linear bicycle (speed held) and NMPC's single
@@ -63,6 +64,10 @@ ROWS = (
     Row("DK scheduled, d=5", {}, VEHICLE_STATES),
     Row("DK bilinear + dictionary, d=5", {"form": "bilinear"}, VEHICLE_STATES),
     Row("DK paper form (linear), d=5", {"form": "linear", "dictionary": ()}, VEHICLE_STATES),
+    # The mirror-symmetric form with its steer-bilinear term (models/koopman_train_symmetric.py).
+    Row("mirror-symmetric, d=8 (2 even), servo lag, steer-bilinear N(v)",
+        {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
+         "steer_bilinear": True}),
 )
 
 

@@ -79,3 +79,37 @@ def test_a_model_state_the_ecu_cannot_measure_is_refused() -> None:
                          ("torque", "steer"))
     with pytest.raises(ControllerError, match="roll|measured"):
         build(Dkmpc, model, "dkmpc")
+
+
+def scheduled_bilinear_double(scale: float = 1.0) -> KoopmanModel:
+    """The scheduled double with a steer-bilinear term: the yaw row's steer gain grows with the
+    yaw rate (N[steer][2, 2] = ``scale``, per knot)."""
+    arrays = [koopman_arrays(v) for v in SPEEDS]
+    n = np.zeros((len(SPEEDS), 2, 3, 3))
+    n[:, 1, 2, 2] = scale * np.array([1.0, 2.0, 3.0])
+    return KoopmanModel(np.stack([a for a, _ in arrays]), np.stack([b for _, b in arrays]), np.zeros((3, 3)), [],
+                        TS, ("vx", "vy", "yaw_rate"), ("torque", "steer"), speed_knots=SPEEDS, bilinear=n)
+
+
+@pytest.mark.parametrize("cls,name", [(Dkmpc, "dkmpc"), (EsoDkmpc, "eso-dkmpc")])
+def test_a_scheduled_bilinear_model_holds_b_of_the_measured_state(cls, name: str) -> None:
+    """The steer gain the QP sees is that of B(z_k) = B(v) + N(v) z_k of the measured state."""
+    model = scheduled_bilinear_double()
+    controller = build(cls, model, name)
+    controller.set_path(straight())
+    sample = dataclasses.replace(LinearPlant((0.0, 0.2, 0.1)).sample(), vx=7.5, yaw_rate=0.2)
+    _, gain = controller.predict_states(sample, 0.0)
+    maps = controller.prediction_maps(7.5)
+    z = controller.lifted_state
+    expected_b = model.B_knots[0] * 0.5 + model.B_knots[1] * 0.5 + (model.bilinear_for(np.array(7.5)) @ z).T
+    assert np.allclose(gain, maps.gain_basis @ expected_b[:, 1], atol=1e-12)
+    assert not np.allclose(gain, maps.gain, atol=1e-6)  # the held B(z_k) is not B(v)
+
+
+@pytest.mark.parametrize("cls,name", [(Dkmpc, "dkmpc"), (EsoDkmpc, "eso-dkmpc")])
+def test_a_scheduled_bilinear_model_tracks_a_straight_path(cls, name: str) -> None:
+    errors, commands, debugs = run(build(cls, scheduled_bilinear_double(0.2), name), straight(),
+                                   LinearPlant((0.0, 0.5, 0.05)), 300)
+    print(f"{name}: final |e_Y| {abs(errors[-1]):.4f} m")
+    assert not any(d.fallback for d in debugs)
+    assert abs(errors[-1]) < 0.05 and all(abs(c.steer_angle) <= 0.3 for c in commands)

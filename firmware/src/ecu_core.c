@@ -2,7 +2,8 @@
  * The control step of the steering MPCs, a port of the Python controllers:
  *   controller/mpc_base.py     step, fallback (shifted previous plan), final guard
  *   controller/qp_mpc.py       the plan: affine state prediction, pose linearisation, QP
- *   controller/lifted_mpc.py   Koopman prediction (scheduled model at the measured speed)
+ *   controller/lifted_mpc.py   Koopman prediction (scheduled model at the measured speed;
+ *                              with the steer-bilinear term, B(z_k) held over the horizon)
  *   controller/eso_dkmpc.py    + the ESO's disturbance estimate (controller/observed_mpc.py)
  *   controller/lmpc.py         bicycle prediction (discretised at the measured speed)
  *   controller/reference.py    path progress and the pose reference over the horizon
@@ -43,10 +44,14 @@ static double plan_steer[NC];
 static int has_plan, plan_age, has_last;
 static double last_steer, last_torque;
 
-/* ESO (ESO-DKMPC): z_hat, w_hat (n_z,); the step's local model (A, B, offset) and z_k. */
+/* ESO (ESO-DKMPC): z_hat, w_hat (n_z,); the step's local model (A, B, offset, and the
+ * steer's N in a bilinear build) and z_k. */
 static int observer_running, observer_reset;
 static double z_hat[NZ], w_hat[NZ];
 static double local_A[NZ][NZ], local_B[NZ][ECU_NU], local_offset[NZ];
+#if ECU_BILINEAR
+static double local_N[NZ][NZ];
+#endif
 static double lifted[NZ];
 static double decay_power[NP]; /* disturbance_decay^i, i = 0..Np-1 (set at load: pow once) */
 
@@ -215,12 +220,16 @@ static void lift(const ecu_sample_t *sample, double z[NZ]) {
     for (int i = 0; i < cfg.layer_out[ECU_N_LAYERS - 1]; i++) z[n_known + i] = h_in[i];
 }
 
-/* KoopmanModel.at_speed: the knots' matrices interpolated at the speed rounded to the quantum. */
+/* KoopmanModel.at_speed: the knots' matrices interpolated at the speed rounded to the quantum
+ * (the steer's N too, KoopmanModel.bilinear_for: the same weights). */
 static void local_model(double speed) {
   if (ECU_NK == 1) {
     memcpy(local_A, cfg.A[0], sizeof local_A);
     memcpy(local_B, cfg.B[0], sizeof local_B);
     memcpy(local_offset, cfg.offset[0], sizeof local_offset);
+#if ECU_BILINEAR
+    memcpy(local_N, cfg.N[0], sizeof local_N);
+#endif
     return;
   }
   const double *k = cfg.knots;
@@ -235,6 +244,9 @@ static void local_model(double speed) {
     for (int b = 0; b < NZ; b++) local_A[a][b] = keep * cfg.A[lower][a][b] + frac * cfg.A[upper][a][b];
     for (int b = 0; b < ECU_NU; b++) local_B[a][b] = keep * cfg.B[lower][a][b] + frac * cfg.B[upper][a][b];
     local_offset[a] = keep * cfg.offset[lower][a] + frac * cfg.offset[upper][a];
+#if ECU_BILINEAR
+    for (int b = 0; b < NZ; b++) local_N[a][b] = keep * cfg.N[lower][a][b] + frac * cfg.N[upper][a][b];
+#endif
   }
 }
 
@@ -263,7 +275,9 @@ static void disturbance(const double z[NZ], double w[NZ]) {
   if (isfinite(dot(next, next, NZ))) memcpy(w, next, sizeof next);
 }
 
-/* eso_update (eq. 13) with the step's local model; a non-finite step restarts the observer. */
+/* eso_update (eq. 13) with the step's local model; a non-finite step restarts the observer.
+ * z: the measured lifted state z_k, whose B(z_k) = B + N z_k is the bilinear model's input
+ * matrix (EsoParams.bilinear; the torque's N is zero). */
 static void observe(const double z[NZ], double torque, double steer) {
   double c = tun->eso_pole + tun->eso_second_pole - 1.0;
   double beta2 = -(1.0 - tun->eso_pole) * (1.0 - tun->eso_second_pole);
@@ -281,6 +295,9 @@ static void observe(const double z[NZ], double torque, double steer) {
       sum += local_A[i][j] * z_hat[j] - beta1 * z_tilde[j];
     }
     for (int j = 0; j < ECU_NU; j++) sum += local_B[i][j] * u[j];
+#if ECU_BILINEAR
+    sum += steer * dot(local_N[i], z, NZ);
+#endif
     next_z[i] = sum;
     next_w[i] = w_hat[i] - beta2 * z_tilde[i];
   }
@@ -331,8 +348,13 @@ static void predict_koopman(const ecu_sample_t *sample, double torque, double fr
     memcpy(f, next, sizeof f);
     for (int x = 0; x < 3; x++) free[i + 1][x] = f[x];
   }
-  /* Markov parameters C_P A^k b_steer, k = 0..Np - 1. */
+  /* Markov parameters C_P A^k b_steer, k = 0..Np - 1. With the bilinear term b_steer is the
+   * steer column of B(z_k) = B + N z_k at the measured lifted state, held over the horizon
+   * (LiftedMpc.predict_states); the drift's torque column is B's (the torque's N is zero). */
   for (int a = 0; a < NZ; a++) m[a] = local_B[a][1];
+#if ECU_BILINEAR
+  for (int a = 0; a < NZ; a++) m[a] += dot(local_N[a], lifted, NZ);
+#endif
   for (int k = 0; k < n_pred; k++) {
     for (int x = 0; x < 3; x++) markov[k][x] = m[x];
     for (int a = 0; a < NZ; a++) {

@@ -14,6 +14,9 @@
 #define N_TUNING_VALUES 25
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
+/* The bit of record koopman.N in ecu_read_data's `seen` (after the encoder's records). */
+#define BILINEAR_BIT (13 + 2 * ECU_N_LAYERS)
+
 static const char *const CONTROLLER_NAMES[ECU_N_CONTROLLERS] = {"eso-dkmpc", "dkmpc", "lmpc"};
 
 /* One record as read: name, rank, dims and values (static: no heap). */
@@ -123,7 +126,8 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
     if (check_shape(path, 1, one, err, err_len)) return -1;
     cfg->form = (int)rec_values[0];
     if (cfg->form != ECU_FORM) {
-      snprintf(err, err_len, "%s: record koopman.form is %d, this build needs %d (0 linear, 2 scheduled)",
+      snprintf(err, err_len, "%s: record koopman.form is %d, this build needs %d (0 linear, 2 scheduled, "
+               "3 scheduled with the steer-bilinear term)",
                path, cfg->form, ECU_FORM);
       return -1;
     }
@@ -148,6 +152,13 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
     if (check_shape(path, 2, d, err, err_len)) return -1;
     memcpy(cfg->offset, rec_values, sizeof cfg->offset);
     *seen |= 1ul << 10;
+#if ECU_BILINEAR
+  } else if (strcmp(rec_name, "koopman.N") == 0) {
+    const uint32_t d[3] = {ECU_NK, ECU_NZ, ECU_NZ};
+    if (check_shape(path, 3, d, err, err_len)) return -1;
+    memcpy(cfg->N, rec_values, sizeof cfg->N);
+    *seen |= 1ul << BILINEAR_BIT;
+#endif
   } else if (strcmp(rec_name, "koopman.state_fields") == 0) {
     const uint32_t d[1] = {ECU_NX};
     if (check_shape(path, 1, d, err, err_len)) return -1;
@@ -191,13 +202,21 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
   return 0;
 }
 
-static const char *form_name(int form) { return form == 0 ? "linear" : (form == 2 ? "scheduled" : "unknown"); }
+static const char *form_name(int form) {
+  switch (form) {
+    case 0: return "linear";
+    case 2: return "scheduled";
+    case 3: return "scheduled bilinear";
+    default: return "unknown";
+  }
+}
 
 int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len) {
   static const int WIDTHS[] = ECU_LAYER_WIDTHS;
   char magic[8];
   uint32_t count = 0;
-  unsigned long seen = 0, wanted = (1ul << (13 + 2 * ECU_N_LAYERS)) - 1ul;
+  /* every record: the 13 named ones, the encoder's, and koopman.N in a bilinear build */
+  unsigned long seen = 0, wanted = (1ul << (BILINEAR_BIT + ECU_BILINEAR)) - 1ul;
   int weight_at = 0, bias_at = 0;
   int model_mismatch = 0, file_form = -1, file_knots = 0, file_nz = 0;
   char detail[200] = "";
@@ -296,6 +315,9 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
     while (seen & (1ul << missing)) missing++;
     if (missing < 13)
       snprintf(err, err_len, "%s: record %s missing", path, NAMES[missing]);
+    else if (missing == BILINEAR_BIT)
+      snprintf(err, err_len, "%s: record koopman.N missing (this build is for the scheduled form with the "
+               "steer-bilinear term N(v))", path);
     else
       snprintf(err, err_len, "%s: encoder record koopman.%c%d missing (this build's encoder has %d layers)",
                path, missing - 13 < ECU_N_LAYERS ? 'w' : 'b', (missing - 13) % ECU_N_LAYERS, ECU_N_LAYERS);

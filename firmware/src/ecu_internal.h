@@ -32,12 +32,18 @@ typedef struct {
   /* Nominal bicycle: Cf, Cr (N/rad per axle), mass (kg), yaw inertia (kg m^2), lf, lr (m). */
   double cf, cr, mass, yaw_inertia, lf, lr;
   ecu_tuning_t tuning[ECU_N_CONTROLLERS];
-  /* Koopman model in physical units, one A, B, offset per speed knot (ECU_NK = 1: linear). */
+  /* Koopman model in physical units, one A, B, offset per speed knot (ECU_NK = 1: linear);
+   * form: ecu_data.py's code (0 linear, 2 scheduled, 3 scheduled with the steer's N). */
   int form;
   double knots[ECU_NK];
   double A[ECU_NK][ECU_NZ][ECU_NZ];
   double B[ECU_NK][ECU_NZ][ECU_NU];
   double offset[ECU_NK][ECU_NZ];
+#if ECU_BILINEAR
+  /* The steer's bilinear term N per knot (form 3): the steer column of B(z) is B[:, 1] + N z.
+   * The torque's N is zero (ecu_data.py refuses another), so only the steer's is stored. */
+  double N[ECU_NK][ECU_NZ][ECU_NZ];
+#endif
   int state_fields[ECU_NX];      /* index into ecu_sample_t viewed as double[9] */
   int dictionary[ECU_NDICT_MAX]; /* codes of ecu_data.py DICTIONARY_CODES */
   double weights[ECU_ENCODER_MAX];

@@ -14,6 +14,11 @@ shape against the build's (build/firmware/gen/ecu_build.h) and names both on a m
         [--tuning controller/tuning.toml] [--model models/artifacts/dk_d5.npz] \
         [--bicycle BICYCLE.json]
 
+The scheduled form with a bilinear term (``KoopmanModel.scheduled_bilinear``, the mirror
+form's steer-bilinear N(v)) has its own form code (``SCHEDULED_BILINEAR``) and a record
+"koopman.N" (K, n_z, n_z): the steer input's N per knot in physical units. The C core
+implements the steer's N only: a model whose torque slice N[:, 0] is not zero is refused.
+
 ``--bicycle``: a fitted bicycle (models/bicycle_fit.py's JSON, ``models.bicycle_fit.
 load_bicycle_params``) in the "bicycle" record instead of the nominal one, for LMPC; the
 file's nonlinear fields are not in the record (LMPC's linear bicycle does not use them).
@@ -42,8 +47,12 @@ QP_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
 SAMPLE_FIELDS = ("vx", "vy", "yaw_rate", "x", "y", "yaw", "steer_angle", "drive_torque", "target_speed")
 #: Dictionary functions by the C core's code (models.koopman.DICTIONARY names).
 DICTIONARY_CODES = {"vy/vx": 0, "r/vx": 1, "vx*r": 2, "vx^2/100": 3}
-#: Model forms by the C core's code; the bilinear form is not in the C core.
+#: Model forms by the C core's code; the (unscheduled) bilinear form is not in the C core.
 FORM_CODES = {"linear": 0, "scheduled": 2}
+#: The C core's code of the scheduled form with its steer-bilinear term N(v).
+SCHEDULED_BILINEAR = 3
+#: The input whose bilinear term the C core implements (the steer; the torque's N is zero).
+BILINEAR_INPUT = 1
 #: Fields of one "tuning.<controller>" record, in order (NaN where a table lacks one).
 TUNING_FIELDS = ("prediction_horizon", "control_horizon", "q_position", "q_yaw", "r_steer",
                  "p_steer_rate", "state_min", "state_max", "slack_l1", "slack_l2",
@@ -66,10 +75,25 @@ def tuning_vector(tuning: ControllerTuning, name: str) -> np.ndarray:
     return np.array(values, dtype=float)
 
 
+def form_code(model: KoopmanModel) -> int:
+    """The C core's code of ``model``'s form (-1: none of the C core's)."""
+    if model.scheduled_bilinear:
+        return SCHEDULED_BILINEAR
+    return FORM_CODES.get(model.form, -1)
+
+
 def model_records(model: KoopmanModel) -> dict[str, np.ndarray]:
     """The Koopman model in physical units (normalisation folded, as the Python ECU uses it)."""
     if model.form not in FORM_CODES:
-        raise EcuDataError(f"model form {model.form!r}: the C core implements {', '.join(FORM_CODES)}")
+        raise EcuDataError(f"model form {model.form!r}: the C core implements {', '.join(FORM_CODES)}"
+                           " (and the scheduled form's steer-bilinear term)")
+    if model.scheduled_bilinear:
+        # The C core holds the steer's N only: its drift takes the torque column of B(v) as is.
+        others = [name for j, name in enumerate(model.input_names)
+                  if j != BILINEAR_INPUT and np.any(model.N_knots[:, j] != 0.0)]
+        if others:
+            raise EcuDataError(f"the scheduled model's bilinear term N(v) of {', '.join(others)} is not zero: "
+                               f"the C core implements the bilinear term of the steer only")
     unknown = [n for n in model.state_names if n not in MEASURED_STATES]
     if unknown:
         raise EcuDataError(f"model states {unknown} are not measured by the ECU")
@@ -78,13 +102,15 @@ def model_records(model: KoopmanModel) -> dict[str, np.ndarray]:
     else:
         knots, a, b, offset = np.zeros(1), model.A[None], model.B[None], model.offset[None]
     records = {
-        "koopman.form": np.array([FORM_CODES[model.form]], dtype=float),
+        "koopman.form": np.array([form_code(model)], dtype=float),
         "koopman.knots": np.asarray(knots, dtype=float),
         "koopman.A": a, "koopman.B": b, "koopman.offset": offset,
         "koopman.state_fields": np.array([SAMPLE_FIELDS.index(MEASURED_STATES[n]) for n in model.state_names],
                                          dtype=float),
         "koopman.dictionary": np.array([DICTIONARY_CODES[n] for n in model.dictionary], dtype=float),
     }
+    if model.scheduled_bilinear:  # the steer's N(v) per knot, physical units
+        records["koopman.N"] = np.ascontiguousarray(model.N_knots[:, BILINEAR_INPUT])
     for i, (w, bias) in enumerate(model._layers):  # the encoder on physical x, folded (read only)
         records[f"koopman.w{i}"] = w
         records[f"koopman.b{i}"] = bias

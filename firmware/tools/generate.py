@@ -9,8 +9,9 @@ Writes under ``--out`` (build/firmware/gen):
   One copy of the OSQP sources, one workspace per controller (prefixes ``qp_<name>_``).
 - ``can/vehicle.{c,h}``: the frame codecs through cantools' C source generation from
   ``can_defs/vehicle.dbc`` (pack / unpack, raw <-> physical per signal).
-- ``ecu_build.h``: the shapes the build is for (horizons, model dimensions); a data file
-  of another shape is refused at start-up with both shapes named. Also the QP's soft-row
+- ``ecu_build.h``: the shapes the build is for (horizons, model dimensions, the model's form
+  and ``ECU_BILINEAR``: 1 for the scheduled form with its steer-bilinear term N(v)); a data
+  file of another shape or form is refused at start-up with both named. Also the QP's soft-row
   selection (``ECU_SOFT_LEADING_STEPS``, ``ECU_SOFT_STRIDE``, ``ECU_SOFT_STATE_MASK`` from
   ``SOFT_LEADING_STEPS``, ``SOFT_STEP_STRIDE`` and ``SOFT_STATES`` of
   controller/steering_qp.py), so the C core writes the generated pattern.
@@ -34,7 +35,7 @@ from controller.tuning import load_tuning
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ecu_data import FORM_CODES, QP_CONTROLLERS  # noqa: E402  (sibling build tool)
+from ecu_data import QP_CONTROLLERS, form_code  # noqa: E402  (sibling build tool)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -78,7 +79,9 @@ def build_header(tuning_path: Path | None, model_path: Path) -> str:
              "#ifndef ECU_BUILD_H", "#define ECU_BUILD_H",
              f"#define ECU_NX {model.n_x}", f"#define ECU_NU {model.n_u}", f"#define ECU_NZ {model.n_z}",
              f"#define ECU_NDICT {len(model.dictionary)}", f"#define ECU_NK {n_knots}",
-             f"#define ECU_FORM {FORM_CODES.get(model.form, -1)}",
+             f"#define ECU_FORM {form_code(model)}",
+             "/* 1: the scheduled form with its steer-bilinear term N(v) (cfg.N, record koopman.N). */",
+             f"#define ECU_BILINEAR {int(model.scheduled_bilinear)}",
              f"#define ECU_N_LAYERS {len(widths)}",
              f"#define ECU_LAYER_WIDTHS {{{', '.join(map(str, widths or [0]))}}}",
              f"#define ECU_HIDDEN_MAX {max(widths or [1])}"]
