@@ -19,7 +19,7 @@ train: setup
 	$(PY) -m models.koopman_train --data $(TRAIN_DATA) --out $(KOOPMAN_ARTIFACT) \
 		$$( [ -f build/dk_d5.previous.json ] && echo --compare-with build/dk_d5.previous.json ) $(TRAIN_ARGS)
 
-# Table I (5 learned forms x 5 seeds + DMDc, EDMDc, bicycle, single track on the wide data):
+# Table I (6 learned forms x 5 seeds + DMDc, EDMDc, bicycle, single track on the wide data):
 # results/table1.md, results/table1.json, results/fig6_prediction_errors.png,
 # results/prediction_horizon_rmse.png. Trained models are cached in build/table1/ (the
 # default row's seed 0 reuses the committed artefact when it matches). About 1.5 h.

@@ -50,6 +50,7 @@ from tqdm import tqdm
 from models.koopman import (DEFAULT_SPEED_KNOTS, DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, knot_weights, KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman,
                             check_dictionary, dictionary_features, save_artifact)
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
+from models.koopman_gain_anchor import GainAnchor, anchor_targets
 from models.koopman_train_net import KoopmanNet, least_squares_start
 from models.koopman_train_symmetric import SERVO_INPUT, SERVO_STATE, MirrorKoopmanNet, parities, shared_servo_scaling
 
@@ -84,6 +85,10 @@ class TrainingSettings:
     (u_steer - u0) N(v) (z - z0) whose N maps even to odd coordinates and back, so the
     response to a steer change depends on the state at a given speed. Recorded only when
     ``mirror_symmetric`` is on (``steer_bilinear`` only when on).
+
+    ``gain_anchor`` w > 0 (scheduled form without dictionary; recorded only when on) adds
+    w times the gain anchor's loss (``models/koopman_gain_anchor.py``): the model's
+    small-signal steer response held to local fits of the training runs' gentle samples.
     """
 
     n_features: int = 5
@@ -108,6 +113,7 @@ class TrainingSettings:
     servo_lag: bool = False
     lateral_per_step: bool = False
     steer_bilinear: bool = False
+    gain_anchor: float = 0.0
     val_fraction: float = 0.15
     test_fraction: float = 0.15
     val_windows: int = 4096
@@ -141,6 +147,8 @@ class TrainingSettings:
             "servo_lag": self.mirror_symmetric or not self.servo_lag,
             "lateral_per_step": self.mirror_symmetric or not self.lateral_per_step,
             "steer_bilinear": self.mirror_symmetric or not self.steer_bilinear,
+            "gain_anchor": self.gain_anchor >= 0 and (self.gain_anchor == 0 or (self.form == "scheduled"
+                                                                                and not self.dictionary)),
             "val_fraction": 0 < self.val_fraction < 0.5,
             "test_fraction": 0 < self.test_fraction < 0.5,
             "device": self.device in ("auto", "cpu", "cuda"),
@@ -392,6 +400,9 @@ def train(
             [input_scaling.normalise(r.inputs) for r in train_runs], bilinear,
             knot_weights=[knot_weights(np.array(knots), r.states[:, 0]) for r in train_runs] if knots else None))
     net = net.to(device)
+    anchor_targets_ = anchor_targets(train_runs) if settings.gain_anchor > 0 else None
+    anchor = (None if anchor_targets_ is None
+              else GainAnchor(anchor_targets_, state_scaling, input_scaling, knots, device))
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=settings.lr_decay)
     sampler = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -409,6 +420,8 @@ def train(
     for epoch in range(1, settings.max_epochs + 1):
         net.train()
         running = {"prediction": 0.0, "reconstruction": 0.0, "lifted": 0.0}
+        if anchor is not None:
+            running["anchor"] = 0.0
         for step in range(settings.steps_per_epoch):
             which = torch.randint(len(train_set), (settings.batch_size,), generator=sampler).to(device)
             x_n, psi_n, u_n, weights = train_set.batch(which)
@@ -419,6 +432,9 @@ def train(
                 # Normalised by the batch's mean weight: the loss keeps its scale.
                 losses["prediction"] = (torch.mean(window[:, None, None] * losses["error"] ** 2)
                                         / torch.mean(window))
+            if anchor is not None:  # a training term only: validation keeps the prediction loss
+                losses["anchor"] = anchor.loss(net)
+                losses["prediction"] = losses["prediction"] + settings.gain_anchor * losses["anchor"]
             loss = _total(losses, settings)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -474,6 +490,8 @@ def train(
     meta["spectral_radius_A"] = model.spectral_radius()
     meta["test_errors"] = prediction_errors(model, test_runs, open_loop_steps=OPEN_LOOP_STEPS)
     meta["test_open_loop_steps"] = OPEN_LOOP_STEPS
+    if anchor_targets_ is not None:
+        meta["gain_anchor_targets"] = anchor_targets_.as_json()
     elapsed = time.perf_counter() - started
     meta["training_seconds"] = round(elapsed, 1)
     model.metadata = meta
@@ -523,6 +541,8 @@ def settings_json(settings: TrainingSettings) -> dict:
             del out[name]
     if not settings.steer_bilinear:
         del out["steer_bilinear"]
+    if not settings.gain_anchor:
+        del out["gain_anchor"]
     return out
 
 
@@ -625,6 +645,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steer-bilinear", action="store_true",
                    help="with --mirror-symmetric: add a steer-bilinear term, so the steer response depends "
                         "on the state at a given speed")
+    p.add_argument("--gain-anchor", type=float, default=defaults.gain_anchor, metavar="W",
+                   help="weight of the gain anchor: the small-signal steer response held to local fits of the "
+                        "training runs' gentle samples (scheduled form); 0 (default) for off")
     p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
     p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
     p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
@@ -660,7 +683,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             unscheduled_states=args.unscheduled_states,
             mirror_symmetric=args.mirror_symmetric, even_features=args.even_features,
             servo_lag=args.servo_lag, lateral_per_step=args.lateral_per_step,
-            steer_bilinear=args.steer_bilinear, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
+            steer_bilinear=args.steer_bilinear, gain_anchor=args.gain_anchor, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )
         if args.logs:  # issue 20: the data come from CAN logs; --out is a folder

@@ -25,6 +25,9 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
   state at a given speed (the linear-range gain near straight driving, a lower one near the
   limit; ``make lateral-regimes`` shows the data hold both), which a model linear in the
   input cannot have.
+- the same with the gain anchor (``models/koopman_gain_anchor.py``, weight 10): the model's
+  response to a small steer step from straight driving held, in training, to local linear
+  fits of the training runs' gentle samples at 6-30 m/s (the data, never the plant).
 
 Each seed's error is also split into its parts (``error_parts_pct``): the yaw rate the model
 predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
@@ -36,7 +39,7 @@ at the speed knots of the scheduled form, between them, or over a whole speed ra
 
 Writes ``results/step_steer_spread.{md,json,png}``. Trainings are cached in ``build/table1/``
 beside Table I's and run as tasks of the campaigns' executors (a local Ray by default);
-about 25 min on 2 cores when nothing is cached (24 trainings on 2 Ray workers), under a minute when all are.
+about 30 min on 2 cores when nothing is cached (29 trainings on 2 Ray workers), under a minute when all are.
 CLI: ``python -m studies.step_steer_spread [--data data/wide] [--seeds 0,1,2,3,4]
 [--address ADDR] [--workers N] [--serial]``.
 """
@@ -72,7 +75,8 @@ VARIANTS = (
     Row("mirror-symmetric, d=8 (2 even), servo lag, lateral rows per step",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "lateral_per_step": True}),
-    ROWS[-1],  # Table I's row of the mirror form with its steer-bilinear term
+    ROWS[-2],  # Table I's row of the mirror form with its steer-bilinear term
+    ROWS[-1],  # the same with the gain anchor
 )
 
 

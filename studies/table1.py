@@ -3,7 +3,8 @@
 Rows (``ROWS``): the default model (speed-scheduled lift with the measured wheel angle in the
 state), the scheduled form on [vx, vy, r] alone (what the wheel angle adds), the bilinear
 form with the dictionary, the paper's linear form (eq. 5), and the mirror-symmetric form
-with its steer-bilinear term (the candidate of issue 14's step steer); each trained with ``SEEDS``
+with its steer-bilinear term, without and with the gain anchor (the candidates of issue 14's
+step steer); each trained with ``SEEDS``
 (5 seeds: the seed draws the weights AND the train / validation / test split by run) on the
 same data set (default ``data/wide``, the default artefact's). Beside them, fitted or built
 on each seed's split: DMDc, EDMDc, LMPC's linear bicycle (speed held) and NMPC's single
@@ -68,6 +69,10 @@ ROWS = (
     Row("mirror-symmetric, d=8 (2 even), servo lag, steer-bilinear N(v)",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "steer_bilinear": True}),
+    # The same with the gain anchor (models/koopman_gain_anchor.py), weight 10.
+    Row("mirror-symmetric steer-bilinear + gain anchor (w = 10)",
+        {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
+         "steer_bilinear": True, "gain_anchor": 10.0}),
 )
 
 

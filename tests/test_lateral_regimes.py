@@ -6,6 +6,7 @@ import pytest
 
 from models.koopman_baselines import DMDc
 from models.koopman_metrics import Trajectory
+from models import local_lateral_fit as llf
 from studies import lateral_regimes as lr
 
 #: A stable lateral system [vy, r, delta]+ = A x + B [torque, steer] + c (25 ms steps).
@@ -57,17 +58,17 @@ def test_the_antisymmetric_response_keeps_only_the_steer_part() -> None:
 
 
 def test_signals_and_regimes_select_by_longitudinal_and_lateral_grip_use() -> None:
-    t = np.arange(200) * lr.TS
+    t = np.arange(200) * llf.TS
     vx = 10.0 - 2.0 * t  # braking at 2 m/s^2
     r = np.where(t < 2.5, 0.05, 0.6)  # |vx r| about 0.5 m/s^2, then about 3-5 m/s^2
     run = Trajectory("brake", np.column_stack([vx, np.zeros_like(t), r, np.zeros_like(t)]),
                      np.zeros((200, 2)), lr.STATES, lr.INPUTS)
     s = lr.signals(run, mu=1.0)
     assert s.ax == pytest.approx(np.full(200, -2.0))
-    assert s.lateral_grip == pytest.approx(np.abs(vx * r) / lr.GRAVITY)
-    assert s.combined_grip == pytest.approx(np.hypot(2.0, vx * r) / lr.GRAVITY)
+    assert s.lateral_grip == pytest.approx(np.abs(vx * r) / llf.GRAVITY)
+    assert s.combined_grip == pytest.approx(np.hypot(2.0, vx * r) / llf.GRAVITY)
     braking = lr.REGIMES["braking, ax < -0.5 m/s², lateral grip use < 0.3"](s)
-    assert braking.tolist() == (np.abs(vx * r) / lr.GRAVITY < 0.3).tolist()
+    assert braking.tolist() == (np.abs(vx * r) / llf.GRAVITY < 0.3).tolist()
     assert not lr.REGIMES["steady speed, ax within ±0.2 m/s²"](s).any()
     assert not lr.REGIMES["traction, ax > 0.5 m/s², lateral grip use < 0.3"](s).any()
 

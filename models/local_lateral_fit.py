@@ -1,0 +1,99 @@
+"""Local linear fits of the lateral dynamics on a speed band of recorded runs (numpy).
+
+At a speed v, one-step least squares (Table I's ``DMDc``) on the samples of the runs within
++-``BAND`` m/s of v that a mask selects gives a local linear model of the lateral states and
+the wheel angle,
+
+    [vy, r, delta]_(k+1) = A [vy, r, delta]_k + B [torque, steer]_k + c.
+
+On gentle samples (well inside the friction circle) such a fit holds the vehicle's
+small-signal response at that speed (``make lateral-regimes``). Used by the lateral-regimes
+study and by the training's gain anchor (``models/koopman_gain_anchor.py``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from models.koopman_baselines import DMDc
+from models.koopman_metrics import Trajectory
+
+GRAVITY = 9.81
+#: Half-width (m/s) of the speed band whose samples a local fit uses.
+BAND = 0.7
+#: Fewest samples a fit needs (3 states + 2 inputs + 1 constant regressors, with margin).
+MIN_SAMPLES = 200
+#: Ridge of the fits (``DMDc``, standardised columns): only keeps a regime without torque solvable.
+RIDGE = 1e-10
+LATERAL = ("vy", "yaw_rate", "steer_measured")
+STATES = ("vx", *LATERAL)
+INPUTS = ("torque", "steer")
+
+
+@dataclass(frozen=True)
+class SampleSignals:
+    """Per-sample signals of one run that the regimes select on (each (n,))."""
+
+    ax: np.ndarray
+    lateral_grip: np.ndarray
+    combined_grip: np.ndarray
+
+
+#: Sample time (s) of the data the fits are made on (the ECU's control period).
+TS = 0.025
+
+
+def signals(run: Trajectory, mu: float) -> SampleSignals:
+    """ax (central difference of vx, m/s^2) and the grip use of a run on friction ``mu``."""
+    vx = run.states[:, run.state_names.index("vx")]
+    lateral = vx * run.states[:, run.state_names.index("yaw_rate")]
+    ax = np.gradient(vx, TS)
+    return SampleSignals(ax, np.abs(lateral) / (mu * GRAVITY), np.hypot(ax, lateral) / (mu * GRAVITY))
+
+
+def band_segments(runs: Sequence[Trajectory], masks: Sequence[np.ndarray], speed: float) -> list[Trajectory]:
+    """The stretches of each run whose samples k have mask[k] and |vx_k - speed| < BAND, each
+    with the sample after it, on the lateral states: the one-step pairs (k, k + 1) of a fit.
+
+    ``runs`` carry STATES and INPUTS; ``masks`` one (n,) bool per run."""
+    segments = []
+    for run, mask in zip(runs, masks):
+        take = np.zeros(len(run), dtype=bool)  # the last sample has no successor
+        take[:-1] = mask[:-1] & (np.abs(run.states[:-1, 0] - speed) < BAND)
+        edges = np.flatnonzero(np.diff(np.r_[0, take.astype(int), 0]))
+        for start, stop in zip(edges[::2], edges[1::2]):
+            segments.append(Trajectory(f"{run.name}[{start}:{stop + 1}]", run.states[start:stop + 1, 1:],
+                                       run.inputs[start:stop + 1], LATERAL, INPUTS))
+    return segments
+
+
+def local_fit(runs: Sequence[Trajectory], masks: Sequence[np.ndarray], speed: float) -> tuple[DMDc | None, int]:
+    """DMDc, [vy, r, delta]+ = A [vy, r, delta] + B [torque, steer] + c, fitted on the
+    ``band_segments``. Returns (the fit, number of one-step pairs); (None, n) when
+    n < MIN_SAMPLES."""
+    segments = band_segments(runs, masks, speed)
+    n = sum(len(segment) - 1 for segment in segments)
+    if n < MIN_SAMPLES:
+        return None, n
+    return DMDc(ridge=RIDGE).fit(segments), n
+
+
+class LocalLateralModel:
+    """A local fit as a predictor for ``step_steer_final``: vx held, [vy, r, delta] by the fit."""
+
+    n_x = 4
+
+    def __init__(self, lateral: DMDc) -> None:
+        self.lateral = lateral
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """x0 (batch, 4) [vx, vy, r, delta], inputs (batch, n, 2) -> (batch, n, 4)."""
+        x0 = np.asarray(x0, dtype=float)
+        out = np.empty(inputs.shape[:2] + (4,))
+        out[..., 0] = x0[:, :1]
+        out[..., 1:] = self.lateral.predict(x0[:, 1:], inputs)
+        return out
+
+

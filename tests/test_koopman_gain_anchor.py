@@ -1,0 +1,115 @@
+"""The gain anchor: targets from local fits of the training runs, and the loss term."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.koopman import KoopmanError, KoopmanModel  # noqa: E402
+from models.koopman_gain_anchor import (ANCHOR_STEP, ANCHOR_STEPS, ANCHOR_SPEEDS, GainAnchor,  # noqa: E402
+                                        anchor_targets)
+from models.koopman_metrics import Trajectory  # noqa: E402
+from models.koopman_train import TrainingSettings, settings_json  # noqa: E402
+from test_koopman_symmetric import INPUTS, KNOTS, STATES, _random_net, _scalings  # noqa: E402
+
+
+def _lateral_step(x: np.ndarray, steer: float, speed: float) -> np.ndarray:
+    """A known linear lateral system [vy, r, delta] whose yaw gain grows with speed."""
+    vy, r, delta = x
+    return np.array([0.95 * vy - 0.004 * speed * delta, 0.9 * r + 0.004 * speed * delta + 0.001 * vy,
+                     0.8 * delta + 0.2 * steer])
+
+
+def _runs(offset: float = 0.0) -> list[Trajectory]:
+    """One run per anchor speed at constant speed, the steer ``offset`` plus a small random signal."""
+    rng = np.random.default_rng(4)
+    runs = []
+    for speed in ANCHOR_SPEEDS:
+        steer = offset + 0.002 * np.sin(np.cumsum(rng.uniform(0.05, 0.3, 400)))
+        x, states = np.zeros(3), []
+        for k in range(400):
+            states.append([speed, *x])
+            x = _lateral_step(x, steer[k], speed)
+        runs.append(Trajectory(f"v{speed:g}", np.array(states), np.c_[np.full(400, 100.0), steer], STATES, INPUTS))
+    return runs
+
+
+def _true_response(speed: float) -> float:
+    x = np.zeros(3)
+    for _ in range(ANCHOR_STEPS):
+        x = _lateral_step(x, ANCHOR_STEP, speed)
+    return float(x[1])
+
+
+def test_targets_are_the_local_fits_step_response_smoothed_over_speed() -> None:
+    targets = anchor_targets(_runs())
+    truth = np.array([_true_response(v) for v in targets.speeds])
+    assert targets.speeds.tolist() == list(ANCHOR_SPEEDS)
+    assert np.allclose(targets.fitted_yaw_rates, truth, rtol=1e-5)  # noise-free data: the fit is exact
+    assert np.allclose(targets.yaw_rates, truth, rtol=0.02)  # the cubic through them
+    assert np.all(targets.torques == 100.0) and np.all(targets.samples == 399)
+
+
+def test_hard_driving_is_not_a_target() -> None:
+    """Steering so hard that the combined acceleration leaves the gentle range everywhere
+    leaves no speed to anchor on: a clear error, not a target from the limit."""
+    with pytest.raises(KoopmanError, match="gentle samples"):
+        anchor_targets(_runs(offset=1.0))
+
+
+def test_the_loss_is_the_relative_error_of_the_exported_models_step_response() -> None:
+    """The torch loss equals the same quantity computed on the exported numpy model."""
+    targets = anchor_targets(_runs())
+    states, inputs = _scalings()
+    net = _random_net(bilinear=True).double()
+    anchor = GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"))
+    with torch.no_grad():
+        loss = float(anchor.loss(net.float()))
+    model = KoopmanModel.from_normalised(net.double().export(states, inputs, (), None, KNOTS), 0.025, STATES, INPUTS)
+    commands = np.zeros((2, ANCHOR_STEPS, 2))
+    commands[..., 0] = 100.0
+    errors = []
+    for speed, target in zip(targets.speeds, targets.yaw_rates):
+        commands[0, :, 1], commands[1, :, 1] = ANCHOR_STEP, -ANCHOR_STEP
+        final = model.predict(np.tile([speed, 0.0, 0.0, 0.0], (2, 1)), commands)[:, -1, 2]
+        errors.append(((final[0] - final[1]) / 2 - target) / target)
+    print(f"anchor loss {loss:.6f}, numpy {np.mean(np.square(errors)):.6f}")
+    assert loss == pytest.approx(float(np.mean(np.square(errors))), rel=1e-3)
+    assert loss > 1e-4  # a random net is off: the check has something to compare
+
+
+def test_descending_the_loss_moves_the_gain_to_the_target() -> None:
+    targets = anchor_targets(_runs())
+    states, inputs = _scalings()
+    net = _random_net(bilinear=True)
+    anchor = GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"))
+    optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
+    first = float(anchor.loss(net).detach())
+    for _ in range(30):
+        optimiser.zero_grad()
+        loss = anchor.loss(net)
+        loss.backward()
+        optimiser.step()
+    assert float(anchor.loss(net).detach()) < 0.5 * first
+
+
+def test_the_anchor_setting_is_recorded_only_when_on_and_checked() -> None:
+    assert "gain_anchor" not in settings_json(TrainingSettings())
+    assert settings_json(TrainingSettings(gain_anchor=10.0))["gain_anchor"] == 10.0
+    for bad in ({"gain_anchor": -1.0}, {"gain_anchor": 1.0, "form": "linear"},
+                {"gain_anchor": 1.0, "dictionary": ("vy/vx",)}):
+        with pytest.raises(KoopmanError, match="gain_anchor"):
+            TrainingSettings(**bad)
+
+
+def test_training_with_the_anchor_records_its_targets() -> None:
+    from models.koopman_train import train
+    settings = TrainingSettings(n_features=4, hidden=(16, 16), seq_len=6, batch_size=32, max_epochs=2,
+                                steps_per_epoch=10, patience=2, val_windows=256, mirror_symmetric=True,
+                                even_features=1, servo_lag=True, steer_bilinear=True, gain_anchor=10.0)
+    result = train(_runs(), 0.025, settings, progress=False)
+    recorded = result.model.metadata["gain_anchor_targets"]
+    assert len(recorded["speeds"]) >= 5 and all(v > 0 for v in recorded["yaw_rates"])
+    assert all("anchor" in row for row in result.history)
+    assert result.model.metadata["settings"]["gain_anchor"] == 10.0
