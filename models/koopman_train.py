@@ -50,7 +50,7 @@ from tqdm import tqdm
 from models.koopman import (DEFAULT_SPEED_KNOTS, DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, knot_weights, KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman,
                             check_dictionary, dictionary_features, save_artifact)
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
-from models.koopman_gain_anchor import GainAnchor, anchor_targets
+from models.koopman_train_anchor import GainAnchor, anchor_targets
 from models.koopman_train_net import KoopmanNet, least_squares_start
 from models.koopman_train_symmetric import SERVO_INPUT, SERVO_STATE, MirrorKoopmanNet, parities, shared_servo_scaling
 
@@ -87,7 +87,7 @@ class TrainingSettings:
     ``mirror_symmetric`` is on (``steer_bilinear`` only when on).
 
     ``gain_anchor`` w > 0 (scheduled form without dictionary; recorded only when on) adds
-    w times the gain anchor's loss (``models/koopman_gain_anchor.py``): the model's
+    w times the gain anchor's loss (``models/koopman_train_anchor.py``): the model's
     small-signal steer response held to local fits of the training runs' gentle samples.
     """
 

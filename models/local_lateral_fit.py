@@ -8,7 +8,7 @@ the wheel angle,
 
 On gentle samples (well inside the friction circle) such a fit holds the vehicle's
 small-signal response at that speed (``make lateral-regimes``). Used by the lateral-regimes
-study and by the training's gain anchor (``models/koopman_gain_anchor.py``).
+study and by the training's gain anchor (``models/koopman_train_anchor.py``).
 """
 from __future__ import annotations
 

@@ -25,7 +25,7 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
   state at a given speed (the linear-range gain near straight driving, a lower one near the
   limit; ``make lateral-regimes`` shows the data hold both), which a model linear in the
   input cannot have.
-- the same with the gain anchor (``models/koopman_gain_anchor.py``, weight 10): the model's
+- the same with the gain anchor (``models/koopman_train_anchor.py``, weight 10): the model's
   response to a small steer step from straight driving held, in training, to local linear
   fits of the training runs' gentle samples at 6-30 m/s (the data, never the plant).
 

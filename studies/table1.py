@@ -69,7 +69,7 @@ ROWS = (
     Row("mirror-symmetric, d=8 (2 even), servo lag, steer-bilinear N(v)",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "steer_bilinear": True}),
-    # The same with the gain anchor (models/koopman_gain_anchor.py), weight 10.
+    # The same with the gain anchor (models/koopman_train_anchor.py), weight 10.
     Row("mirror-symmetric steer-bilinear + gain anchor (w = 10)",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "steer_bilinear": True, "gain_anchor": 10.0}),

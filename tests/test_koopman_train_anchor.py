@@ -7,7 +7,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.koopman import KoopmanError, KoopmanModel  # noqa: E402
-from models.koopman_gain_anchor import (ANCHOR_STEP, ANCHOR_STEPS, ANCHOR_SPEEDS, GainAnchor,  # noqa: E402
+from models.koopman_train_anchor import (ANCHOR_STEP, ANCHOR_STEPS, ANCHOR_SPEEDS, GainAnchor,  # noqa: E402
                                         anchor_targets)
 from models.koopman_metrics import Trajectory  # noqa: E402
 from models.koopman_train import TrainingSettings, settings_json  # noqa: E402
