@@ -44,6 +44,8 @@ def test_short_run_prints_the_old_and_the_new_figures() -> None:
     for key in ("c_p50_us", "c_p99_us", "python_p50_us", "python_p99_us", "c_min_p99_us", "python_min_p99_us"):
         assert summary[key] > 0.0, key
     assert summary["repeats"] == 3 and summary["controller"] == "lmpc"
-    # Each sample's fastest pass is at most its time in the first pass, so is the p99.
-    assert summary["c_min_p99_us"] <= summary["c_p99_us"]
-    assert summary["python_min_p99_us"] <= summary["python_p99_us"]
+    # Each sample's fastest pass is at most its time in the first pass, so is the p99. The two
+    # figures reach us by different unit conversions (s * 1e6 and ms * 1e3), which may differ
+    # in the last bit (CI once saw 41.18828 against 41.18827999999999): allow 1e-9 relative.
+    assert summary["c_min_p99_us"] <= summary["c_p99_us"] * (1.0 + 1e-9)
+    assert summary["python_min_p99_us"] <= summary["python_p99_us"] * (1.0 + 1e-9)
