@@ -41,7 +41,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -53,6 +53,7 @@ from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_error
 from models.koopman_train_anchor import GainAnchor, anchor_targets
 from models.koopman_train_net import KoopmanNet, least_squares_start
 from models.koopman_train_symmetric import SERVO_INPUT, SERVO_STATE, MirrorKoopmanNet, parities, shared_servo_scaling
+from models.local_lateral_fit import friction_of_runs
 
 #: The measured front wheel angle (the steering actuator's state) joins the vehicle states:
 #: with it the lift sees the tyres' slip angles and the actuator lag (docs/koopman.md).
@@ -338,8 +339,12 @@ def train(
     settings: TrainingSettings = TrainingSettings(),
     progress: bool = True,
     metadata: dict | None = None,
+    friction: Mapping[str, float] | None = None,
 ) -> TrainingResult:
     """Fit the deep Koopman model on ``runs`` (split by run) and return it in physical units.
+
+    ``friction``: run name -> the road's mu where the data set states it
+    (``models.dataset.friction_of_runs``); only the gain anchor uses it.
 
     The returned model's ``metadata`` holds everything the artefact JSON needs, including the
     test-run prediction errors of Table I.
@@ -400,9 +405,9 @@ def train(
             [input_scaling.normalise(r.inputs) for r in train_runs], bilinear,
             knot_weights=[knot_weights(np.array(knots), r.states[:, 0]) for r in train_runs] if knots else None))
     net = net.to(device)
-    anchor_targets_ = anchor_targets(train_runs) if settings.gain_anchor > 0 else None
+    anchor_targets_ = anchor_targets(train_runs, friction) if settings.gain_anchor > 0 else None
     anchor = (None if anchor_targets_ is None
-              else GainAnchor(anchor_targets_, state_scaling, input_scaling, knots, device))
+              else GainAnchor(anchor_targets_, state_scaling, input_scaling, knots, device, state_names, input_names))
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=settings.lr_decay)
     sampler = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -705,7 +710,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 settings = dataclasses.replace(settings, dictionary=())
             runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
             meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
-            result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta)
+            result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta,
+                           friction=friction_of_runs(data_dir))
             npz_path, json_path = write_artifact(result, args.out)
     except Exception as e:  # noqa: BLE001 - CLI boundary: one line unless --debug
         if args.debug or not _is_input_error(e):

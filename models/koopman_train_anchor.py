@@ -9,13 +9,21 @@ hold that response: local linear fits on their gentle samples give the plant's s
 yaw rate within a few % (``make lateral-regimes``).
 
 Targets (``anchor_targets``, from the training runs only, never the plant): at each of
-``ANCHOR_SPEEDS``, a local fit (``models.local_lateral_fit``) on the samples of the speed
-band whose combined acceleration hypot(ax, vx r) is below ``GENTLE_ACCEL``, driven from
-straight driving by a step of +-``ANCHOR_STEP`` rad for ``ANCHOR_STEPS`` steps with the
-band's median torque. The antisymmetric yaw rate at the end, half the difference of the two
-signs, is the target. A fit is one draw from a few hundred samples, so the targets are
-smoothed over speed by a polynomial of degree ``SMOOTH_DEGREE`` (weighted by the sample
-counts); speeds with fewer than ``MIN_SAMPLES`` samples are left out.
+``ANCHOR_SPEEDS``, a local fit (``models.local_lateral_fit``) on the gentle samples of the
+speed band, driven from straight driving by a step of +-``ANCHOR_STEP`` rad for
+``ANCHOR_STEPS`` steps with the band's median torque. The antisymmetric yaw rate at the end,
+half the difference of the two signs, is the fitted response. Gentle: combined grip use
+hypot(ax, vx r) / (mu g) below ``GENTLE_GRIP``, with each run's mu where the data set states
+it (the generator's manifest); a run without a known mu is taken as mu = 1 (0.1 g), which
+on a slippery road admits samples beyond the tyres' linear range and biases its fits low.
+A fit is one draw from a few hundred samples, so the fitted responses are smoothed over
+speed by the steady-state yaw gain of a linear single track, r = step v / (L + K v^2): two
+parameters (the wheelbase-like L and the understeer-like K), fitted by least squares on
+step v / r weighted by sqrt(samples) and relative; speeds with fewer than ``MIN_SAMPLES``
+samples are left out. Why this smoothing and these speeds: a cubic over 6-30 m/s followed
+the 6 m/s fits, which scatter by tens of % (few gentle samples in a band where the data
+mostly accelerate), and pulled 8-12 m/s off by up to 12 % (docs/koopman.md, "The gain
+anchor").
 
 Loss (``GainAnchor.loss``): the mean over the speeds of ((r_model - r_target) / r_target)^2,
 r_model the learned model's antisymmetric yaw rate to the same steps (the scheduled form's
@@ -25,42 +33,55 @@ the training loss. Validation and early stopping keep the plain prediction loss.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from models.koopman import KoopmanError, MinMaxScaling, knot_weights
 from models.koopman_metrics import Trajectory
-from models.local_lateral_fit import (GRAVITY, INPUTS, MIN_SAMPLES, STATES, LocalLateralModel, band_segments,
-                                      local_fit, signals)
+from models.local_lateral_fit import (INPUTS, MIN_SAMPLES, STATES, LocalLateralModel, antisymmetric_final,
+                                      band_segments, local_fit, signals)
 
-#: Speeds (m/s) of the anchor: every 2 m/s over the training data's range.
-ANCHOR_SPEEDS = tuple(float(v) for v in range(6, 32, 2))
-#: Gentle samples: combined acceleration below this (m/s^2; 0.1 g, the tyres' linear range
-#: on dry roads and a third of the grip at mu 0.3). Absolute, so that runs without a known
-#: friction (CAN logs) can be anchored too.
-GENTLE_ACCEL = 0.1 * GRAVITY
+#: Speeds (m/s) of the anchor: every 2 m/s over the training data's range above 6 m/s.
+ANCHOR_SPEEDS = tuple(float(v) for v in range(8, 32, 2))
+#: Gentle samples: combined grip use hypot(ax, vx r) / (mu g) below this (the tyres' linear
+#: range on every mu).
+GENTLE_GRIP = 0.1
 ANCHOR_STEP = 0.02  # rad, the step-steer study's
 ANCHOR_STEPS = 40  # 1 s at 25 ms
-SMOOTH_DEGREE = 3
+#: Fewest anchored speeds for the two-parameter smoothing (with margin).
+MIN_SPEEDS = 4
 
 
 @dataclass(frozen=True)
 class AnchorTargets:
     """Per anchored speed: speed (m/s), the band's median torque (N m), the smoothed target
     yaw rate (rad/s), the local fit's own (unsmoothed) yaw rate, and its sample count;
-    arrays of shape (n_speeds,)."""
+    arrays of shape (n_speeds,). ``runs_with_friction``: how many of the training runs had a
+    known mu (the others were taken as mu = 1)."""
 
     speeds: np.ndarray
     torques: np.ndarray
     yaw_rates: np.ndarray
     fitted_yaw_rates: np.ndarray
     samples: np.ndarray
+    single_track: tuple[float, float] = (0.0, 0.0)
+    runs_with_friction: int = 0
 
-    def as_json(self) -> dict[str, list[float]]:
-        return {name: [round(float(v), 6) for v in getattr(self, name)]
-                for name in ("speeds", "torques", "yaw_rates", "fitted_yaw_rates", "samples")}
+    def yaw_rate_at(self, speed: float | np.ndarray) -> float | np.ndarray:
+        """The smoothed target at any ``speed`` (m/s): ANCHOR_STEP v / (L + K v^2)."""
+        length, understeer = self.single_track
+        return ANCHOR_STEP * np.asarray(speed) / (length + understeer * np.asarray(speed) ** 2)
+
+    def as_json(self) -> dict[str, list[float] | int]:
+        out: dict[str, list[float] | int] = {
+            name: [round(float(v), 6) for v in getattr(self, name)]
+            for name in ("speeds", "torques", "yaw_rates", "fitted_yaw_rates", "samples")}
+        out["single_track"] = [float(v) for v in self.single_track]  # L, K: step v / (L + K v^2)
+        out["step"] = ANCHOR_STEP
+        out["runs_with_friction"] = self.runs_with_friction
+        return out
 
 
 def _on_fit_columns(run: Trajectory) -> Trajectory:
@@ -73,28 +94,48 @@ def _on_fit_columns(run: Trajectory) -> Trajectory:
     return Trajectory(run.name, states, inputs, STATES, INPUTS)
 
 
-def anchor_targets(train_runs: Sequence[Trajectory], speeds: Sequence[float] = ANCHOR_SPEEDS) -> AnchorTargets:
-    """The targets from the training runs (see the module docstring)."""
+def single_track_gain_fit(speeds: np.ndarray, yaw_rates: np.ndarray, weights: np.ndarray,
+                          step: float = ANCHOR_STEP) -> np.ndarray:
+    """(L, K) of r = step v / (L + K v^2) fitted to ``yaw_rates`` at ``speeds`` (each (n,);
+    ``weights`` (n,) >= 0): weighted least squares on step v / r, each row divided by its
+    value so that the residuals are relative. Raises KoopmanError for a non-positive response
+    (the fit's form has none) or a fit without a positive L."""
+    if np.any(yaw_rates <= 0.0):
+        raise KoopmanError(f"gain anchor: a local fit turns the wrong way or not at all at "
+                           f"{speeds[yaw_rates <= 0.0].tolist()} m/s (yaw rates {yaw_rates.round(4).tolist()})")
+    target = step * speeds / yaw_rates
+    w = weights / target
+    coefficients, *_ = np.linalg.lstsq(np.c_[np.ones_like(speeds), speeds ** 2] * w[:, None], target * w, rcond=None)
+    if coefficients[0] <= 0.0:
+        raise KoopmanError(f"gain anchor: the single-track smoothing has no positive L ({coefficients.tolist()})")
+    return coefficients
+
+
+def anchor_targets(train_runs: Sequence[Trajectory], friction: Mapping[str, float] | None = None,
+                   speeds: Sequence[float] = ANCHOR_SPEEDS) -> AnchorTargets:
+    """The targets from the training runs (see the module docstring); ``friction``: run name
+    -> mu where known (``models.dataset.friction_of_runs``)."""
+    friction = friction or {}
     runs = [_on_fit_columns(run) for run in train_runs]
-    # grip use with mu = 1 is the combined acceleration in g
-    masks = [signals(run, 1.0).combined_grip * GRAVITY < GENTLE_ACCEL for run in runs]
+    masks = [signals(run, friction.get(run.name, 1.0)).combined_grip < GENTLE_GRIP for run in runs]
     rows = []
     for speed in speeds:
         fit, n = local_fit(runs, masks, speed)
         if fit is None:
             continue
         torque = float(np.median(np.concatenate([s.inputs[:, 0] for s in band_segments(runs, masks, speed)])))
-        commands = np.zeros((2, ANCHOR_STEPS, 2))
-        commands[..., 0] = torque
-        commands[0, :, 1], commands[1, :, 1] = ANCHOR_STEP, -ANCHOR_STEP
-        final = LocalLateralModel(fit).predict(np.tile([speed, 0.0, 0.0, 0.0], (2, 1)), commands)[:, -1, 2]
-        rows.append((speed, torque, (final[0] - final[1]) / 2.0, n))
-    if len(rows) < SMOOTH_DEGREE + 2:
+        commands = np.zeros((ANCHOR_STEPS, 2))
+        commands[:, 0], commands[:, 1] = torque, ANCHOR_STEP
+        yaw_rate = antisymmetric_final(LocalLateralModel(fit), np.array([speed, 0.0, 0.0, 0.0]), commands)[2]
+        rows.append((speed, torque, yaw_rate, n))
+    if len(rows) < MIN_SPEEDS:
         raise KoopmanError(f"gain anchor: only {len(rows)} of the speeds {tuple(speeds)} have {MIN_SAMPLES} gentle "
-                           f"samples (combined acceleration < {GENTLE_ACCEL:.2f} m/s^2); need {SMOOTH_DEGREE + 2}")
+                           f"samples (combined grip use < {GENTLE_GRIP}); need {MIN_SPEEDS}")
     v, torque, fitted, n = (np.array(column, dtype=float) for column in zip(*rows))
-    smooth = np.polyval(np.polyfit(v, fitted, SMOOTH_DEGREE, w=np.sqrt(n)), v)
-    return AnchorTargets(v, torque, smooth, fitted, n)
+    length, understeer = single_track_gain_fit(v, fitted, np.sqrt(n))
+    smooth = ANCHOR_STEP * v / (length + understeer * v ** 2)
+    return AnchorTargets(v, torque, smooth, fitted, n, (float(length), float(understeer)),
+                         sum(run.name in friction for run in runs))
 
 
 class GainAnchor:
@@ -102,7 +143,12 @@ class GainAnchor:
     in the normalised units of training."""
 
     def __init__(self, targets: AnchorTargets, state_scaling: MinMaxScaling, input_scaling: MinMaxScaling,
-                 speed_knots: Sequence[float], device: torch.device) -> None:
+                 speed_knots: Sequence[float], device: torch.device, state_names: Sequence[str],
+                 input_names: Sequence[str]) -> None:
+        # The starts and the yaw rate below are by position: the states must lead with these.
+        if tuple(state_names[:3]) != ("vx", "vy", "yaw_rate") or tuple(input_names) != INPUTS:
+            raise KoopmanError(f"gain anchor: needs states starting (vx, vy, yaw_rate) and inputs {INPUTS}, "
+                               f"got {tuple(state_names)} and {tuple(input_names)}")
         n = targets.speeds.size
         starts = np.c_[targets.speeds, np.zeros((n, state_scaling.low.size - 1))]  # straight driving
         commands = np.zeros((2 * n, ANCHOR_STEPS, input_scaling.low.size))

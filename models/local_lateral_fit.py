@@ -12,11 +12,14 @@ study and by the training's gain anchor (``models/koopman_train_anchor.py``).
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
-from typing import Sequence
+from pathlib import Path
+from typing import Any, Sequence
 
 import numpy as np
 
+from models.errors import DatasetError
 from models.koopman_baselines import DMDc
 from models.koopman_metrics import Trajectory
 
@@ -53,6 +56,27 @@ def signals(run: Trajectory, mu: float) -> SampleSignals:
     return SampleSignals(ax, np.abs(lateral) / (mu * GRAVITY), np.hypot(ax, lateral) / (mu * GRAVITY))
 
 
+def friction_of_runs(directory: str | Path) -> dict[str, float]:
+    """Run name -> the road's mu, from the generator's ``manifest.json`` of a data set
+    (``models.data``); {} when the data set has no manifest (recorded logs, other sources).
+
+    Raises ``DatasetError`` for a manifest that is not JSON or lacks its run list."""
+    manifest_path = Path(directory) / "manifest.json"
+    if not manifest_path.is_file():
+        return {}
+    try:
+        manifest = json.loads(manifest_path.read_text())
+        default = manifest.get("params", {}).get("mu")
+        friction = {}
+        for entry in manifest["runs"]:
+            mu = entry.get("mu", default)
+            if entry.get("file") and mu is not None:  # runs without a file were dropped
+                friction[Path(entry["file"]).stem] = float(mu)
+        return friction
+    except (ValueError, KeyError, TypeError, AttributeError) as e:
+        raise DatasetError(f"{manifest_path}: not a data set manifest with a run list ({e})") from e
+
+
 def band_segments(runs: Sequence[Trajectory], masks: Sequence[np.ndarray], speed: float) -> list[Trajectory]:
     """The stretches of each run whose samples k have mask[k] and |vx_k - speed| < BAND, each
     with the sample after it, on the lateral states: the one-step pairs (k, k + 1) of a fit.
@@ -78,6 +102,18 @@ def local_fit(runs: Sequence[Trajectory], masks: Sequence[np.ndarray], speed: fl
     if n < MIN_SAMPLES:
         return None, n
     return DMDc(ridge=RIDGE).fit(segments), n
+
+
+def antisymmetric_final(model: Any, start: np.ndarray, commands: np.ndarray) -> np.ndarray:
+    """The linear part of a model's steer response: (final(+steer) - final(-steer)) / 2.
+
+    ``model.predict`` maps x0 (batch, n_x) and inputs (batch, n, 2) [torque, steer] to
+    (batch, n, n_x); ``start`` (n_x,), ``commands`` (n, 2); the -steer run is ``commands``
+    with the steer negated. Returns the state after the last step, (n_x,)."""
+    mirrored = commands.copy()
+    mirrored[:, 1] *= -1.0
+    finals = [model.predict(np.asarray(start, dtype=float)[None], c[None])[0, -1] for c in (commands, mirrored)]
+    return (finals[0] - finals[1]) / 2.0
 
 
 class LocalLateralModel:

@@ -37,8 +37,8 @@ import numpy as np
 from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel, KoopmanError
 from models.local_lateral_fit import (BAND, INPUTS, STATES, LocalLateralModel, SampleSignals,  # noqa: F401
-                                      band_segments, local_fit, signals)
-from studies.model_fidelity import STEP_SPEEDS, plant_step_steer, step_steer_final
+                                      antisymmetric_final, band_segments, friction_of_runs, local_fit, signals)
+from studies.model_fidelity import STEP_SPEEDS, plant_step_steer
 
 #: Regime name -> which samples (a boolean mask of SampleSignals' length).
 REGIMES: dict[str, Callable[[SampleSignals], np.ndarray]] = {
@@ -55,17 +55,9 @@ REGIMES: dict[str, Callable[[SampleSignals], np.ndarray]] = {
 
 def antisymmetric_response(model: Any, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
     """(final(+step) - final(-step)) / 2 of ``model`` on the plant's step (``states`` (n + 1, 4),
-    ``commands`` (n, 2)): the linear part of its response, [vx, vy, r, ...] after the step."""
-    mirrored = commands.copy()
-    mirrored[:, 1] *= -1.0
-    return (step_steer_final(model, states, commands) - step_steer_final(model, states, mirrored)) / 2.0
-
-
-def friction_of_runs(data_dir: Path) -> dict[str, float]:
-    """Run name -> mu from the data set's manifest (runs without a file were dropped)."""
-    manifest = json.loads((data_dir / "manifest.json").read_text())
-    return {Path(e["file"]).stem: float(e.get("mu", manifest["params"]["mu"]))
-            for e in manifest["runs"] if e.get("file")}
+    ``commands`` (n, 2)) from the plant's first state: the linear part of its response,
+    [vx, vy, r, ...] after the step."""
+    return antisymmetric_final(model, states[0, :getattr(model, "n_x", 3)], commands)
 
 
 def measure(data_dir: Path, artifact: Path) -> dict[str, Any]:
@@ -80,6 +72,10 @@ def measure(data_dir: Path, artifact: Path) -> dict[str, Any]:
     runs = [r for r in load_trajectories(data_dir, STATES, INPUTS) if r.name in train_names]
     if not runs:
         raise KoopmanError(f"{data_dir}: none of {artifact.name}'s training runs are in this data set")
+    unknown = [run.name for run in runs if run.name not in mu]
+    if unknown:
+        raise KoopmanError(f"{data_dir}: its manifest.json states no mu for {len(unknown)} training runs "
+                           f"(first {unknown[0]}); the regimes' grip use needs each run's mu")
     per_run = [signals(run, mu[run.name]) for run in runs]
     out: dict[str, Any] = {"data_dir": str(data_dir), "artifact": str(artifact), "band": BAND,
                            "n_runs": len(runs), "speeds": list(STEP_SPEEDS), "plant": [], "model": [], "regimes": []}

@@ -113,6 +113,22 @@ def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]
     return parts
 
 
+def anchor_target_error_pct(metadata: dict[str, Any], plant: dict[float, tuple[np.ndarray, np.ndarray]]
+                            ) -> dict[str, list[float]]:
+    """{"anchor_target_error_pct": (n_speeds,)} for a model trained with the gain anchor: its
+    smoothed target (``gain_anchor_targets.single_track`` of the artefact's JSON) against the
+    plant's yaw rate after 1 s, in %, at each speed of ``plant``; {} for other models. This
+    compares the data's targets with the plant after the fact; the training never sees the
+    plant."""
+    targets = metadata.get("gain_anchor_targets", {})
+    if "single_track" not in targets:
+        return {}
+    length, understeer = targets["single_track"]
+    return {"anchor_target_error_pct": [
+        float(100.0 * (targets["step"] * v / (length + understeer * v ** 2) / states[-1, 2] - 1.0))
+        for v, (states, _) in plant.items()]}
+
+
 def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, models_dir: Path,
             executor_options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train what is missing, then {variants: [{label, seeds: [{seed, yaw_error_pct (4,),
@@ -147,7 +163,8 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
                 "seed": seed, "yaw_error_pct": parts.pop("total"), "error_parts_pct": parts,
                 "gain_error_pct": error_parts_pct(model, sweep)["antisymmetric"],
                 "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")},
-                "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}"})
+                "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}",
+                **anchor_target_error_pct(model.metadata, plant)})
         out["variants"].append(entry)
         print(f"{row.label}: evaluated {len(seeds)} seeds", flush=True)
     return out
@@ -200,6 +217,7 @@ def markdown(result: dict[str, Any]) -> str:
                      + f" | {within} of {len(errors)} | {_mean_sd([s['rmse_1s']['vy'] for s in entry['seeds']], 4)}"
                      f" | {_mean_sd([s['rmse_1s']['yaw_rate'] for s in entry['seeds']], 4)} |")
     lines += _parts_table(result)
+    lines += _anchor_table(result)
     lines += _gain_sweep_table(result)
     return "\n".join(lines) + "\n"
 
@@ -225,6 +243,28 @@ def _parts_table(result: dict[str, Any]) -> list[str]:
                 continue
             lines.append(f"| {entry['label']} | {label} | "
                          + " | ".join(_mean_sd(values[:, j], 1) for j in range(len(speeds))) + " |")
+    return lines
+
+
+def _anchor_table(result: dict[str, Any]) -> list[str]:
+    """Markdown lines: for the variants with the gain anchor, each seed's target against the
+    plant and the model's gain against its target (%); [] when no variant has the anchor."""
+    speeds = result["speeds"]
+    anchored = [e for e in result["variants"] if all("anchor_target_error_pct" in s for s in e["seeds"])]
+    if not anchored:
+        return []
+    lines = ["", "## The gain anchor's targets", "",
+             "The smoothed target of each seed's training runs (`gain_anchor_targets` in the artefact's JSON) "
+             "against the plant's yaw rate after 1 s, and the model's antisymmetric response against that target "
+             "(both %). The training sees only its runs; the plant enters here, after the fact.", "",
+             "| variant | seed | target vs plant | model vs target |", "|---|---|---|---|"]
+    for entry in anchored:
+        for s in entry["seeds"]:
+            target = np.array(s["anchor_target_error_pct"])
+            model = 100.0 * ((1.0 + np.array(s["error_parts_pct"]["antisymmetric"]) / 100.0) / (1.0 + target / 100.0) - 1.0)
+            lines.append(f"| {entry['label']} | {s['seed']} | " + " / ".join(f"{e:+.1f}" for e in target)
+                         + " | " + " / ".join(f"{e:+.1f}" for e in model) + " |")
+    lines.append(f"\n(each cell: {' / '.join(f'{v:g}' for v in speeds)} m/s)")
     return lines
 
 

@@ -41,6 +41,7 @@ from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanError, KoopmanModel
 from models.koopman_baselines import DMDc, EDMDc
 from models.koopman_metrics import Predictor, Trajectory, open_loop_windows
+from models.local_lateral_fit import friction_of_runs
 from studies.model_fidelity import BicyclePredictor, SingleTrackPredictor
 
 TS = 0.025
@@ -142,7 +143,8 @@ def train_task(task: TrainingTask) -> dict[str, Any]:
                for r in runs]
         settings = koopman_train.TrainingSettings(**{**row.overrides, "seed": task.seed})
         result = koopman_train.train(own, TS, settings, metadata={
-            "data_dir": str(task.data_dir), "data_hash": task.data_hash, "n_runs": len(runs)}, progress=False)
+            "data_dir": str(task.data_dir), "data_hash": task.data_hash, "n_runs": len(runs)}, progress=False,
+            friction=friction_of_runs(task.data_dir))
         path = cached_model_path(row, task.seed, task.models_dir)
         koopman_train.write_artifact(result, path.with_suffix(""))
     except Exception as e:  # noqa: BLE001 - reported as this training's failure

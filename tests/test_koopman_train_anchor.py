@@ -8,7 +8,7 @@ torch = pytest.importorskip("torch")
 
 from models.koopman import KoopmanError, KoopmanModel  # noqa: E402
 from models.koopman_train_anchor import (ANCHOR_STEP, ANCHOR_STEPS, ANCHOR_SPEEDS, GainAnchor,  # noqa: E402
-                                        anchor_targets)
+                                        anchor_targets, single_track_gain_fit)
 from models.koopman_metrics import Trajectory  # noqa: E402
 from models.koopman_train import TrainingSettings, settings_json  # noqa: E402
 from test_koopman_symmetric import INPUTS, KNOTS, STATES, _random_net, _scalings  # noqa: E402
@@ -47,8 +47,9 @@ def test_targets_are_the_local_fits_step_response_smoothed_over_speed() -> None:
     truth = np.array([_true_response(v) for v in targets.speeds])
     assert targets.speeds.tolist() == list(ANCHOR_SPEEDS)
     assert np.allclose(targets.fitted_yaw_rates, truth, rtol=1e-5)  # noise-free data: the fit is exact
-    assert np.allclose(targets.yaw_rates, truth, rtol=0.02)  # the cubic through them
+    assert np.allclose(targets.yaw_rates, truth, rtol=0.02)  # the single-track smoothing through them
     assert np.all(targets.torques == 100.0) and np.all(targets.samples == 399)
+    assert targets.yaw_rate_at(targets.speeds) == pytest.approx(targets.yaw_rates, rel=1e-12)
 
 
 def test_hard_driving_is_not_a_target() -> None:
@@ -63,7 +64,7 @@ def test_the_loss_is_the_relative_error_of_the_exported_models_step_response() -
     targets = anchor_targets(_runs())
     states, inputs = _scalings()
     net = _random_net(bilinear=True).double()
-    anchor = GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"))
+    anchor = GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"), STATES, INPUTS)
     with torch.no_grad():
         loss = float(anchor.loss(net.float()))
     model = KoopmanModel.from_normalised(net.double().export(states, inputs, (), None, KNOTS), 0.025, STATES, INPUTS)
@@ -83,7 +84,7 @@ def test_descending_the_loss_moves_the_gain_to_the_target() -> None:
     targets = anchor_targets(_runs())
     states, inputs = _scalings()
     net = _random_net(bilinear=True)
-    anchor = GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"))
+    anchor = GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"), STATES, INPUTS)
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
     first = float(anchor.loss(net).detach())
     for _ in range(30):
@@ -110,6 +111,38 @@ def test_training_with_the_anchor_records_its_targets() -> None:
                                 even_features=1, servo_lag=True, steer_bilinear=True, gain_anchor=10.0)
     result = train(_runs(), 0.025, settings, progress=False)
     recorded = result.model.metadata["gain_anchor_targets"]
+    assert len(recorded["single_track"]) == 2 and recorded["runs_with_friction"] == 0
     assert len(recorded["speeds"]) >= 5 and all(v > 0 for v in recorded["yaw_rates"])
     assert all("anchor" in row for row in result.history)
     assert result.model.metadata["settings"]["gain_anchor"] == 10.0
+
+
+def test_a_known_friction_keeps_samples_beyond_the_linear_range_out() -> None:
+    """The same runs on mu = 0.3: the fast bands, whose lateral acceleration is gentle on a
+    dry road (< 0.1 g) but a third of the grip here, are no longer anchored."""
+    runs = _runs(offset=0.01)
+    dry = anchor_targets(runs)
+    slippery = anchor_targets(runs, {run.name: 0.3 for run in runs})
+    print(f"speeds dry {dry.speeds.tolist()}, mu 0.3 {slippery.speeds.tolist()}")
+    assert dry.runs_with_friction == 0 and slippery.runs_with_friction == len(runs)
+    assert set(slippery.speeds) < set(dry.speeds)
+    assert max(dry.speeds) > max(slippery.speeds)
+
+
+def test_the_single_track_smoothing_recovers_its_parameters_and_refuses_a_wrong_sign() -> None:
+    speeds = np.arange(8.0, 32.0, 2.0)
+    yaw_rates = ANCHOR_STEP * speeds / (2.8 + 0.0018 * speeds ** 2)
+    assert single_track_gain_fit(speeds, yaw_rates, np.ones_like(speeds)) == pytest.approx([2.8, 0.0018], rel=1e-9)
+    yaw_rates[3] = -yaw_rates[3]
+    with pytest.raises(KoopmanError, match="wrong way"):
+        single_track_gain_fit(speeds, yaw_rates, np.ones_like(speeds))
+
+
+def test_the_anchor_refuses_states_it_would_read_by_the_wrong_position() -> None:
+    targets = anchor_targets(_runs())
+    states, inputs = _scalings()
+    with pytest.raises(KoopmanError, match="vx, vy, yaw_rate"):
+        GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"), ("vy", "vx", "yaw_rate", "steer_measured"),
+                   INPUTS)
+    with pytest.raises(KoopmanError, match="inputs"):
+        GainAnchor(targets, states, inputs, KNOTS, torch.device("cpu"), STATES, ("steer", "torque"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.errors import DatasetError
 from models.koopman_baselines import DMDc
 from models.koopman_metrics import Trajectory
 from models import local_lateral_fit as llf
@@ -86,3 +87,14 @@ def test_the_table_and_figure_name_each_regime_and_the_cells_without_enough_samp
     assert "0.0673 / +0.072" in text
     lr.plot(result, tmp_path / "regimes.png")  # a cell without a fit is drawn as a gap, not an error
     assert (tmp_path / "regimes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_friction_of_runs_reads_each_runs_mu_from_the_manifest(tmp_path):
+    assert llf.friction_of_runs(tmp_path) == {}  # recorded logs: no manifest, no known mu
+    (tmp_path / "manifest.json").write_text(
+        '{"params": {"mu": 0.85}, "runs": [{"file": "run_000.csv", "mu": 0.31},'
+        ' {"file": "run_001.csv"}, {"file": null, "mu": 0.5}]}')
+    assert llf.friction_of_runs(tmp_path) == {"run_000": 0.31, "run_001": 0.85}  # the dropped run has no file
+    (tmp_path / "manifest.json").write_text('{"params": {}}')
+    with pytest.raises(DatasetError, match="manifest.json.*run list"):
+        llf.friction_of_runs(tmp_path)

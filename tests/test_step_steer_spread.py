@@ -129,6 +129,29 @@ def test_the_gain_sweep_table_and_panel(tmp_path: Path) -> None:
     assert "## The gain over speed" not in study.markdown(result)
 
 
+def test_the_anchor_targets_are_compared_with_the_plant_and_the_model_with_its_target(plant) -> None:
+    """A model whose recorded target is the plant's own single-track fit reads ~0 % against
+    the plant; the table then gives the model's error against its target."""
+    speeds = np.array(list(plant))
+    finals = np.array([states[-1, 2] for states, _ in plant.values()])
+    # L, K through the plant's responses at the first and last speeds: exact there.
+    ratio = 0.02 * speeds / finals
+    understeer = (ratio[-1] - ratio[0]) / (speeds[-1] ** 2 - speeds[0] ** 2)
+    length = ratio[0] - understeer * speeds[0] ** 2
+    metadata = {"gain_anchor_targets": {"single_track": [length, understeer], "step": 0.02}}
+    errors = study.anchor_target_error_pct(metadata, plant)["anchor_target_error_pct"]
+    assert errors[0] == pytest.approx(0.0, abs=1e-9) and errors[-1] == pytest.approx(0.0, abs=1e-9)
+    assert max(map(abs, errors)) < 2.0  # the single-track form follows the plant in between
+    assert study.anchor_target_error_pct({}, plant) == {}
+    result = _result({"anchored": [[0.0, 0.0, 0.0, 0.0]], "plain": [[0.0, 0.0, 0.0, 0.0]]})
+    result["variants"][0]["seeds"][0]["anchor_target_error_pct"] = [-5.0, 0.0, 0.0, 10.0]
+    result["variants"][0]["seeds"][0]["error_parts_pct"]["antisymmetric"] = [-5.0, 1.0, 0.0, 0.0]
+    text = study.markdown(result)
+    assert "## The gain anchor's targets" in text
+    assert "| anchored | 0 | -5.0 / +0.0 / +0.0 / +10.0 | +0.0 / +1.0 / +0.0 / -9.1 |" in text
+    assert "| plain | 0 |" not in text.split("## The gain anchor's targets")[1].split("##")[0]
+
+
 def test_cli_refuses_a_missing_data_set_and_no_seeds(tmp_path: Path, capsys) -> None:
     assert study.main(["--data", str(tmp_path / "absent"), "--out", str(tmp_path)]) == 2
     assert "no data set (READY missing)" in capsys.readouterr().err
