@@ -27,7 +27,10 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
   input cannot have.
 - the same with the gain anchor (``models/koopman_train_anchor.py``, weight 10): the model's
   response to a small steer step from straight driving held, in training, to local linear
-  fits of the training runs' gentle samples at 6-30 m/s (the data, never the plant).
+  fits of the training runs' gentle samples at 8-30 m/s, smoothed by a single track's
+  steady-state gain (the data, never the plant). Its seeds' targets are compared with the
+  plant afterwards (``anchor_target_error_pct``), so that a reader sees whether a miss is
+  the model's or its target's.
 
 Each seed's error is also split into its parts (``error_parts_pct``): the yaw rate the model
 predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
@@ -41,7 +44,9 @@ Writes ``results/step_steer_spread.{md,json,png}``. Trainings are cached in ``bu
 beside Table I's and run as tasks of the campaigns' executors (a local Ray by default);
 about 30 min on 2 cores when nothing is cached (29 trainings on 2 Ray workers), under a minute when all are.
 CLI: ``python -m studies.step_steer_spread [--data data/wide] [--seeds 0,1,2,3,4]
-[--address ADDR] [--workers N] [--serial]``.
+[--variants 0,4,5] [--out results] [--address ADDR] [--workers N] [--serial]``
+(``--variants``: a subset of ``VARIANTS`` by index, e.g. with ``--out build/...`` to measure
+one variant without training the others).
 """
 from __future__ import annotations
 
@@ -356,6 +361,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data/wide"))
     parser.add_argument("--seeds", type=_indices, default=SEEDS)
+    parser.add_argument("--variants", type=_indices, default=tuple(range(len(VARIANTS))),
+                        help=f"which of the {len(VARIANTS)} variants, 0-based and comma-separated (0: the default "
+                             "training); default all")
     parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
     parser.add_argument("--out", type=Path, default=Path("results"))
     parser.add_argument("--address", default=None, help="Ray cluster: auto, HOST:PORT or ray://HOST:PORT")
@@ -366,9 +374,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if not args.seeds:
             raise KoopmanError("--seeds must name at least one seed")
+        unknown = [i for i in args.variants if not 0 <= i < len(VARIANTS)]
+        if unknown or not args.variants:
+            raise KoopmanError(f"--variants must name variants among 0-{len(VARIANTS) - 1}, got {list(args.variants)}")
         if not (args.data / "READY").is_file():
             raise KoopmanError(f"{args.data}: no data set (READY missing); make train generates data/wide")
-        result = measure(VARIANTS, args.seeds, args.data, args.models_dir,
+        result = measure([VARIANTS[i] for i in args.variants], args.seeds, args.data, args.models_dir,
                          dict(address=args.address, workers=args.workers, serial=args.serial))
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "step_steer_spread.md").write_text(markdown(result))

@@ -157,3 +157,5 @@ def test_cli_refuses_a_missing_data_set_and_no_seeds(tmp_path: Path, capsys) -> 
     assert "no data set (READY missing)" in capsys.readouterr().err
     assert study.main(["--data", str(tmp_path), "--seeds", "", "--out", str(tmp_path)]) == 2
     assert "--seeds must name at least one seed" in capsys.readouterr().err
+    assert study.main(["--data", str(tmp_path), "--variants", f"0,{len(study.VARIANTS)}", "--out", str(tmp_path)]) == 2
+    assert f"--variants must name variants among 0-{len(study.VARIANTS) - 1}" in capsys.readouterr().err
