@@ -726,6 +726,13 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{figures['one_step_avg']:.4f} / {figures['one_step_rmse']:.4f}, "
               f"{OPEN_LOOP_STEPS}-step rmse {figures['open_loop_rmse']:.4f}")
     if args.compare_with is not None:
+        reference = json.loads(Path(args.compare_with).read_text())
+        if reference.get("settings") != meta.get("settings"):
+            # Another form or other settings: its figures are not a reference for this one.
+            changed = sorted(k for k in set(reference.get("settings", {})) | set(meta["settings"])
+                             if reference.get("settings", {}).get(k) != meta["settings"].get(k))
+            print(f"not compared with {args.compare_with}: its training settings differ ({', '.join(changed)})")
+            return 0
         return 0 if compare_test_errors(meta["test_errors"], args.compare_with) else 3
     return 0
 

@@ -41,7 +41,7 @@ import torch
 from models.koopman import KoopmanError, MinMaxScaling, knot_weights
 from models.koopman_metrics import Trajectory
 from models.local_lateral_fit import (INPUTS, MIN_SAMPLES, STATES, LocalLateralModel, antisymmetric_final,
-                                      band_segments, local_fit, signals)
+                                      band_segments, local_fit, signals, single_track_yaw_rate)
 
 #: Speeds (m/s) of the anchor: every 2 m/s over the training data's range above 6 m/s.
 ANCHOR_SPEEDS = tuple(float(v) for v in range(8, 32, 2))
@@ -71,8 +71,7 @@ class AnchorTargets:
 
     def yaw_rate_at(self, speed: float | np.ndarray) -> float | np.ndarray:
         """The smoothed target at any ``speed`` (m/s): ANCHOR_STEP v / (L + K v^2)."""
-        length, understeer = self.single_track
-        return ANCHOR_STEP * np.asarray(speed) / (length + understeer * np.asarray(speed) ** 2)
+        return single_track_yaw_rate(ANCHOR_STEP, *self.single_track, speed)
 
     def as_json(self) -> dict[str, list[float] | int]:
         out: dict[str, list[float] | int] = {
@@ -133,9 +132,8 @@ def anchor_targets(train_runs: Sequence[Trajectory], friction: Mapping[str, floa
                            f"samples (combined grip use < {GENTLE_GRIP}); need {MIN_SPEEDS}")
     v, torque, fitted, n = (np.array(column, dtype=float) for column in zip(*rows))
     length, understeer = single_track_gain_fit(v, fitted, np.sqrt(n))
-    smooth = ANCHOR_STEP * v / (length + understeer * v ** 2)
-    return AnchorTargets(v, torque, smooth, fitted, n, (float(length), float(understeer)),
-                         sum(run.name in friction for run in runs))
+    return AnchorTargets(v, torque, single_track_yaw_rate(ANCHOR_STEP, length, understeer, v), fitted, n,
+                         (float(length), float(understeer)), sum(run.name in friction for run in runs))
 
 
 class GainAnchor:

@@ -48,6 +48,15 @@ class SampleSignals:
 TS = 0.025
 
 
+def single_track_yaw_rate(step: float, length: float, understeer: float,
+                          speed: float | np.ndarray) -> float | np.ndarray:
+    """Steady-state yaw rate (rad/s) of a linear single track after a steer step ``step``
+    (rad) at ``speed`` (m/s; scalar or any shape): step v / (L + K v^2), with ``length`` L
+    (m) and ``understeer`` K (s^2/m). The gain anchor's smoothing (models/koopman_train_anchor.py)."""
+    v = np.asarray(speed, dtype=float)
+    return step * v / (length + understeer * v ** 2)
+
+
 def signals(run: Trajectory, mu: float) -> SampleSignals:
     """ax (central difference of vx, m/s^2) and the grip use of a run on friction ``mu``."""
     vx = run.states[:, run.state_names.index("vx")]

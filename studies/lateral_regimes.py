@@ -38,7 +38,7 @@ from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel, KoopmanError
 from models.local_lateral_fit import (BAND, INPUTS, STATES, LocalLateralModel, SampleSignals,  # noqa: F401
                                       antisymmetric_final, band_segments, friction_of_runs, local_fit, signals)
-from studies.model_fidelity import STEP_SPEEDS, plant_step_steer
+from studies.model_fidelity import STEP_SPEEDS, model_states, plant_step_steer
 
 #: Regime name -> which samples (a boolean mask of SampleSignals' length).
 REGIMES: dict[str, Callable[[SampleSignals], np.ndarray]] = {
@@ -57,7 +57,7 @@ def antisymmetric_response(model: Any, states: np.ndarray, commands: np.ndarray)
     """(final(+step) - final(-step)) / 2 of ``model`` on the plant's step (``states`` (n + 1, 4),
     ``commands`` (n, 2)) from the plant's first state: the linear part of its response,
     [vx, vy, r, ...] after the step."""
-    return antisymmetric_final(model, states[0, :getattr(model, "n_x", 3)], commands)
+    return antisymmetric_final(model, states[0, :model_states(model)], commands)
 
 
 def measure(data_dir: Path, artifact: Path) -> dict[str, Any]:

@@ -115,10 +115,10 @@ def step_steer_table(models: dict[str, object]) -> list[dict]:
 def step_steer_final(model: object, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
     """The model's state 1 s after the step: open loop from the plant's first state
     (``states`` (n + 1, 4)) with the plant's ``commands`` (n, 2) -> (>= 3,) [vx, vy, r, ...]."""
-    return model.predict(states[:1, :_n_states(model)], commands[None])[0, -1]
+    return model.predict(states[:1, :model_states(model)], commands[None])[0, -1]
 
 
-def _n_states(model: object) -> int:
+def model_states(model: object) -> int:
     """How many leading states of [vx, vy, r, wheel angle] a model takes (3 for the physics models)."""
     return getattr(model, "n_x", 3)
 
@@ -135,7 +135,7 @@ def prediction_table(models: dict[str, object], data_dir: Path, test_runs: Seque
     for label, steps in HORIZONS.items():
         x0, inputs, truth = open_loop_windows(test, steps, 5)
         for name, model in models.items():
-            n = _n_states(model)
+            n = model_states(model)
             error = model.predict(x0[:, :n], inputs)[..., :3] - truth[..., :3]
             rmse = np.sqrt(np.mean(error ** 2, axis=(0, 1)))
             rows.append({"model": name, "horizon": label,

@@ -24,7 +24,7 @@ from controller.tuning import load_tuning
 from hil.scenario import load_scenario
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 from studies.closed_loop import run_closed_loop
-from studies.table1 import ROWS, cached_model_path
+from studies.table1 import DEFAULT_ROW, cached_model_path
 
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 LEARNED = ("eso-dkmpc", "dkmpc")
@@ -35,7 +35,7 @@ def seed_artifacts(models_dir: Path, seeds: Sequence[int]) -> dict[int, Path]:
     """Seed -> artefact of the default row (seed 0: the committed default artefact)."""
     paths = {}
     for seed in seeds:
-        path = DEFAULT_ARTIFACT if seed == 0 else cached_model_path(ROWS[0], seed, models_dir)
+        path = DEFAULT_ARTIFACT if seed == 0 else cached_model_path(DEFAULT_ROW, seed, models_dir)
         if not path.is_file():
             raise SystemExit(f"error: {path} missing: run `make table1` (it trains the default row's seeds)")
         paths[seed] = path

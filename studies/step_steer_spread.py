@@ -1,8 +1,8 @@
 """Step steer over seeds: how much of the learned model's step-steer error is the seed.
 
 ``make model-fidelity`` measures the step steer of one artefact (seed 0). This study asks
-whether that error is a bias of the training or the spread of one draw: for the default
-row of Table I and three training variants, each trained with the 5 seeds of Table I on the
+whether that error is a bias of the training or the spread of one draw: for the first
+default row of Table I and its training variants, each trained with the 5 seeds of Table I on the
 same data (the seed draws the weights and the train / validation / test split), it runs
 the step steer of ``studies.model_fidelity`` (0.02 rad from straight driving at 10, 15,
 20, 25 m/s, open loop with the plant's torque, yaw rate after 1 s) and the 1 s open-loop
@@ -10,7 +10,7 @@ RMSE of vy and r on each seed's test runs (as Table I, the linear bicycle beside
 
 Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings``'):
 
-- the default training (Table I's default row: its models and cache are shared);
+- the first default training (Table I's first row: its models and cache are shared);
 - small-signal weighting: each window's prediction error weighted by 1 / (1 + (a/a0)^2),
   a the window's peak |vx r|, a0 = 3 m/s^2, so windows in the tyres' linear range (where a
   step steer lives) count more than those at the limit;
@@ -61,6 +61,7 @@ import numpy as np
 from hil.errors import HilError
 from models.errors import ModelError
 from models.koopman import DEFAULT_SPEED_KNOTS, KoopmanError
+from models.local_lateral_fit import single_track_yaw_rate
 from studies.model_fidelity import STEP_SPEEDS, BicyclePredictor, plant_step_steer, step_steer_final
 from studies.table1 import (ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
                             train_missing)
@@ -73,15 +74,15 @@ SMALL_SIGNAL_ACCEL = 3.0  # m/s^2, a0 of the weighting
 GAIN_SPEEDS = tuple(float(v) for v in range(4, 36, 2))
 
 VARIANTS = (
-    ROWS[0],
-    Row("default + small-signal weighting (a0 = 3 m/s²)", {"small_signal_accel": SMALL_SIGNAL_ACCEL}),
-    Row("default + small-signal weighting + one wheel-angle row for all speeds",
+    ROWS[0],  # the first default (before issue 14's item 4)
+    Row("first default + small-signal weighting (a0 = 3 m/s²)", {"small_signal_accel": SMALL_SIGNAL_ACCEL}),
+    Row("first default + small-signal weighting + one wheel-angle row for all speeds",
         {"small_signal_accel": SMALL_SIGNAL_ACCEL, "unscheduled_states": ("steer_measured",)}),
     Row("mirror-symmetric, d=8 (2 even), servo lag, lateral rows per step",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "lateral_per_step": True}),
     ROWS[-2],  # Table I's row of the mirror form with its steer-bilinear term
-    ROWS[-1],  # the same with the gain anchor
+    ROWS[-1],  # the same with the gain anchor: the default since issue 14's item 4
 )
 
 
@@ -128,9 +129,8 @@ def anchor_target_error_pct(metadata: dict[str, Any], plant: dict[float, tuple[n
     targets = metadata.get("gain_anchor_targets", {})
     if "single_track" not in targets:
         return {}
-    length, understeer = targets["single_track"]
     return {"anchor_target_error_pct": [
-        float(100.0 * (targets["step"] * v / (length + understeer * v ** 2) / states[-1, 2] - 1.0))
+        float(100.0 * (single_track_yaw_rate(targets["step"], *targets["single_track"], v) / states[-1, 2] - 1.0))
         for v, (states, _) in plant.items()]}
 
 
@@ -189,7 +189,7 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "Written by `make step-steer-spread` (studies/step_steer_spread.py). Yaw-rate error (%) against the "
         "plant 1 s after a 0.02 rad steer step from straight driving (open loop, the plant's torque), for the "
-        f"default training and {len(result['variants']) - 1} variants, each with seeds {', '.join(map(str, result['seeds']))} "
+        f"first default training and {len(result['variants']) - 1} variants, each with seeds {', '.join(map(str, result['seeds']))} "
         f"(weights and train / validation / test split) on `{result['data_dir']}`. Plant yaw rate after 1 s: "
         + ", ".join(f"{r:.3f} rad/s at {v:g} m/s" for v, r in zip(speeds, result["plant_yaw_rate"])) + ".",
         "",
@@ -362,8 +362,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=Path("data/wide"))
     parser.add_argument("--seeds", type=_indices, default=SEEDS)
     parser.add_argument("--variants", type=_indices, default=tuple(range(len(VARIANTS))),
-                        help=f"which of the {len(VARIANTS)} variants, 0-based and comma-separated (0: the default "
-                             "training); default all")
+                        help=f"which of the {len(VARIANTS)} variants, 0-based and comma-separated (0: the first default "
+                             "training; the last: today's default); default all")
     parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
     parser.add_argument("--out", type=Path, default=Path("results"))
     parser.add_argument("--address", default=None, help="Ray cluster: auto, HOST:PORT or ray://HOST:PORT")

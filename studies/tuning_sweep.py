@@ -77,6 +77,7 @@ from tqdm import tqdm
 from hil.errors import HilError, StudyError
 from hil.scenario import Scenario
 from studies.closed_loop import ABORT_LATERAL_ERROR_M, ClosedLoopResult, run_closed_loop
+from controller.registry import MODEL_FILE_KINDS
 from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, low_speed_twins, with_fixed_weights
 from studies.tuning_set import TUNING_SET, tuning_scenarios
 
@@ -92,6 +93,11 @@ FAILURE_PENALTY_M = ABORT_LATERAL_ERROR_M
 #: How many of the best settings the report lists per controller.
 TOP_N = 5
 #: The comment the written tuning tables carry.
+#: The controllers that run on the default Koopman artefact.
+KOOPMAN_CONTROLLERS = tuple(name for name, kind in MODEL_FILE_KINDS.items() if kind == "koopman")
+#: The sweep's record of a model file (its context key) -> the controllers that run on it:
+#: ``--reuse`` runs them again when the file changed.
+ARTEFACT_USERS = {"Koopman artefact used": KOOPMAN_CONTROLLERS, "DMDc artefact used": ("dmdc-eso",)}
 TUNING_COMMENT = "chosen by make tune on the tuning set, results/tuning_sweep.md"
 
 
@@ -834,9 +840,14 @@ def write_reports(record: SweepRecord, out: Path, *, document: bool = True) -> N
 
 
 def reusable_evaluations(path: Path, scenario_names: Sequence[str],
-                         artefact: str) -> dict[tuple[str, Setting], Evaluation]:
+                         artefacts: Mapping[str, str]) -> dict[tuple[str, Setting], Evaluation]:
     """The evaluations of the sweep document at ``path`` by (controller, setting), for
-    ``--reuse``. Raises StudyError unless it ran the same scenarios on the same artefact."""
+    ``--reuse``. Raises StudyError unless it ran the same scenarios.
+
+    ``artefacts``: this sweep's model files by context key (``ARTEFACT_USERS``' keys ->
+    ``artefact_description``). Where the stored sweep used another file (or did not record
+    it), the evaluations of the controllers that run on it are left out, so they run again;
+    the other controllers do not depend on that file."""
     try:
         document = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
@@ -844,18 +855,24 @@ def reusable_evaluations(path: Path, scenario_names: Sequence[str],
     record = sweep_from_document(document)
     if list(record.names) != list(scenario_names):
         raise StudyError(f"--reuse {path}: it ran scenarios {record.names}, this sweep runs {list(scenario_names)}")
-    if record.context.get("Koopman artefact used") != artefact:
-        raise StudyError(f"--reuse {path}: it used {record.context.get('Koopman artefact used')}, "
-                         f"this sweep uses {artefact}")
+    rerun: set[str] = set()
+    for key, description in artefacts.items():
+        if record.context.get(key) != description:
+            rerun.update(ARTEFACT_USERS[key])
+            print(f"--reuse {path}: {key} {record.context.get(key)}, this sweep {description}: "
+                  f"{', '.join(ARTEFACT_USERS[key])} run again")
     found = {}
     for sweep in record.sweeps:
+        if sweep.controller in rerun:
+            continue
         for evaluation in (*sweep.evaluations, *(() if sweep.before is None else (sweep.before,))):
             found[(sweep.controller, evaluation.setting)] = evaluation
     return found
 
 
 def artefact_description(path: Path) -> str:
-    """``<file> sha256 <first 12 hex>`` of the default Koopman artefact (which the sweep used)."""
+    """``<file> sha256 <first 12 hex>`` of a model file the sweep used (the default Koopman
+    artefact, the DMDc model)."""
     if not path.is_file():
         return f"{path.name} missing"
     return f"{path.name} sha256 {hashlib.sha256(path.read_bytes()).hexdigest()[:12]}"
@@ -869,6 +886,7 @@ def main(argv: list[str] | None = None) -> int:
     from controller.registry import CONTROLLERS
     from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
     from models.errors import ModelError
+    from models.dmdc_model import DMDC_ARTIFACT
     from models.koopman import DEFAULT_ARTIFACT
 
     parser = argparse.ArgumentParser(prog="python -m studies.tuning_sweep",
@@ -890,7 +908,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
     parser.add_argument("--reuse", type=Path, default=None, metavar="JSON",
                         help="take the evaluations of an earlier sweep's tuning_sweep.json instead of "
-                             "running them again (same scenarios and Koopman artefact required; the "
+                             "running them again (same scenarios required; the controllers on a model file "
+                             "that changed since, the Koopman artefact or the DMDc model, run again; the "
                              "runs are deterministic, so only settings not in it run)")
     parser.add_argument("--report-from", type=Path, default=None, metavar="JSON",
                         help="no sweep: rewrite the .md and .png in --out from a tuning_sweep.json "
@@ -906,14 +925,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {args.out}/tuning_sweep.md, .png from {args.report_from}")
         return 0
     controllers = list(args.controllers or CONTROLLERS)
-    artefact = Path(DEFAULT_ARTIFACT)
-    artefact_before = artefact_description(artefact)
+    model_files = {"Koopman artefact used": Path(DEFAULT_ARTIFACT), "DMDc artefact used": DMDC_ARTIFACT}
+    artefacts_before = {key: artefact_description(path) for key, path in model_files.items()}
     started = time.perf_counter()
     try:
         scenarios = tuning_scenarios(args.scenarios)
         tuning = load_tuning(args.tuning)
         reuse = (None if args.reuse is None
-                 else reusable_evaluations(args.reuse, [s.name for s in scenarios], artefact_before))
+                 else reusable_evaluations(args.reuse, [s.name for s in scenarios], artefacts_before))
         sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers, address=args.address,
                            show_progress=not args.no_progress, evaluate_before=True,
                            extra_observer_starts=EXTRA_OBSERVER_STARTS, reuse=reuse)
@@ -921,17 +940,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     elapsed = time.perf_counter() - started
-    if artefact_description(artefact) != artefact_before:
-        # Runs built before and after the change used different models: not one sweep.
-        print(f"error: {artefact} changed during the sweep ({artefact_before} -> "
-              f"{artefact_description(artefact)}); run make tune again", file=sys.stderr)
-        return 1
+    for key, path in model_files.items():
+        if artefact_description(path) != artefacts_before[key]:
+            # Runs built before and after the change used different models: not one sweep.
+            print(f"error: {path} changed during the sweep ({artefacts_before[key]} -> "
+                  f"{artefact_description(path)}); run make tune again", file=sys.stderr)
+            return 1
     stored = {(name, reuse_key(setting)) for name, setting in (reuse or {})}
     evaluated = [(s.controller, e) for s in sweeps for e in (*s.evaluations, *filter(None, (s.before,)))]
     reused = sum((name, reuse_key(e.setting)) in stored for name, e in evaluated)
     run_now = (len(evaluated) - reused) * len(scenarios)
     context = {
-        "Koopman artefact used": artefact_before,
+        **artefacts_before,
         **({"Reused": f"{reused} evaluations ({reused * len(scenarios)} runs) from {args.reuse} "
                       "(--reuse: the same runs, not run again)"} if reuse else {}),
         "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {run_now} closed-loop runs",

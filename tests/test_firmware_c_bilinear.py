@@ -236,20 +236,29 @@ def test_bilinear_build_refuses_data_without_the_steer_term(bilinear_core, tmp_p
     bilinear_core.NativeController("dkmpc", BUILD / "ecu_data.bin")  # its own data file still loads
 
 
-def test_default_build_refuses_bilinear_data(native, tmp_path: Path) -> None:  # noqa: F811 (fixture)
-    """The committed model's build (form scheduled): a data file of its shapes but of the
-    bilinear form is refused by the executable, both forms named."""
+def test_default_build_refuses_data_of_the_other_form(native, tmp_path: Path) -> None:  # noqa: F811 (fixture)
+    """The committed model's build: a data file of its shapes but of the other scheduled
+    form (plain for a bilinear build, bilinear for a plain one) is refused by the
+    executable, both forms named."""
     ecu_data = _tool("ecu_data")
     records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
     n_knots, n_z = records["koopman.A"].shape[:2]
-    assert "#define ECU_BILINEAR 0\n" in (ROOT / "build" / "firmware" / "gen" / "ecu_build.h").read_text()
-    records.update({"koopman.form": np.array([ecu_data.SCHEDULED_BILINEAR], dtype=float),
-                    "koopman.N": np.zeros((n_knots, n_z, n_z))})
-    ecu_data.write_data(records, tmp_path / "bilinear.bin")
+    bilinear_build = "#define ECU_BILINEAR 1\n" in (ROOT / "build" / "firmware" / "gen" / "ecu_build.h").read_text()
+    assert bilinear_build == KoopmanModel.load().scheduled_bilinear  # the build follows the default artefact
+    if bilinear_build:
+        records = {k: v for k, v in records.items() if k != "koopman.N"}
+        records["koopman.form"] = np.array([ecu_data.FORM_CODES["scheduled"]], dtype=float)
+        shown, built, codes = "scheduled", "scheduled bilinear", (2, 3)
+    else:
+        records.update({"koopman.form": np.array([ecu_data.SCHEDULED_BILINEAR], dtype=float),
+                        "koopman.N": np.zeros((n_knots, n_z, n_z))})
+        shown, built, codes = "scheduled bilinear", "scheduled", (3, 2)
+    ecu_data.write_data(records, tmp_path / "other.bin")
     result = subprocess.run([str(ROOT / "build" / "firmware" / "ecu"), "--controller", "dkmpc", "--path",
-                             "1=hil/paths/dlc.csv", "--data", str(tmp_path / "bilinear.bin")], cwd=ROOT,
+                             "1=hil/paths/dlc.csv", "--data", str(tmp_path / "other.bin")], cwd=ROOT,
                             capture_output=True, text=True, timeout=60, check=False)
     assert result.returncode == 2
     line = result.stderr.strip().splitlines()[-1]
-    assert (f"the model's shape (form scheduled bilinear, {n_knots} knots, n_z {n_z}) differs from this build's "
-            f"(form scheduled, {n_knots} knots, n_z {n_z}): record koopman.form is 3, this build needs 2") in line
+    assert (f"the model's shape (form {shown}, {n_knots} knots, n_z {n_z}) differs from this build's "
+            f"(form {built}, {n_knots} knots, n_z {n_z}): record koopman.form is {codes[0]}, "
+            f"this build needs {codes[1]}") in line

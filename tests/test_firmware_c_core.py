@@ -23,6 +23,7 @@ from controller.base import Command, Controller, SolverStatus, StepDebug, Vehicl
 from controller.reference import ReferencePath
 from controller.registry import create_controller
 from firmware_sim.errors import ConfigError
+from models.koopman import KoopmanModel
 
 ROOT = Path(__file__).resolve().parent.parent
 STEER_LSB = 1e-4  # rad: STEER_ANGLE_CMD's scale (can_defs/vehicle.dbc)
@@ -205,8 +206,11 @@ def test_cli_native_refuses_a_model_of_another_shape(native) -> None:
                             timeout=60, check=False)
     assert result.returncode == 2
     line = result.stderr.strip().splitlines()[-1]
-    assert line.startswith("error: ") and ("the model's shape (form linear, 1 knots, n_z 8) differs from this "
-                                           "build's (form scheduled, 7 knots, n_z 9)") in line
+    built = KoopmanModel.load()  # the default build is for the default artefact
+    form = "scheduled bilinear" if built.scheduled_bilinear else built.form
+    assert line.startswith("error: ") and (
+        f"the model's shape (form linear, 1 knots, n_z 8) differs from this build's "
+        f"(form {form}, {built.speed_knots.size} knots, n_z {built.n_z})") in line
 
 
 def test_cli_native_refuses_unbuilt_controllers(native) -> None:

@@ -49,7 +49,10 @@ def test_targets_are_the_local_fits_step_response_smoothed_over_speed() -> None:
     assert np.allclose(targets.fitted_yaw_rates, truth, rtol=1e-5)  # noise-free data: the fit is exact
     assert np.allclose(targets.yaw_rates, truth, rtol=0.02)  # the single-track smoothing through them
     assert np.all(targets.torques == 100.0) and np.all(targets.samples == 399)
-    assert targets.yaw_rate_at(targets.speeds) == pytest.approx(targets.yaw_rates, rel=1e-12)
+    length, understeer = targets.single_track  # the targets are the single track's curve, at any speed
+    assert targets.yaw_rates == pytest.approx(ANCHOR_STEP * targets.speeds / (length + understeer * targets.speeds ** 2),
+                                              rel=1e-12)
+    assert targets.yaw_rate_at(17.0) == pytest.approx(ANCHOR_STEP * 17.0 / (length + understeer * 17.0 ** 2), rel=1e-12)
 
 
 def test_hard_driving_is_not_a_target() -> None:

@@ -284,6 +284,34 @@ def test_report_rebuilds_from_the_stored_document(tmp_path: Path) -> None:
     assert "q_position 10" in markdown.split("#### lmpc")[1].split("\n| 1 |")[1].splitlines()[0]
 
 
+def test_reuse_of_another_artefact_reruns_the_koopman_controllers(tmp_path: Path) -> None:
+    """--reuse of a sweep on another Koopman artefact keeps the physics-model controllers'
+    evaluations and leaves out those of the controllers on the Koopman model."""
+    import json
+
+    tuning = load_tuning()
+    weights = SweepGrid((("q_position", (10.0, 100.0)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
+                         ("p_steer_rate", (300.0,))))
+    sweeps = run_sweep(["lmpc", "dkmpc"], [_scenario("a")], tuning, weight_grid=weights,
+                       runner=lambda scenario, controller: _fake_result(0.01), show_progress=False,
+                       low_speed_grid=NO_LOW_SPEED)
+    context = {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa"}
+    path = tmp_path / "sweep.json"
+    path.write_text(json.dumps(tuning_sweep.sweep_document(sweeps, ["a"], context, weights)))
+    same = tuning_sweep.reusable_evaluations(path, ["a"], {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa"})
+    other = tuning_sweep.reusable_evaluations(path, ["a"], {"Koopman artefact used": "dk_d5.npz sha256 bbbbbbbbbbbb"})
+    assert {name for name, _ in same} == {"lmpc", "dkmpc"}
+    assert {name for name, _ in other} == {"lmpc"}
+    assert {k: v.objective_m for k, v in other.items()} == {k: v.objective_m for k, v in same.items() if k[0] == "lmpc"}
+    assert "dkmpc" in tuning_sweep.KOOPMAN_CONTROLLERS and "lmpc" not in tuning_sweep.KOOPMAN_CONTROLLERS
+    # A model file the stored sweep did not record (the DMDc model here) reruns only its users.
+    unrecorded = tuning_sweep.reusable_evaluations(path, ["a"], {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa",
+                                                                 "DMDc artefact used": "dmdc.npz sha256 cccccccccccc"})
+    assert unrecorded.keys() == same.keys()
+    with pytest.raises(StudyError, match="scenarios"):
+        tuning_sweep.reusable_evaluations(path, ["b"], {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa"})
+
+
 def test_sweep_records_a_controller_that_cannot_be_built() -> None:
     tuning = load_tuning()
     weights = SweepGrid((("q_position", (10.0,)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
