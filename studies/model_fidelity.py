@@ -169,6 +169,15 @@ def markdown(step_rows: list[dict], prediction_rows: list[dict], names: list[str
     return "\n".join(lines) + "\n"
 
 
+def learned_form(model: KoopmanModel) -> str:
+    """The learned model's form in words for the tables, e.g. "scheduled, mirror-symmetric,
+    steer-bilinear, gain anchor" (the options from its training settings)."""
+    settings = model.metadata.get("settings", {})
+    return ", ".join([model.form] + [words for words, present in (
+        ("mirror-symmetric", settings.get("mirror_symmetric")), ("steer-bilinear", model.scheduled_bilinear),
+        ("gain anchor", settings.get("gain_anchor"))) if present])
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m studies.model_fidelity", description=__doc__.splitlines()[0])
     parser.add_argument("--artifact", type=Path, default=DEFAULT_ARTIFACT, help="the default learned model")
@@ -178,7 +187,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     learned = KoopmanModel.load(args.artifact)
     data_dir = args.data or Path(learned.metadata.get("data_dir", "data/wide"))
-    models = {f"learned ({learned.form})": learned,
+    models = {f"learned ({learned_form(learned)})": learned,
               "paper form, nominal data": KoopmanModel.load(PAPER_NOMINAL),
               "linear bicycle (LMPC)": BicyclePredictor(),
               "single track (NMPC)": SingleTrackPredictor()}
