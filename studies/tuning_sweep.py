@@ -93,12 +93,12 @@ FAILURE_PENALTY_M = ABORT_LATERAL_ERROR_M
 #: How many of the best settings the report lists per controller.
 TOP_N = 5
 #: The comment the written tuning tables carry.
+TUNING_COMMENT = "chosen by make tune on the tuning set, results/tuning_sweep.md"
 #: The controllers that run on the default Koopman artefact.
 KOOPMAN_CONTROLLERS = tuple(name for name, kind in MODEL_FILE_KINDS.items() if kind == "koopman")
 #: The sweep's record of a model file (its context key) -> the controllers that run on it:
 #: ``--reuse`` runs them again when the file changed.
 ARTEFACT_USERS = {"Koopman artefact used": KOOPMAN_CONTROLLERS, "DMDc artefact used": ("dmdc-eso",)}
-TUNING_COMMENT = "chosen by make tune on the tuning set, results/tuning_sweep.md"
 
 
 @dataclass(frozen=True)
