@@ -7,6 +7,7 @@ debug record come from the solvers' own statistics (OSQP ``info.solve_time``, IP
 from __future__ import annotations
 
 import enum
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
@@ -45,6 +46,14 @@ class VehicleSample(VehicleMeasurement):
     def from_measurement(cls, measurement: VehicleMeasurement, target_speed: float) -> "VehicleSample":
         """The controller's input from a measurement (or any subclass of it) and a target speed."""
         return cls(**measurement.measurement_values(), target_speed=target_speed)
+
+
+def sample_is_finite(sample: VehicleSample) -> bool:
+    """Whether every value of ``sample`` (the eight measured ones and the target speed) is
+    finite: a controller steps only on such samples and falls back otherwise."""
+    return all(math.isfinite(value) for value in (
+        sample.vx, sample.vy, sample.yaw_rate, sample.x, sample.y, sample.yaw,
+        sample.steer_angle, sample.drive_torque, sample.target_speed))
 
 
 @dataclass(frozen=True)

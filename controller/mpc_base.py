@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controller.base import STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug, VehicleSample
+from controller.base import (STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug, VehicleSample,
+                             sample_is_finite)
 from controller.longitudinal import SpeedController
 from controller.reference import PathTracker, ReferencePath
 from controller.tuning import LongitudinalTuning, MpcTuning
@@ -64,9 +65,7 @@ class SteeringMpc(Controller):
 
     def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
         """One control step (see ``Controller.step``)."""
-        values = (sample.vx, sample.vy, sample.yaw_rate, sample.x, sample.y, sample.yaw,
-                  sample.steer_angle, sample.drive_torque, sample.target_speed)
-        if self._tracker is None or not all(math.isfinite(v) for v in values):
+        if self._tracker is None or not sample_is_finite(sample):
             return self._fallback(SolverStatus.NOT_RUN, torque=None)
         torque = self._speed.torque(sample.vx, sample.target_speed)
         projection = self._tracker.update(sample.x, sample.y, sample.yaw)

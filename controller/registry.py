@@ -19,8 +19,14 @@ CONTROLLER_NAMES = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
 #: Ablations (issue 14 item 6), extra rows of the study (``make tables``): the observer on
 #: LMPC's bicycle (offset-free LMPC) and ESO-DKMPC on a DMDc model (no lift).
 ABLATION_NAMES = ("lmpc-eso", "dmdc-eso")
+#: Geometric baselines (issue 35 item 5): no model and no horizon, so that a reader sees
+#: what the MPCs buy. Not among the paper's four (the studies that key on those stay as
+#: they are); the C ECU has none of them.
+GEOMETRIC_NAMES = ("stanley",)
 #: Every name ``create_controller`` builds (the ECU's ``--controller`` choices).
-ALL_CONTROLLER_NAMES = CONTROLLER_NAMES + ABLATION_NAMES
+ALL_CONTROLLER_NAMES = CONTROLLER_NAMES + ABLATION_NAMES + GEOMETRIC_NAMES
+#: The model-predictive controllers (every name but the geometric baselines).
+MPC_NAMES = CONTROLLER_NAMES + ABLATION_NAMES
 
 #: name -> (module, class); each class has ``from_tuning(ControllerTuning)``.
 CONTROLLERS: dict[str, tuple[str, str]] = {
@@ -30,6 +36,7 @@ CONTROLLERS: dict[str, tuple[str, str]] = {
     "nmpc": ("controller.nmpc", "Nmpc"),
     "lmpc-eso": ("controller.lmpc_eso", "LmpcEso"),
     "dmdc-eso": ("controller.dmdc_eso", "DmdcEso"),
+    "stanley": ("controller.stanley", "Stanley"),
 }
 
 

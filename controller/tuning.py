@@ -1,8 +1,8 @@
 """Controller tuning: frozen dataclasses loaded from ``controller/tuning.toml`` and validated.
 
-One TOML table per controller (``[eso-dkmpc]``, ``[dkmpc]``, ``[lmpc]``, ``[nmpc]`` and the
-ablations ``[lmpc-eso]``, ``[dmdc-eso]``) plus ``[longitudinal]`` for the P speed controller
-they all share. Every error names the table,
+One TOML table per controller (``[eso-dkmpc]``, ``[dkmpc]``, ``[lmpc]``, ``[nmpc]``, the
+ablations ``[lmpc-eso]``, ``[dmdc-eso]`` and the geometric baseline ``[stanley]``) plus
+``[longitudinal]`` for the P speed controller they all share. Every error names the table,
 the field and the offending value (``TuningError``). Loading happens at build time only.
 """
 from __future__ import annotations
@@ -146,6 +146,26 @@ class NmpcTuning(MpcTuning):
 
 
 @dataclass(frozen=True)
+class StanleyTuning:
+    """The geometric Stanley law (``controller/stanley.py``; Hoffmann et al. 2007).
+
+    steer = -heading_error - atan(cross_track_gain e_fa / (softening_speed + vx))
+            + yaw_rate_gain (vx kappa - yaw_rate),
+
+    with e_fa the signed cross-track error of the front axle (m, left positive), kappa the
+    path curvature at its foot point (1/m). The result passes a first-order low-pass of
+    time constant ``steer_time_constant`` (s; 0: none), then a rate limit of
+    ``steer_rate_limit`` (rad/s), then the steering limit.
+    """
+
+    cross_track_gain: float
+    softening_speed: float
+    yaw_rate_gain: float
+    steer_rate_limit: float
+    steer_time_constant: float
+
+
+@dataclass(frozen=True)
 class ControllerTuning:
     """The whole tuning file."""
 
@@ -156,11 +176,13 @@ class ControllerTuning:
     nmpc: NmpcTuning
     lmpc_eso: EsoQpMpcTuning
     dmdc_eso: EsoQpMpcTuning
+    stanley: StanleyTuning
 
-    def for_controller(self, name: str) -> MpcTuning:
+    def for_controller(self, name: str) -> MpcTuning | StanleyTuning:
         """The table of registry name ``name`` (e.g. ``"eso-dkmpc"``)."""
         table = {"eso-dkmpc": self.eso_dkmpc, "dkmpc": self.dkmpc, "lmpc": self.lmpc,
-                 "nmpc": self.nmpc, "lmpc-eso": self.lmpc_eso, "dmdc-eso": self.dmdc_eso}
+                 "nmpc": self.nmpc, "lmpc-eso": self.lmpc_eso, "dmdc-eso": self.dmdc_eso,
+                 "stanley": self.stanley}
         if name not in table:
             raise TuningError(f"no tuning table for controller {name!r}")
         return table[name]
@@ -210,6 +232,11 @@ _RULES: dict[str, _Rule] = {
     "eso_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
     "eso_second_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
     "disturbance_decay": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
+    "cross_track_gain": _POSITIVE,
+    "softening_speed": _POSITIVE,
+    "yaw_rate_gain": _NON_NEGATIVE,
+    "steer_rate_limit": _POSITIVE,
+    "steer_time_constant": _NON_NEGATIVE,
 }
 
 
@@ -265,7 +292,7 @@ def _build(cls: type, table_name: str, table: Any) -> Any:
 
 def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
     """Validate a parsed TOML document (dict) into ``ControllerTuning``."""
-    expected = {"longitudinal", "eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso"}
+    expected = {"longitudinal", "eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso", "stanley"}
     unknown = sorted(set(document) - expected)
     if unknown:
         raise TuningError(f"unknown table(s) {unknown}; expected {sorted(expected)}")
@@ -280,6 +307,7 @@ def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
         nmpc=_build(NmpcTuning, "nmpc", document["nmpc"]),
         lmpc_eso=_build(EsoQpMpcTuning, "lmpc-eso", document["lmpc-eso"]),
         dmdc_eso=_build(EsoQpMpcTuning, "dmdc-eso", document["dmdc-eso"]),
+        stanley=_build(StanleyTuning, "stanley", document["stanley"]),
     )
 
 

@@ -41,10 +41,10 @@ from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumen
 if TYPE_CHECKING:
     from firmware_sim.excitation import ExcitationProgram
 
-#: The registry's names (the paper's four, then the ablations), repeated here so that
-#: ``--help`` needs no controller import; a test checks they equal
+#: The registry's names (the paper's four, the ablations, then the geometric baseline),
+#: repeated here so that ``--help`` needs no controller import; a test checks they equal
 #: ``controller.registry.ALL_CONTROLLER_NAMES``.
-CONTROLLER_CHOICES = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso")
+CONTROLLER_CHOICES = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso", "stanley")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 EXIT_OK = 0

@@ -6,10 +6,12 @@ never enters: every run here is one of the tuning set's scenarios (``studies.tun
 (``studies.closed_loop``).
 
 The procedure, identical for every controller of ``controller.registry.CONTROLLERS`` (the
-paper's four and the ablations):
+paper's four, the ablations and the geometric baseline ``stanley``):
 
 1. Stage ``weights``: every setting of ``WEIGHT_GRID`` (the MPC weights; absolute values,
-   the same for every controller). A controller with an observer holds its observer
+   the same for every MPC); a controller without MPC weights (a geometric baseline, its
+   tuning table's class in ``GAIN_GRIDS``) runs its own grid of gains instead
+   (``STANLEY_GRID``) and has no stage 2 to 4. A controller with an observer holds its observer
    fields at ``OBSERVER_START`` meanwhile, and runs the grid again at each of
    ``EXTRA_OBSERVER_STARTS``.
 2. Stage ``observer``, only for a controller whose tuning table has observer fields
@@ -21,7 +23,7 @@ paper's four and the ablations):
    ``OBSERVER_START``: the 2026-12-02 sweep's stage 1 at eso_second_pole 0.97 picked
    q_position 1 for ESO-DKMPC, where no observer setting came within 25 % of the objective
    the previous choice (q_position 3, eso_second_pole 0.995) had.
-4. Stage ``low-speed``, every controller: the weights below the speed schedule's low knot
+4. Stage ``low-speed``, every MPC: the weights below the speed schedule's low knot
    (``low_speed_q_position``, ``low_speed_q_yaw``, ``low_speed_r_steer``; controller.tuning
    ``MpcTuning.weights_at``) over ``LOW_SPEED_GRID`` (the weight grid's levels), every
    other field at the best setting of steps 1-3. Steps 1-3 tune one weighting for every
@@ -50,8 +52,11 @@ and ``tuning_sweep.png``; and, unless ``--no-write``, the chosen values into
 re-read right before writing; every other line is kept).
 
 Usage: ``python -m studies.tuning_sweep [--controllers ...] [--scenarios ...] [--workers N]
-[--address ADDR] [--out DIR] [--tuning FILE] [--no-write] [--no-progress]``; ``--report-from JSON`` only
-rewrites the report and figure from a stored ``tuning_sweep.json``.
+[--address ADDR] [--out DIR] [--tuning FILE] [--no-write] [--no-progress] [--reuse JSON [--merge]]``;
+``--report-from JSON`` only rewrites the report and figure from a stored ``tuning_sweep.json``.
+``--controllers stanley --reuse results/tuning_sweep.json --merge`` tunes one controller and
+keeps every other controller of the stored sweep in the reports as stored (the tuning file
+is written for the named controllers only).
 """
 from __future__ import annotations
 
@@ -78,7 +83,8 @@ from hil.errors import HilError, StudyError
 from hil.scenario import Scenario
 from studies.closed_loop import ABORT_LATERAL_ERROR_M, ClosedLoopResult, run_closed_loop
 from controller.registry import MODEL_FILE_KINDS
-from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, low_speed_twins, with_fixed_weights
+from controller.tuning import (LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, StanleyTuning, low_speed_twins,
+                               with_fixed_weights)
 from studies.tuning_set import TUNING_SET, tuning_scenarios
 
 #: One setting of the swept fields: ``((field, value), ...)`` in grid order (hashable).
@@ -176,6 +182,24 @@ OBSERVER_GRID = SweepGrid((
 EXTRA_OBSERVER_STARTS: tuple[Setting, ...] = (
     (("eso_pole", 0.0), ("eso_second_pole", 0.995), ("disturbance_decay", 0.8)),
 )
+#: Stage 1's grid of the Stanley baseline (controller/stanley.py), which has no MPC weights:
+#: 5 x 2 x 5 x 2 x 2 = 200 settings (a run costs about a twentieth of a QP MPC's, so the
+#: grid can cover every gain). cross_track_gain k (1/s) in x2 steps around where the pure law
+#: (yaw_rate_gain 0) tracked the tuning set best by hand (k 5 of 1, 2.5, 5, 10); 40 already
+#: lost the 60 km/h high-mu scenario. softening_speed at 1 m/s (Hoffmann et al.'s role for
+#: it: finite gain at standstill) and 5 m/s (it also lowers the gain at the tuning speeds).
+#: yaw_rate_gain from 0 (the pure law) to 1.5 s. steer_rate_limit at the plant servo's 1 rad/s
+#: and at 3 rad/s (never binding behind that servo); steer_time_constant 0 (no low-pass) and
+#: 0.05 s: the two production additions, kept only if they win on the tuning set.
+STANLEY_GRID = SweepGrid((
+    ("cross_track_gain", (2.5, 5.0, 10.0, 20.0, 40.0)),
+    ("softening_speed", (1.0, 5.0)),
+    ("yaw_rate_gain", (0.0, 0.3, 0.6, 1.0, 1.5)),
+    ("steer_rate_limit", (1.0, 3.0)),
+    ("steer_time_constant", (0.0, 0.05)),
+))
+#: Controllers without MPC weights, by the class of their tuning table: their stage-1 grid.
+GAIN_GRIDS: dict[type, SweepGrid] = {StanleyTuning: STANLEY_GRID}
 #: Stage 4's grid: the low-speed weights over the levels of WEIGHT_GRID's scheduled weights.
 LOW_SPEED_GRID = SweepGrid(tuple((f"low_speed_{name}", values) for name, values in WEIGHT_GRID.levels
                                  if name in SCHEDULED_WEIGHTS))
@@ -197,15 +221,31 @@ def tuning_table_attribute(tuning: Any, name: str) -> str:
     raise StudyError(f"controller {name!r}: its tuning table is not a field of {type(tuning).__name__}")
 
 
-def swept_fields(table: Any) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """(weight fields, observer fields) of a controller's tuning table (a dataclass).
+def swept_fields(table: Any, gain_grids: Mapping[type, SweepGrid] = GAIN_GRIDS
+                 ) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(weight fields, observer fields) of a controller's tuning table (a dataclass); for a
+    table of ``gain_grids`` (no MPC weights) its grid's fields and no observer fields.
 
-    Raises StudyError when the table lacks one of the MPC weights."""
+    Raises StudyError when an MPC table lacks one of the MPC weights."""
+    if type(table) in gain_grids:
+        return gain_grids[type(table)].fields, ()
     names = {field.name for field in dataclasses.fields(table)}
     missing = [name for name in WEIGHT_FIELDS if name not in names]
     if missing:
         raise StudyError(f"tuning table {type(table).__name__} has no {missing}: cannot sweep its weights")
     return WEIGHT_FIELDS, tuple(name for name in OBSERVER_FIELDS if name in names)
+
+
+def stage_one_grid(table: Any, weight_grid: SweepGrid = WEIGHT_GRID,
+                   gain_grids: Mapping[type, SweepGrid] = GAIN_GRIDS) -> SweepGrid:
+    """Stage 1's grid of a controller with tuning table ``table``: its own grid where its
+    class is in ``gain_grids`` (no MPC weights), else ``weight_grid``."""
+    return gain_grids.get(type(table), weight_grid)
+
+
+def has_low_speed_weights(table: Any) -> bool:
+    """Whether ``table`` has the speed schedule's low-speed weights (stage 4 applies)."""
+    return set(LOW_SPEED_WEIGHTS) <= {field.name for field in dataclasses.fields(table)}
 
 
 def with_setting(tuning: Any, name: str, setting: Setting) -> Any:
@@ -419,6 +459,9 @@ class ControllerSweep:
     evaluations: tuple[Evaluation, ...]
     chosen: Evaluation
     before: Evaluation | None = None
+    #: Stage 1's grid where it is the controller's own (``GAIN_GRIDS``), else None (the
+    #: sweep's weight grid).
+    own_grid: SweepGrid | None = None
 
     def top(self, n: int = TOP_N) -> list[Evaluation]:
         """The ``n`` best evaluations, best first (ties in evaluation order)."""
@@ -431,8 +474,9 @@ def current_setting(tuning: Any, name: str) -> Setting:
     """Controller ``name``'s swept fields as ``tuning`` (a ``ControllerTuning``) has them."""
     table = tuning.for_controller(name)
     weight_fields, observer_fields = swept_fields(table)
+    low_speed = LOW_SPEED_WEIGHTS if has_low_speed_weights(table) else ()
     return tuple((field, float(getattr(table, field)))
-                 for field in weight_fields + observer_fields + LOW_SPEED_WEIGHTS)
+                 for field in weight_fields + observer_fields + low_speed)
 
 
 def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *,
@@ -442,7 +486,8 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
               evaluate_before: bool = False,
               extra_observer_starts: Sequence[Setting] = (),
               low_speed_grid: SweepGrid = LOW_SPEED_GRID,
-              reuse: Mapping[tuple[str, Setting], Evaluation] | None = None) -> list[ControllerSweep]:
+              reuse: Mapping[tuple[str, Setting], Evaluation] | None = None,
+              gain_grids: Mapping[type, SweepGrid] = GAIN_GRIDS) -> list[ControllerSweep]:
     """The procedure of the module docstring for every controller of ``controllers``.
 
     Args:
@@ -463,6 +508,8 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
         reuse: evaluations of an earlier sweep by (controller, setting) (``--reuse``): a
             job found there takes that evaluation instead of running again (the runs are
             deterministic; the caller checks that scenarios and model are the same).
+        gain_grids: stage 1's grid of the controllers without MPC weights, by tuning-table
+            class (tests shrink it); they have no stages 2 to 4.
 
     Returns:
         One :class:`ControllerSweep` per controller, in ``controllers`` order.
@@ -472,11 +519,17 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
     if workers < 1:
         raise StudyError(f"workers must be >= 1, got {workers}")
     plans = {}
+    grids = {}
+    scheduled = set()
     for name in controllers:
-        weight_fields, observer_fields = swept_fields(tuning.for_controller(name))
+        table = tuning.for_controller(name)
+        weight_fields, observer_fields = swept_fields(table, gain_grids)
         plans[name] = (weight_fields, observer_fields)
+        grids[name] = stage_one_grid(table, weight_grid, gain_grids)
+        if has_low_speed_weights(table):
+            scheduled.add(name)
     stage_one = {name: [setting for start in (observer_start, *(extra_observer_starts if plans[name][1] else ()))
-                        for setting in stage_one_settings(plans[name][1], weight_grid, start)]
+                        for setting in stage_one_settings(plans[name][1], grids[name], start)]
                  for name in controllers}
     stage_two_size = {name: len(observer_grid.restricted(plans[name][1])) if plans[name][1] else 0
                       for name in controllers}
@@ -515,7 +568,7 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
             _alternate(executor, evaluations, {n: plans[n][1] for n in controllers}, weight_grid,
                        observer_grid, progress, len(scenarios))
             jobs = []
-            for name in controllers:
+            for name in (n for n in controllers if n in scheduled):
                 current = best(evaluations[name]).setting
                 flat = dict(with_low_speed_weights(current))
                 for low_speed in low_speed_grid.settings():
@@ -529,8 +582,10 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
         finally:
             executor.close()
     low_speed_fields = low_speed_grid.fields
-    return [ControllerSweep(name, plans[name][0] + low_speed_fields, plans[name][1], tuple(evaluations[name]),
-                            best(evaluations[name]), before.get(name)) for name in controllers]
+    return [ControllerSweep(name, plans[name][0] + (low_speed_fields if name in scheduled else ()), plans[name][1],
+                            tuple(evaluations[name]), best(evaluations[name]), before.get(name),
+                            grids[name] if grids[name] is not weight_grid else None)
+            for name in controllers]
 
 
 def _alternate(executor: "SweepExecutor", evaluations: dict[str, list[Evaluation]],
@@ -682,12 +737,15 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], names: Sequence[str],
            f"observer setting and the observer grid at the best weights, until a round keeps the best "
            f"(at most {MAX_EXTRA_ROUNDS} rounds; evaluations of these rounds are listed under the "
            f"stage of their grid).",
-           f"- Stage 4, low-speed weights (every controller, {len(LOW_SPEED_GRID)} settings at the best "
+           f"- Stage 4, low-speed weights (every MPC, {len(LOW_SPEED_GRID)} settings at the best "
            f"setting so far): {_grid_text(LOW_SPEED_GRID)}; the weights the MPC uses at and below the "
            "speed schedule's low knot, blended linearly in vx into the others up to its high knot "
            "(`weight_schedule_speeds` in controller/tuning.toml). A setting without low-speed fields has "
            "the same weights at every speed.",
            ]
+    out += [f"- Stage 1 of {sweep.controller} (no MPC weights: its own gains, {len(sweep.own_grid)} "
+            f"settings; no stages 2-4): {_grid_text(sweep.own_grid)}."
+            for sweep in sweeps if sweep.own_grid is not None]
     out += [f"- {key}: {value}" for key, value in context.items()]
     out += ["", "| controller | swept fields | evaluations | chosen setting | tuning-set e_Y RMSE (m) "
             "| before: setting, e_Y RMSE (m) | runs incomplete | s / evaluation |",
@@ -704,7 +762,7 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], names: Sequence[str],
                    f"{before_text} | {incomplete} of {len(sweep.evaluations) * len(names)} | {seconds:.1f} |")
     for sweep in sweeps:
         out += ["", f"#### {sweep.controller}", "",
-                f"Stage 1: {_grid_text(weight_grid)}"
+                f"Stage 1: {_grid_text(sweep.own_grid or weight_grid)}"
                 + (f"; stage 2: {_grid_text(observer_grid.restricted(sweep.observer_fields))}."
                    if sweep.observer_fields else "; no observer fields (no stage 2)."),
                 "", f"Top {TOP_N} (chosen first):", "",
@@ -718,7 +776,8 @@ def sweep_markdown(sweeps: Sequence[ControllerSweep], names: Sequence[str],
                        f"{evaluation.objective_m:.4f} | {worst_name}: {evaluation.rmse_m[worst_name]:.4f} | "
                        f"{', '.join(incomplete) or '-'} |")
         chosen = sweep.chosen
-        grid_levels = dict(weight_grid.levels) | dict(observer_grid.levels) | dict(LOW_SPEED_GRID.levels)
+        grid_levels = (dict((sweep.own_grid or weight_grid).levels) | dict(observer_grid.levels)
+                       | dict(LOW_SPEED_GRID.levels))
         # Only fields with an interior level: with two levels every choice is an "edge".
         edges = [name for name, value in chosen.setting
                  if len(grid_levels.get(name, ())) > 2 and value in (min(grid_levels[name]), max(grid_levels[name]))]
@@ -775,6 +834,7 @@ def sweep_document(sweeps: Sequence[ControllerSweep], names: Sequence[str],
         "controllers": {
             sweep.controller: {
                 "swept_fields": list(sweep.weight_fields + sweep.observer_fields),
+                **({} if sweep.own_grid is None else {"own_grid": sweep.own_grid.as_dict()}),
                 "before": None if sweep.before is None else sweep.before.as_dict(),
                 "chosen": sweep.chosen.as_dict(),
                 "evaluations": [e.as_dict() for e in sweep.evaluations],
@@ -817,10 +877,11 @@ def sweep_from_document(document: Mapping[str, Any]) -> SweepRecord:
             fields = tuple(entry["swept_fields"])
             sweeps.append(ControllerSweep(
                 controller=name,
-                weight_fields=tuple(f for f in fields if f in WEIGHT_FIELDS + LOW_SPEED_WEIGHTS),
-                observer_fields=tuple(f for f in fields if f not in WEIGHT_FIELDS + LOW_SPEED_WEIGHTS),
+                weight_fields=tuple(f for f in fields if f not in OBSERVER_FIELDS),
+                observer_fields=tuple(f for f in fields if f in OBSERVER_FIELDS),
                 evaluations=evaluations, chosen=best(evaluations),
-                before=None if entry.get("before") is None else _evaluation_from_dict(entry["before"])))
+                before=None if entry.get("before") is None else _evaluation_from_dict(entry["before"]),
+                own_grid=None if entry.get("own_grid") is None else _grid_from_dict(entry["own_grid"])))
         return SweepRecord(sweeps, list(document["scenarios"]), dict(document["context"]),
                            _grid_from_dict(document["weight_grid"]), _grid_from_dict(document["observer_grid"]),
                            tuple((k, float(v)) for k, v in document["observer_start"].items()))
@@ -870,6 +931,40 @@ def reusable_evaluations(path: Path, scenario_names: Sequence[str],
     return found
 
 
+def carried_sweeps(path: Path, scenario_names: Sequence[str], run_now: Sequence[str],
+                   artefacts: Mapping[str, str]) -> list[ControllerSweep]:
+    """The controllers of the sweep document at ``path`` that ``run_now`` does not name, as
+    stored (``--merge``): they go into the reports unchanged.
+
+    Raises:
+        StudyError: the document ran other scenarios, or a carried controller runs on a model
+            file (``ARTEFACT_USERS``) that changed since (or was not recorded): its stored
+            runs would not be this sweep's.
+    """
+    try:
+        record = sweep_from_document(json.loads(path.read_text()))
+    except (OSError, json.JSONDecodeError) as e:
+        raise StudyError(f"--merge {path}: cannot read it: {e}") from e
+    if list(record.names) != list(scenario_names):
+        raise StudyError(f"--merge {path}: it ran scenarios {record.names}, this sweep runs {list(scenario_names)}")
+    carried = [sweep for sweep in record.sweeps if sweep.controller not in run_now]
+    for key, description in artefacts.items():
+        stale = [s.controller for s in carried if s.controller in ARTEFACT_USERS[key]]
+        if stale and record.context.get(key) != description:
+            raise StudyError(f"--merge {path}: {key} {record.context.get(key)}, this sweep {description}: "
+                             f"the stored runs of {', '.join(stale)} are not this sweep's; name them in "
+                             "--controllers to run them again")
+    return carried
+
+
+def merged_sweeps(stored: Sequence[ControllerSweep], fresh: Sequence[ControllerSweep]) -> list[ControllerSweep]:
+    """``stored`` (the carried controllers) with ``fresh`` in place of a stored controller of
+    the same name, in the stored order; fresh controllers new to it follow in their order."""
+    by_name = {sweep.controller: sweep for sweep in fresh}
+    merged = [by_name.pop(sweep.controller, sweep) for sweep in stored]
+    return merged + [sweep for sweep in fresh if sweep.controller in by_name]
+
+
 def artefact_description(path: Path) -> str:
     """``<file> sha256 <first 12 hex>`` of a model file the sweep used (the default Koopman
     artefact, the DMDc model)."""
@@ -911,6 +1006,10 @@ def main(argv: list[str] | None = None) -> int:
                              "running them again (same scenarios required; the controllers on a model file "
                              "that changed since, the Koopman artefact or the DMDc model, run again; the "
                              "runs are deterministic, so only settings not in it run)")
+    parser.add_argument("--merge", action="store_true",
+                        help="with --reuse: the reports also keep every controller of the --reuse sweep "
+                             "that --controllers does not name, as stored there (not run, not written "
+                             "into the tuning file); tunes a controller without touching the others' results")
     parser.add_argument("--report-from", type=Path, default=None, metavar="JSON",
                         help="no sweep: rewrite the .md and .png in --out from a tuning_sweep.json "
                              "(the tuning file is not touched)")
@@ -924,6 +1023,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         print(f"wrote {args.out}/tuning_sweep.md, .png from {args.report_from}")
         return 0
+    if args.merge and args.reuse is None:
+        print("error: --merge keeps the controllers of the --reuse sweep: give --reuse JSON", file=sys.stderr)
+        return 1
     controllers = list(args.controllers or CONTROLLERS)
     model_files = {"Koopman artefact used": Path(DEFAULT_ARTIFACT), "DMDc artefact used": DMDC_ARTIFACT}
     artefacts_before = {key: artefact_description(path) for key, path in model_files.items()}
@@ -933,6 +1035,8 @@ def main(argv: list[str] | None = None) -> int:
         tuning = load_tuning(args.tuning)
         reuse = (None if args.reuse is None
                  else reusable_evaluations(args.reuse, [s.name for s in scenarios], artefacts_before))
+        carried = (carried_sweeps(args.reuse, [s.name for s in scenarios], controllers, artefacts_before)
+                   if args.merge else [])
         sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers, address=args.address,
                            show_progress=not args.no_progress, evaluate_before=True,
                            extra_observer_starts=EXTRA_OBSERVER_STARTS, reuse=reuse)
@@ -954,10 +1058,12 @@ def main(argv: list[str] | None = None) -> int:
         **artefacts_before,
         **({"Reused": f"{reused} evaluations ({reused * len(scenarios)} runs) from {args.reuse} "
                       "(--reuse: the same runs, not run again)"} if reuse else {}),
+        **({"Carried over": f"{', '.join(s.controller for s in carried)} as stored in {args.reuse} "
+                            f"(--merge: this sweep ran {', '.join(controllers)} only)"} if carried else {}),
         "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {run_now} closed-loop runs",
     }
-    write_reports(SweepRecord(sweeps, [s.name for s in scenarios], context, WEIGHT_GRID, OBSERVER_GRID,
-                              OBSERVER_START), args.out)
+    write_reports(SweepRecord(merged_sweeps(carried, sweeps), [s.name for s in scenarios], context,
+                              WEIGHT_GRID, OBSERVER_GRID, OBSERVER_START), args.out)
     for sweep in sweeps:
         print(f"{sweep.controller}: {_setting_text(sweep.chosen.setting)} -> "
               f"{sweep.chosen.objective_m:.4f} m")

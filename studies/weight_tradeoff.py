@@ -220,11 +220,12 @@ def plot(points: Mapping[str, list[Point]], file: Path) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from controller.registry import ALL_CONTROLLER_NAMES
+    from controller.registry import MPC_NAMES
     from controller.tuning import load_tuning
 
     parser = argparse.ArgumentParser(prog="python -m studies.weight_tradeoff", description=__doc__.splitlines()[0])
-    parser.add_argument("--controllers", nargs="+", choices=ALL_CONTROLLER_NAMES, default=ALL_CONTROLLER_NAMES)
+    # The MPCs only: the study sweeps eq. 15's weights, which a geometric baseline has not.
+    parser.add_argument("--controllers", nargs="+", choices=MPC_NAMES, default=MPC_NAMES)
     parser.add_argument("--workers", type=int, default=2,
                         help="Ray workers (default 2; 1 runs in this process); on a cluster the most runs at once")
     parser.add_argument("--address", default=None, help="Ray cluster: auto, HOST:PORT or ray://HOST:PORT")

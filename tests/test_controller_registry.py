@@ -9,7 +9,8 @@ import pytest
 from controller.base import Controller, SolverStatus, VehicleSample
 from controller.errors import TuningError, UnknownControllerError
 from controller.reference import ReferencePath
-from controller.registry import ABLATION_NAMES, ALL_CONTROLLER_NAMES, CONTROLLER_NAMES, CONTROLLERS, create_controller
+from controller.registry import (ABLATION_NAMES, ALL_CONTROLLER_NAMES, CONTROLLER_NAMES, CONTROLLERS,
+                                 GEOMETRIC_NAMES, MPC_NAMES, create_controller)
 
 
 def koopman_artefact_missing() -> bool:
@@ -21,7 +22,9 @@ def koopman_artefact_missing() -> bool:
 def test_names_match_the_interface() -> None:
     assert CONTROLLER_NAMES == ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
     assert ABLATION_NAMES == ("lmpc-eso", "dmdc-eso")
-    assert ALL_CONTROLLER_NAMES == CONTROLLER_NAMES + ABLATION_NAMES
+    assert GEOMETRIC_NAMES == ("stanley",)
+    assert ALL_CONTROLLER_NAMES == CONTROLLER_NAMES + ABLATION_NAMES + GEOMETRIC_NAMES
+    assert MPC_NAMES == CONTROLLER_NAMES + ABLATION_NAMES
     assert set(CONTROLLERS) == set(ALL_CONTROLLER_NAMES)
 
 
@@ -57,4 +60,6 @@ def test_each_controller_builds_and_steps(name: str) -> None:
     print(name, command, debug.status.name, debug.iterations, f"{debug.solve_time_s * 1e3:.2f} ms")
     assert debug.status in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE) and not debug.fallback
     assert command.steer_angle < 0.0  # left of the path: steer right
-    assert debug.predicted_pose.shape == debug.predicted_state.shape == (controller.tuning.prediction_horizon, 3)
+    # A geometric law predicts nothing: empty (0, 3) records.
+    horizon = controller.tuning.prediction_horizon if name in MPC_NAMES else 0
+    assert debug.predicted_pose.shape == debug.predicted_state.shape == (horizon, 3)

@@ -11,13 +11,13 @@ import scipy.sparse as sparse
 
 from controller.base import VehicleSample
 from controller.reference import ReferencePath
-from controller.registry import ALL_CONTROLLER_NAMES, create_controller
+from controller.registry import MPC_NAMES, create_controller
 from controller.steering_qp import (N_SOFT_STATES, OSQP_SCALING_ITERATIONS, SOFT_LEADING_STEPS, SOFT_STATES,
                                    SOFT_STEP_STRIDE, SteeringQp, soft_state_rows, soft_steps)
 from controller.tuning import load_tuning
 
-#: The controllers that solve SteeringQp (NMPC solves its own NLP).
-QP_CONTROLLERS = [name for name in ALL_CONTROLLER_NAMES if name != "nmpc"]
+#: The controllers that solve SteeringQp (NMPC solves its own NLP; the geometric baselines none).
+QP_CONTROLLERS = [name for name in MPC_NAMES if name != "nmpc"]
 
 
 def koopman_artefact_missing() -> bool:

@@ -15,16 +15,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from controller.registry import CONTROLLERS
+from controller.registry import CONTROLLERS, GEOMETRIC_NAMES, MPC_NAMES
 from controller.tuning import DEFAULT_TUNING_PATH, load_tuning, parse_tuning
 from hil.errors import ScenarioError, StudyError
 from hil.scenario import Scenario, list_scenarios, load_scenario
 from studies import tuning_sweep
 from studies.tuning_set import (POINT_SPACING_M, TUNING_SET, path_points, scenario_text,
                                 tuning_scenarios)
+from controller.tuning import StanleyTuning
 from studies.tuning_sweep import (FAILURE_PENALTY_M, OBSERVER_FIELDS, OBSERVER_GRID,
-                                  OBSERVER_START, WEIGHT_FIELDS, WEIGHT_GRID, SweepGrid,
-                                  run_sweep, stage_one_settings, stage_two_settings,
+                                  OBSERVER_START, STANLEY_GRID, WEIGHT_FIELDS, WEIGHT_GRID, SweepGrid,
+                                  run_sweep, stage_one_grid, stage_one_settings, stage_two_settings,
                                   swept_fields, update_tuning_text)
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -95,8 +96,16 @@ def test_the_procedure_is_the_same_for_every_registered_controller() -> None:
     def part(setting, fields):
         return tuple((name, value) for name, value in setting if name in fields)
 
+    assert set(MPC_NAMES) | set(GEOMETRIC_NAMES) == set(CONTROLLERS)
+    for name in GEOMETRIC_NAMES:  # no MPC weights: its own stage-1 grid, nothing after it
+        table = tuning.for_controller(name)
+        assert swept_fields(table) == (STANLEY_GRID.fields, ())
+        assert stage_one_grid(table) is STANLEY_GRID
+        assert stage_one_settings((), stage_one_grid(table)) == STANLEY_GRID.settings()
+        assert not tuning_sweep.has_low_speed_weights(table)
     stage_one = {}
-    for name in CONTROLLERS:
+    for name in MPC_NAMES:
+        assert stage_one_grid(tuning.for_controller(name)) is WEIGHT_GRID
         weight_fields, observer_fields = swept_fields(tuning.for_controller(name))
         assert weight_fields == WEIGHT_FIELDS
         assert observer_fields in ((), OBSERVER_FIELDS), name
@@ -117,8 +126,10 @@ def test_every_grid_setting_is_a_valid_tuning_file() -> None:
     text = DEFAULT_TUNING_PATH.read_text()
     observed = [name for name in CONTROLLERS if swept_fields(load_tuning().for_controller(name))[1]]
     for weights in WEIGHT_GRID.settings():
-        chosen = {name: weights for name in CONTROLLERS}
+        chosen = {name: weights for name in MPC_NAMES}
         parse_tuning(tomllib.loads(update_tuning_text(text, chosen)))
+    for gains in STANLEY_GRID.settings():
+        parse_tuning(tomllib.loads(update_tuning_text(text, {"stanley": gains})))
     for observer in OBSERVER_GRID.settings():
         chosen = {name: observer for name in observed}
         parse_tuning(tomllib.loads(update_tuning_text(text, chosen)))
@@ -284,20 +295,26 @@ def test_report_rebuilds_from_the_stored_document(tmp_path: Path) -> None:
     assert "q_position 10" in markdown.split("#### lmpc")[1].split("\n| 1 |")[1].splitlines()[0]
 
 
-def test_reuse_of_another_artefact_reruns_the_koopman_controllers(tmp_path: Path) -> None:
-    """--reuse of a sweep on another Koopman artefact keeps the physics-model controllers'
-    evaluations and leaves out those of the controllers on the Koopman model."""
+def _stored_lmpc_dkmpc_sweep(tmp_path: Path) -> tuple[Path, list]:
+    """A stand-in sweep of LMPC and DKMPC on scenario "a", stored as a sweep document
+    recording the Koopman artefact "dk_d5.npz sha256 aaaaaaaaaaaa": (its path, the sweeps)."""
     import json
 
-    tuning = load_tuning()
     weights = SweepGrid((("q_position", (10.0, 100.0)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
                          ("p_steer_rate", (300.0,))))
-    sweeps = run_sweep(["lmpc", "dkmpc"], [_scenario("a")], tuning, weight_grid=weights,
+    sweeps = run_sweep(["lmpc", "dkmpc"], [_scenario("a")], load_tuning(), weight_grid=weights,
                        runner=lambda scenario, controller: _fake_result(0.01), show_progress=False,
                        low_speed_grid=NO_LOW_SPEED)
     context = {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa"}
     path = tmp_path / "sweep.json"
     path.write_text(json.dumps(tuning_sweep.sweep_document(sweeps, ["a"], context, weights)))
+    return path, sweeps
+
+
+def test_reuse_of_another_artefact_reruns_the_koopman_controllers(tmp_path: Path) -> None:
+    """--reuse of a sweep on another Koopman artefact keeps the physics-model controllers'
+    evaluations and leaves out those of the controllers on the Koopman model."""
+    path, _ = _stored_lmpc_dkmpc_sweep(tmp_path)
     same = tuning_sweep.reusable_evaluations(path, ["a"], {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa"})
     other = tuning_sweep.reusable_evaluations(path, ["a"], {"Koopman artefact used": "dk_d5.npz sha256 bbbbbbbbbbbb"})
     assert {name for name, _ in same} == {"lmpc", "dkmpc"}
@@ -427,3 +444,74 @@ def test_reuse_takes_stored_evaluations_and_runs_only_the_rest() -> None:
         tuning_sweep.reuse_key((("q_position", 3.0), ("q_yaw", 20.0), ("r_steer", 1.0),
                                 ("low_speed_q_position", 3.0), ("low_speed_q_yaw", 20.0),
                                 ("low_speed_r_steer", 1.0)))
+
+
+def test_geometric_controller_runs_its_own_grid_and_no_later_stage(tmp_path: Path) -> None:
+    """Stanley (no MPC weights): stage 1 over its gain grid only, no observer or low-speed
+    stage, its setting before the sweep reported; the report names its grid and rebuilds
+    from the stored document."""
+    import json
+
+    tuning = load_tuning()
+    gains = SweepGrid((("cross_track_gain", (1.0, 4.0, 16.0)), ("softening_speed", (1.0,)),
+                       ("yaw_rate_gain", (0.0, 0.5)), ("steer_rate_limit", (1.0,)),
+                       ("steer_time_constant", (0.0,))))
+
+    def runner(scenario, controller):
+        table = controller.tuning
+        if not isinstance(table, StanleyTuning):
+            return _fake_result(0.01)
+        return _fake_result(0.01 * abs(np.log2(table.cross_track_gain / 4.0)) + 0.001 + 0.002 * table.yaw_rate_gain)
+
+    sweeps = run_sweep(["lmpc", "stanley"], [_scenario("a")], tuning, weight_grid=STAND_IN_WEIGHTS,
+                       runner=runner, show_progress=False, evaluate_before=True, gain_grids={StanleyTuning: gains})
+    lmpc, stanley = sweeps
+    assert lmpc.own_grid is None and stanley.own_grid is gains
+    assert [e.stage for e in stanley.evaluations] == ["weights"] * len(gains)
+    assert stanley.weight_fields == gains.fields and stanley.observer_fields == ()
+    assert dict(stanley.chosen.setting) == {"cross_track_gain": 4.0, "softening_speed": 1.0, "yaw_rate_gain": 0.0,
+                                            "steer_rate_limit": 1.0, "steer_time_constant": 0.0}
+    assert stanley.before is not None and dict(stanley.before.setting) == {
+        name: getattr(tuning.stanley, name) for name in STANLEY_GRID.fields}
+    assert "low_speed_q_position" in lmpc.weight_fields  # the MPC still has stage 4
+    markdown = tuning_sweep.sweep_markdown(sweeps, ["a"], {}, STAND_IN_WEIGHTS)
+    assert "- Stage 1 of stanley (no MPC weights: its own gains, 6 settings; no stages 2-4)" in markdown
+    assert "Stage 1: cross_track_gain {1, 4, 16}" in markdown.split("#### stanley")[1]
+    document = json.loads(json.dumps(tuning_sweep.sweep_document(sweeps, ["a"], {}, STAND_IN_WEIGHTS)))
+    record = tuning_sweep.sweep_from_document(document)
+    assert record.sweeps[1].own_grid == gains and record.sweeps[1].weight_fields == gains.fields
+    assert tuning_sweep.sweep_markdown(record.sweeps, ["a"], {}, STAND_IN_WEIGHTS) == markdown
+    # The chosen gains go into the [stanley] table and load back.
+    text = update_tuning_text(DEFAULT_TUNING_PATH.read_text(), {"stanley": stanley.chosen.setting})
+    assert parse_tuning(tomllib.loads(text)).stanley.cross_track_gain == 4.0
+
+
+def test_merge_carries_the_stored_controllers_over(tmp_path: Path) -> None:
+    """--merge: the stored sweep's other controllers come back as stored, in its order, the
+    controllers run now in their place or after; a carried controller on a model file that
+    changed is refused."""
+    import json
+
+    path, stored = _stored_lmpc_dkmpc_sweep(tmp_path)
+    artefact = {"Koopman artefact used": "dk_d5.npz sha256 aaaaaaaaaaaa"}
+    carried = tuning_sweep.carried_sweeps(path, ["a"], ["stanley", "lmpc"], artefact)
+    assert [s.controller for s in carried] == ["dkmpc"]
+    assert [e.objective_m for e in carried[0].evaluations] == [e.objective_m for e in stored[1].evaluations]
+    fresh = run_sweep(["stanley", "lmpc"], [_scenario("a")], load_tuning(), weight_grid=STAND_IN_WEIGHTS,
+                      runner=lambda scenario, controller: _fake_result(0.02), show_progress=False,
+                      low_speed_grid=NO_LOW_SPEED,
+                      gain_grids={StanleyTuning: SweepGrid(tuple((name, values[:1]) for name, values in STANLEY_GRID.levels))})
+    merged = tuning_sweep.merged_sweeps(tuning_sweep.sweep_from_document(json.loads(path.read_text())).sweeps, fresh)
+    assert [s.controller for s in merged] == ["lmpc", "dkmpc", "stanley"]
+    assert merged[0] is fresh[1] and merged[2] is fresh[0]
+    with pytest.raises(StudyError, match="dkmpc"):
+        tuning_sweep.carried_sweeps(path, ["a"], ["stanley"], {"Koopman artefact used": "dk_d5.npz sha256 b"})
+    # Without dkmpc carried over, another artefact is no reason to refuse.
+    assert tuning_sweep.carried_sweeps(path, ["a"], ["dkmpc"], {"Koopman artefact used": "other"})[0].controller == "lmpc"
+    with pytest.raises(StudyError, match="scenarios"):
+        tuning_sweep.carried_sweeps(path, ["b"], ["stanley"], artefact)
+
+
+def test_cli_merge_needs_reuse(tmp_path: Path, capsys) -> None:
+    status = tuning_sweep.main(["--controllers", "stanley", "--merge", "--out", str(tmp_path / "out"), "--no-write"])
+    assert status == 1 and "--merge" in capsys.readouterr().err and not (tmp_path / "out").exists()
