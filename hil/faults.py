@@ -565,7 +565,8 @@ class FaultInjector:
 
     def vehicle(self, scenario: Any) -> FourWheelVehicle | None:
         """The plant's ``models.vehicle.FourWheelVehicle`` for ``scenario`` with the
-        vehicle faults (None when there are none: the plant builds its own)."""
+        vehicle faults and the scenario's disturbances (None when there are no vehicle
+        faults: the plant builds its own, ``Scenario.vehicle``)."""
         v = self.spec.vehicle
         if v == VehicleFaults():
             return None
@@ -575,8 +576,8 @@ class FaultInjector:
             steer_time_constant=params.steer_time_constant + v.steer_extra_lag_s,
             cornering_stiffness_rear_scale=params.cornering_stiffness_rear_scale * v.cornering_stiffness_rear_scale)
         if v.steer_offset_rad == 0.0:
-            return FourWheelVehicle(params)
-        return OffsetSteeringVehicle(params, v.steer_offset_rad)
+            return scenario.vehicle(params)
+        return OffsetSteeringVehicle(params, v.steer_offset_rad, disturbances=scenario.disturbances)
 
     def records(self) -> list[FaultRecord]:
         """What each fault did (bus faults in spec order, then the sensor fault if any)."""
@@ -594,10 +595,12 @@ class FaultInjector:
 
 class OffsetSteeringVehicle(FourWheelVehicle):
     """A vehicle whose steering actuator settles at command + offset (a misaligned rack);
-    the measured STEER_ANGLE is the true wheel angle, offset included."""
+    the measured STEER_ANGLE is the true wheel angle, offset included. (A scenario's
+    ``[disturbances] steer_offset_rad`` is the other kind: the wheels sit off the
+    actuator's state, which STEER_ANGLE reports, so the offset is not seen.)"""
 
-    def __init__(self, params: Any, offset_rad: float) -> None:
-        super().__init__(params)
+    def __init__(self, params: Any, offset_rad: float, disturbances: Any = None) -> None:
+        super().__init__(params, disturbances=disturbances)
         self.steer_offset_rad = offset_rad
 
     def step(self, command: VehicleCommand, dt: float) -> Any:

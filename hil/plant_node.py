@@ -86,13 +86,13 @@ class PlantNode:
     """The HIL plant: vehicle model, its three output frames and the command input.
 
     Args:
-        scenario: road friction, mass, start state and faults of the run.
+        scenario: road friction, mass, start state, faults and disturbances of the run.
         vehicle: a ready vehicle (tests); default: built from the scenario.
     """
 
     def __init__(self, scenario: Scenario, vehicle: FourWheelVehicle | None = None) -> None:
         self.scenario = scenario
-        self.vehicle = vehicle if vehicle is not None else FourWheelVehicle(scenario.vehicle_params())
+        self.vehicle = vehicle if vehicle is not None else scenario.vehicle()
         start = scenario.start
         self.vehicle.reset(vx=start.speed_mps, x=start.x_m, y=start.y_m, yaw=start.yaw_rad)
         self.mu_step = mu_step_from_faults(scenario.faults, scenario.source)
@@ -160,7 +160,7 @@ class PlantNode:
     def advance(self, tick_ms: int, dt_s: float) -> None:
         """Apply the newest command, record the state at ``tick_ms``, integrate ``dt_s``."""
         command = self.apply_newest_command(tick_ms)
-        self._record(tick_ms, self.vehicle.outputs(), command)
+        self._record(tick_ms, self.vehicle.true_outputs(), command)
         if self.mu_step is not None and tick_ms / 1000.0 >= self.mu_step.time_s \
                 and self.vehicle.mu != self.mu_step.mu:
             self.vehicle.set_friction(self.mu_step.mu)
@@ -185,6 +185,8 @@ class PlantNode:
 
     def trace(self) -> dict[str, np.ndarray]:
         """Recorded time series: column name -> array of shape (n_ticks,)
-        (columns :data:`TRACE_COLUMNS`; state at each tick before integrating)."""
+        (columns :data:`TRACE_COLUMNS`; the true state at each tick before integrating:
+        without a scenario's yaw-rate bias, ``steer`` the true wheel angle with its
+        steering offset; the frames carry what the sensors report)."""
         table = np.array(self._trace, dtype=float).reshape(-1, len(TRACE_COLUMNS))
         return {name: table[:, i].copy() for i, name in enumerate(TRACE_COLUMNS)}

@@ -30,6 +30,19 @@ everything else SI; the attributes of :class:`Scenario` are SI)::
 
     [faults]                     # optional; kept raw for the fault injector
 
+    [disturbances]               # optional; models.disturbance.Disturbances (docs/plant.md)
+    start_s = 0.0                # they act from here on (s)
+    steer_offset_rad = 0.01      # wheels off the actuator (and the reported) angle
+    bank_angle_rad = 0.03        # road crossfall, + = left edge lower
+    crosswind_force_n = 400.0    # along +y (left), at crosswind_cp_m ahead of the CG
+    crosswind_cp_m = 0.6
+    gust_force_n = 800.0         # 1-cos gust at the same point
+    gust_start_s = 2.0
+    gust_duration_s = 1.0
+    yaw_rate_bias_rad_s = 0.005  # on the reported YAW_RATE only
+    pull_wheel = "FR"            # FL, FR, RL, RR: that tyre's cornering stiffness
+    pull_stiffness_scale = 0.7   # x this factor
+
 Every error names the file, the field and the offending value.
 """
 from __future__ import annotations
@@ -62,7 +75,7 @@ _DURATION_RANGE_S = (0.025, 3600.0)
 
 _ALLOWED_FIELDS: dict[str, frozenset[str]] = {
     "": frozenset({"name", "description", "duration_s", "path", "road", "vehicle", "start",
-                   "speed_profile", "faults"}),
+                   "speed_profile", "faults", "disturbances"}),
     "path": frozenset({"id", "file"}),
     "road": frozenset({"mu"}),
     "vehicle": frozenset({"mass_kg", "mass_offset_kg"}),
@@ -101,12 +114,21 @@ class StartState:
     speed_mps: float
 
 
+def _no_disturbances() -> Any:
+    """``models.disturbance.Disturbances()``: nothing acts (lazy import, as the models)."""
+    from models.disturbance import Disturbances
+
+    return Disturbances()
+
+
 @dataclass(frozen=True)
 class Scenario:
     """One closed-loop run's conditions (SI units); load with :meth:`load`.
 
     ``mass_kg`` None means the plant's nominal mass plus ``mass_offset_kg``.
     ``faults`` is the file's ``[faults]`` table, read-only and uninterpreted here.
+    ``disturbances``: the ``[disturbances]`` table as ``models.disturbance.Disturbances``
+    (all zero without one); :meth:`vehicle` builds the plant with them.
     """
 
     name: str
@@ -123,6 +145,7 @@ class Scenario:
     faults: Mapping[str, Any] = field(
         default_factory=lambda: types.MappingProxyType({}), hash=False, compare=False
     )
+    disturbances: Any = field(default_factory=_no_disturbances)
 
     @classmethod
     def load(cls, file: str | Path) -> "Scenario":
@@ -165,6 +188,15 @@ class Scenario:
 
         nominal = load_vehicle_params()
         return load_vehicle_params(mu=self.mu, mass=self.plant_mass(nominal.mass))
+
+    def vehicle(self, params: Any = None) -> Any:
+        """The plant of this scenario: ``models.vehicle.FourWheelVehicle`` with ``params``
+        (default :meth:`vehicle_params`) and the scenario's disturbances. The HIL plant node
+        and the closed-loop runner without CAN both build their plant here."""
+        from models.vehicle import FourWheelVehicle
+
+        return FourWheelVehicle(params if params is not None else self.vehicle_params(),
+                                disturbances=self.disturbances)
 
 
 def load_scenario(name_or_file: str | Path) -> Scenario:
@@ -310,6 +342,12 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
     faults_raw = raw.get("faults", {})
     if not isinstance(faults_raw, dict):
         raise top.error("faults", faults_raw, "must be a table")
+    from models.disturbance import DisturbanceError, Disturbances
+
+    try:
+        disturbances = Disturbances.from_mapping(raw.get("disturbances", {}), file)
+    except DisturbanceError as e:
+        raise ScenarioError(str(e)) from e
     return Scenario(
         name=name,
         description=description,
@@ -323,4 +361,5 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
         start=start,
         speed_profile=profile,
         faults=types.MappingProxyType(copy.deepcopy(faults_raw)),
+        disturbances=disturbances,
     )

@@ -16,6 +16,11 @@ Model (body frame at the CG, x forward, y left, yaw counter-clockwise):
   speed) and never drives the car backwards.
 - Steering actuator: rate-limited first-order lag on the front wheel angle, the command
   saturated at +-steer_limit; torque actuator: first-order lag, saturated.
+- Disturbances (``models.disturbance``, optional): a steering offset between the actuator
+  and the wheels, an external lateral force at the CG and yaw moment (crosswind, gusts,
+  the bank's gravity component) and a factor on one tyre's cornering stiffness enter the
+  derivative as a ``PlantDisturbance``; without one the equations are the nominal ones,
+  evaluated by the same code (bit for bit the same results).
 
 Why the wheel dynamics stay non-stiff: with the slip computed algebraically as
 (wR - v)/v, the wheel mode has an eigenvalue ~ R^2 K_x / (J v), about 7000/v 1/s, which
@@ -47,7 +52,9 @@ import numpy as np
 from models.errors import VehicleCommandError, VehicleDivergedError
 from models.measurement import VehicleMeasurement, wrap_angle
 from models.tyre import tyre_forces, wheel_stiffness_scale
+from models.disturbance import Disturbances, DisturbanceSchedule, PlantDisturbance
 from models.vehicle_params import VehicleParams, load_vehicle_params
+from models.vehicle_params import WHEEL_NAMES  # noqa: F401  (the per-wheel order, FL FR RL RR)
 
 # State layout of one vehicle (columns of the (n_batch, N_STATE) state array).
 VX, VY, YAW_RATE, POS_X, POS_Y, YAW = 0, 1, 2, 3, 4, 5
@@ -57,9 +64,6 @@ STEER = 14                       # actual front wheel angle (rad)
 TORQUE = 15                      # actual total wheel torque (N m)
 ACCEL_X_FILT, ACCEL_Y_FILT = 16, 17  # filtered body accelerations for load transfer (m/s^2)
 N_STATE = 18
-
-#: Wheel names in state order.
-WHEEL_NAMES = ("FL", "FR", "RL", "RR")
 
 #: Width (m/s) of the tanh that fades rolling resistance through zero speed.
 _ROLLING_FADE_SPEED = 0.2
@@ -142,8 +146,10 @@ class PlantModel:
         state[:, WHEEL_SPEED] = vx[:, None] / self.params.radius
         return state
 
-    def wheel_forces(self, state: np.ndarray, mu: np.ndarray) -> tuple[_WheelForces, np.ndarray, np.ndarray, np.ndarray]:
-        """Tyre quantities at ``state`` (n_batch, N_STATE) and friction ``mu`` (n_batch,).
+    def wheel_forces(self, state: np.ndarray, mu: np.ndarray, disturbance: PlantDisturbance | None = None,
+                     ) -> tuple[_WheelForces, np.ndarray, np.ndarray, np.ndarray]:
+        """Tyre quantities at ``state`` (n_batch, N_STATE) and friction ``mu`` (n_batch,),
+        with ``disturbance``'s steering offset and stiffness factors (None: nominal).
 
         Returns (wheel forces, slip speed residual (n,4), cos of wheel angle (n,4),
         sin of wheel angle (n,4)).
@@ -152,7 +158,12 @@ class PlantModel:
         vx = state[:, VX:VX + 1]
         vy = state[:, VY:VY + 1]
         yaw_rate = state[:, YAW_RATE:YAW_RATE + 1]
-        wheel_angle = state[:, STEER:STEER + 1] * self.is_front
+        stiffness_scale = self.stiffness_scale
+        if disturbance is None:
+            wheel_angle = state[:, STEER:STEER + 1] * self.is_front
+        else:
+            wheel_angle = (state[:, STEER:STEER + 1] + disturbance.steer_offset_rad) * self.is_front
+            stiffness_scale = stiffness_scale * np.array(disturbance.stiffness_scale)
         cos_w = np.cos(wheel_angle)
         sin_w = np.sin(wheel_angle)
         fz = (self.static_load + state[:, ACCEL_X_FILT:ACCEL_X_FILT + 1] * self.load_per_ax
@@ -170,17 +181,21 @@ class PlantModel:
         # The tyre sees the damped slip kappa + t_d dkappa/dt (dkappa/dt = residual/sigma);
         # the damping goes through the Magic Formula, so the force stays within mu Fz.
         damped_slip = slip_ratio + (p.slip_damping_time / p.relaxation_length) * residual
-        fx, fy = tyre_forces(damped_slip, lateral_slip, fz, mu[:, None], p, self.stiffness_scale)
+        fx, fy = tyre_forces(damped_slip, lateral_slip, fz, mu[:, None], p, stiffness_scale)
         return _WheelForces(slip_ratio, lateral_slip, fx, fy, fz), residual, cos_w, sin_w
 
     def derivatives(self, state: np.ndarray, steer_cmd: np.ndarray, torque_cmd: np.ndarray,
-                    mu: np.ndarray) -> np.ndarray:
+                    mu: np.ndarray, disturbance: PlantDisturbance | None = None) -> np.ndarray:
         """d(state)/dt, shape (n_batch, N_STATE).
 
-        Args: ``state`` (n_batch, N_STATE); ``steer_cmd``, ``torque_cmd``, ``mu`` (n_batch,).
+        Args: ``state`` (n_batch, N_STATE); ``steer_cmd``, ``torque_cmd``, ``mu`` (n_batch,);
+        ``disturbance``: what acts on every vehicle of the batch now (None: nothing). The
+        external force and moment change the lateral and yaw accelerations; the load
+        transfer follows the tyres' forces only (a force at the CG has no roll moment
+        about it).
         """
         p = self.params
-        forces, residual, cos_w, sin_w = self.wheel_forces(state, mu)
+        forces, residual, cos_w, sin_w = self.wheel_forces(state, mu, disturbance)
         vx = state[:, VX]
         vy = state[:, VY]
         yaw_rate = state[:, YAW_RATE]
@@ -200,13 +215,19 @@ class PlantModel:
 
         deriv = np.empty_like(state)
         deriv[:, VX] = yaw_rate * vy + accel_x
-        vy_dot = -yaw_rate * vx + accel_y
-        yaw_acc = yaw_moment / p.yaw_inertia
+        if disturbance is None:
+            vy_dot = -yaw_rate * vx + accel_y
+            yaw_acc = yaw_moment / p.yaw_inertia
+            wheel_steer = steer
+        else:
+            vy_dot = -yaw_rate * vx + (force_y + disturbance.lateral_force_n) / p.mass
+            yaw_acc = (yaw_moment + disturbance.yaw_moment_nm) / p.yaw_inertia
+            wheel_steer = steer + disturbance.steer_offset_rad
         # Low-speed blend: below blend_speed_low the lateral states relax to the kinematic
         # bicycle (no slip), where the tyre model has no meaning; smoothstep in between.
         blend = np.clip((np.abs(vx) - p.blend_speed_low) / (p.blend_speed_high - p.blend_speed_low), 0.0, 1.0)
         blend = blend * blend * (3.0 - 2.0 * blend)
-        yaw_rate_kin = vx * np.tan(steer) / p.wheelbase
+        yaw_rate_kin = vx * np.tan(wheel_steer) / p.wheelbase
         vy_kin = p.lr * yaw_rate_kin
         deriv[:, VY] = blend * vy_dot + (1.0 - blend) * (vy_kin - vy) / p.kinematic_time_constant
         deriv[:, YAW_RATE] = blend * yaw_acc + (1.0 - blend) * (yaw_rate_kin - yaw_rate) / p.kinematic_time_constant
@@ -234,12 +255,13 @@ class PlantModel:
         return deriv
 
     def rk4_step(self, state: np.ndarray, steer_cmd: np.ndarray, torque_cmd: np.ndarray,
-                 mu: np.ndarray, h: float) -> np.ndarray:
-        """One classical RK4 step of size ``h`` with the commands held; (n_batch, N_STATE)."""
-        k1 = self.derivatives(state, steer_cmd, torque_cmd, mu)
-        k2 = self.derivatives(state + 0.5 * h * k1, steer_cmd, torque_cmd, mu)
-        k3 = self.derivatives(state + 0.5 * h * k2, steer_cmd, torque_cmd, mu)
-        k4 = self.derivatives(state + h * k3, steer_cmd, torque_cmd, mu)
+                 mu: np.ndarray, h: float, disturbance: PlantDisturbance | None = None) -> np.ndarray:
+        """One classical RK4 step of size ``h`` with the commands and ``disturbance`` held;
+        (n_batch, N_STATE)."""
+        k1 = self.derivatives(state, steer_cmd, torque_cmd, mu, disturbance)
+        k2 = self.derivatives(state + 0.5 * h * k1, steer_cmd, torque_cmd, mu, disturbance)
+        k3 = self.derivatives(state + 0.5 * h * k2, steer_cmd, torque_cmd, mu, disturbance)
+        k4 = self.derivatives(state + h * k3, steer_cmd, torque_cmd, mu, disturbance)
         return state + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
@@ -263,15 +285,32 @@ class ScalarPlant:
         self.b_long_factor = p.slip_stiffness_factor / p.shape_longitudinal
         self.floor2 = p.slip_speed_floor ** 2
         self.damping_gain = p.slip_damping_time / p.relaxation_length
+        self._scaled_wheels: dict[tuple[float, ...], tuple[tuple[float, ...], ...]] = {}
 
-    def derivatives(self, s: list[float], steer_cmd: float, torque_cmd: float, mu: float) -> list[float]:
-        """d(state)/dt for one state (list of N_STATE floats); same equations as the batch."""
+    def _wheels_for(self, disturbance: PlantDisturbance) -> tuple[tuple[float, ...], ...]:
+        """``self.wheels`` with each stiffness factor times the disturbance's (cached)."""
+        scale = disturbance.stiffness_scale
+        wheels = self._scaled_wheels.get(scale)
+        if wheels is None:
+            wheels = tuple((*wheel[:-1], wheel[-1] * factor) for wheel, factor in zip(self.wheels, scale))
+            self._scaled_wheels[scale] = wheels
+        return wheels
+
+    def derivatives(self, s: list[float], steer_cmd: float, torque_cmd: float, mu: float,
+                    disturbance: PlantDisturbance | None = None) -> list[float]:
+        """d(state)/dt for one state (list of N_STATE floats); same equations as the batch,
+        ``disturbance`` included (None: nothing acts)."""
         p = self.p
         atan, sin, sqrt = math.atan, math.sin, math.sqrt
         vx, vy, yaw_rate, yaw = s[VX], s[VY], s[YAW_RATE], s[YAW]
         steer, torque = s[STEER], s[TORQUE]
         ax_f, ay_f = s[ACCEL_X_FILT], s[ACCEL_Y_FILT]
-        cos_s, sin_s = math.cos(steer), math.sin(steer)
+        wheels = self.wheels
+        wheel_steer = steer
+        if disturbance is not None:
+            wheels = self._wheels_for(disturbance)
+            wheel_steer = steer + disturbance.steer_offset_rad
+        cos_s, sin_s = math.cos(wheel_steer), math.sin(wheel_steer)
         fz0 = p.nominal_load
         b_long = self.b_long_factor / mu
         c_long, e_long = p.shape_longitudinal, p.curvature_longitudinal
@@ -282,7 +321,7 @@ class ScalarPlant:
         drive = torque if torque > 0.0 else 0.0
         brake = torque if torque < 0.0 else 0.0
         for i, (wx, wy, front, static, per_ax, per_ay, drive_share, brake_share,
-                stiffness_scale) in enumerate(self.wheels):
+                stiffness_scale) in enumerate(wheels):
             cw, sw = (cos_s, sin_s) if front else (1.0, 0.0)
             fz = static + ax_f * per_ax + ay_f * per_ay
             if fz < _MIN_NORMAL_LOAD:
@@ -319,10 +358,16 @@ class ScalarPlant:
                       + p.rolling_resistance * p.mass * p.gravity * math.tanh(vx / _ROLLING_FADE_SPEED))
         accel_x = (force_x - resistance) / p.mass
         accel_y = force_y / p.mass
+        if disturbance is None:
+            vy_dot = -yaw_rate * vx + accel_y
+            yaw_acc = yaw_moment / p.yaw_inertia
+        else:
+            vy_dot = -yaw_rate * vx + (force_y + disturbance.lateral_force_n) / p.mass
+            yaw_acc = (yaw_moment + disturbance.yaw_moment_nm) / p.yaw_inertia
         blend = (abs(vx) - p.blend_speed_low) / (p.blend_speed_high - p.blend_speed_low)
         blend = 0.0 if blend < 0.0 else (1.0 if blend > 1.0 else blend)
         blend = blend * blend * (3.0 - 2.0 * blend)
-        yaw_rate_kin = vx * math.tan(steer) / p.wheelbase
+        yaw_rate_kin = vx * math.tan(wheel_steer) / p.wheelbase
         vy_kin = p.lr * yaw_rate_kin
         tau_k = p.kinematic_time_constant
         steer_target = min(max(steer_cmd, -p.steer_limit), p.steer_limit)
@@ -332,8 +377,8 @@ class ScalarPlant:
         tau = p.load_transfer_time_constant
         return [
             yaw_rate * vy + accel_x,
-            blend * (-yaw_rate * vx + accel_y) + (1.0 - blend) * (vy_kin - vy) / tau_k,
-            blend * (yaw_moment / p.yaw_inertia) + (1.0 - blend) * (yaw_rate_kin - yaw_rate) / tau_k,
+            blend * vy_dot + (1.0 - blend) * (vy_kin - vy) / tau_k,
+            blend * yaw_acc + (1.0 - blend) * (yaw_rate_kin - yaw_rate) / tau_k,
             vx * cos_y - vy * sin_y,
             vx * sin_y + vy * cos_y,
             yaw_rate,
@@ -345,13 +390,19 @@ class ScalarPlant:
             (accel_y - ay_f) / tau,
         ]
 
-    def rk4_step(self, s: list[float], steer_cmd: float, torque_cmd: float, mu: float, h: float) -> list[float]:
-        """One RK4 step of ``h`` for one vehicle (lists of N_STATE floats)."""
+    def rk4_step(self, s: list[float], steer_cmd: float, torque_cmd: float, mu: float, h: float,
+                 schedule: DisturbanceSchedule | None = None, time_s: float = 0.0) -> list[float]:
+        """One RK4 step of ``h`` for one vehicle (lists of N_STATE floats), from ``time_s``;
+        ``schedule`` gives the disturbance at each stage's time (None: nothing acts)."""
         f = self.derivatives
-        k1 = f(s, steer_cmd, torque_cmd, mu)
-        k2 = f([x + 0.5 * h * k for x, k in zip(s, k1)], steer_cmd, torque_cmd, mu)
-        k3 = f([x + 0.5 * h * k for x, k in zip(s, k2)], steer_cmd, torque_cmd, mu)
-        k4 = f([x + h * k for x, k in zip(s, k3)], steer_cmd, torque_cmd, mu)
+        if schedule is None:
+            start = middle = end = None
+        else:
+            start, middle, end = schedule.stages(time_s, h)
+        k1 = f(s, steer_cmd, torque_cmd, mu, start)
+        k2 = f([x + 0.5 * h * k for x, k in zip(s, k1)], steer_cmd, torque_cmd, mu, middle)
+        k3 = f([x + 0.5 * h * k for x, k in zip(s, k2)], steer_cmd, torque_cmd, mu, middle)
+        k4 = f([x + h * k for x, k in zip(s, k3)], steer_cmd, torque_cmd, mu, end)
         h6 = h / 6.0
         return [x + h6 * (a + 2.0 * b + 2.0 * c + d) for x, a, b, c, d in zip(s, k1, k2, k3, k4)]
 
@@ -396,16 +447,24 @@ class FourWheelVehicle:
 
     ``params`` defaults to ``models/vehicle.toml``; ``mu`` and ``mass`` override the
     file's values (mass + 200 kg case: ``FourWheelVehicle(mass=1848.0)``).
+    ``disturbances`` (``models.disturbance``) act from their ``start_s`` on the run's time
+    ``time_s`` (0 at :meth:`reset`, advanced by :meth:`step`); :meth:`outputs` is what the
+    sensors report (the yaw-rate bias on, the steering offset not seen),
+    :meth:`true_outputs` the car's true motion.
     """
 
     def __init__(self, params: VehicleParams | None = None, *, mu: float | None = None,
-                 mass: float | None = None) -> None:
+                 mass: float | None = None, disturbances: Disturbances | None = None) -> None:
         params = params if params is not None else load_vehicle_params()
         if mass is not None:
             params = dataclasses.replace(params, mass=mass)
         if mu is not None:
             params = dataclasses.replace(params, mu=mu)
         self.params = params
+        self.disturbances = disturbances if disturbances is not None else Disturbances()
+        self._schedule = DisturbanceSchedule(disturbances, params) \
+            if disturbances is not None and disturbances.any else None
+        self.time_s = 0.0
         self._batch = VehicleBatch(params, 1)
         self._scalar = ScalarPlant(self._batch.model)
         self.reset()
@@ -427,7 +486,8 @@ class FourWheelVehicle:
         return self._batch.state[0].copy()
 
     def reset(self, vx: float = 0.0, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> None:
-        """Straight rolling at ``vx`` at pose (x, y, yaw), actuators at rest."""
+        """Straight rolling at ``vx`` at pose (x, y, yaw), actuators at rest, time 0."""
+        self.time_s = 0.0
         self._batch.reset(np.array([vx], dtype=float))
         self._batch.state[0, POS_X] = x
         self._batch.state[0, POS_Y] = y
@@ -440,23 +500,47 @@ class FourWheelVehicle:
         count, h = substeps(dt, self.params.integration_step)
         state = self._batch.state[0].tolist()
         mu = float(self._batch.mu[0])
-        for _ in range(count):
-            state = self._scalar.rk4_step(state, command.steer_angle, command.drive_torque, mu, h)
+        if self._schedule is None:
+            for _ in range(count):
+                state = self._scalar.rk4_step(state, command.steer_angle, command.drive_torque, mu, h)
+        else:
+            for i in range(count):
+                state = self._scalar.rk4_step(state, command.steer_angle, command.drive_torque, mu, h,
+                                              self._schedule, self.time_s + i * h)
         if not all(math.isfinite(x) for x in state):
             raise VehicleDivergedError(f"plant state became non-finite: {state!r}")
         self._batch.state[0] = state
+        # Rounded to 1 ns: the ticks' sum stays on the tick grid, so start_s lands on a tick.
+        self.time_s = round(self.time_s + dt, 9)
         return self.outputs()
 
     def outputs(self) -> VehicleOutputs:
-        """The signals of VEH_DYN / VEH_POSE_*: yaw wrapped to [-pi, pi)."""
+        """The signals of VEH_DYN / VEH_POSE_*, as the sensors report them: yaw wrapped to
+        [-pi, pi), YAW_RATE with the disturbances' sensor bias, STEER_ANGLE the steering
+        actuator's state (a disturbance's steering offset is not seen)."""
         s = self._batch.state[0]
-        return VehicleMeasurement(vx=float(s[VX]), vy=float(s[VY]), yaw_rate=float(s[YAW_RATE]),
+        yaw_rate = float(s[YAW_RATE])
+        if self._schedule is not None:
+            yaw_rate += self.disturbances.yaw_rate_bias(self.time_s)
+        return VehicleMeasurement(vx=float(s[VX]), vy=float(s[VY]), yaw_rate=yaw_rate,
                                   x=float(s[POS_X]), y=float(s[POS_Y]), yaw=wrap_angle(float(s[YAW])),
                                   steer_angle=float(s[STEER]), drive_torque=float(s[TORQUE]))
 
+    def true_outputs(self) -> VehicleOutputs:
+        """The car's true motion in the form of :meth:`outputs`: the true yaw rate and the
+        true front wheel angle (actuator state + steering offset). Without disturbances
+        the same as :meth:`outputs`."""
+        out = self.outputs()
+        if self._schedule is None:
+            return out
+        s = self._batch.state[0]
+        return dataclasses.replace(out, yaw_rate=float(s[YAW_RATE]),
+                                   steer_angle=float(s[STEER]) + self.disturbances.steer_offset(self.time_s))
+
     def diagnostics(self) -> VehicleDiagnostics:
         """Slips, forces and loads of the four wheels at the current state."""
-        forces, _, _, _ = self._batch.model.wheel_forces(self._batch.state, self._batch.mu)
+        disturbance = None if self._schedule is None else self._schedule.at(self.time_s)
+        forces, _, _, _ = self._batch.model.wheel_forces(self._batch.state, self._batch.mu, disturbance)
         return VehicleDiagnostics(
             slip_ratio=forces.slip_ratio[0].copy(),
             slip_angle=np.arctan(forces.lateral_slip[0]),

@@ -21,6 +21,8 @@ from models.errors import VehicleParamsError
 
 #: Default parameter file.
 DEFAULT_PARAMS_PATH = Path(__file__).with_name("vehicle.toml")
+#: Wheel names in the plant's per-wheel order (front left, front right, rear left, rear right).
+WHEEL_NAMES = ("FL", "FR", "RL", "RR")
 
 
 @dataclass(frozen=True)

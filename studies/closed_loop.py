@@ -11,6 +11,10 @@ Timing, as the lockstep HIL of the CAN contract does it:
 - the planner's target speed is the scenario's profile at t;
 - the command computed at t is applied from t until the next control step.
 
+The plant is the scenario's (``Scenario.vehicle``: its mu, mass and ``[disturbances]``, as
+the HIL's plant node has it); the controller sees what its sensors report (a yaw-rate bias
+on, a steering offset not seen).
+
 Recorded per control step: the true plant state at t (what the metrics use), the command,
 the errors to the path, the solver's own diagnostics, and the wall-clock time of
 ``controller.step`` (``time.perf_counter`` around the call: the runner may read the clock,
@@ -141,10 +145,11 @@ def control_steps(scenario: Scenario) -> int:
 
 
 def default_plant(scenario: Scenario) -> tuple[Plant, CommandFactory]:
-    """The project's four-wheel plant with the scenario's mu and mass, and its command type."""
-    from models.vehicle import FourWheelVehicle, VehicleCommand
+    """The project's four-wheel plant with the scenario's mu, mass and disturbances
+    (``Scenario.vehicle``, as the HIL plant node builds it), and its command type."""
+    from models.vehicle import VehicleCommand
 
-    return FourWheelVehicle(scenario.vehicle_params()), VehicleCommand
+    return scenario.vehicle(), VehicleCommand
 
 
 def load_reference_path(scenario: Scenario) -> ReferencePath:
@@ -211,7 +216,7 @@ def run_closed_loop(
         if t_ms % plant_period_ms == 0:
             published = plant.outputs()
         if t_ms % CONTROL_PERIOD_MS == 0:
-            true_state = plant.outputs()
+            true_state = _true_outputs(plant)
             if not _finite_outputs(true_state):
                 failure = f"plant state not finite at t = {t_ms / 1000:.3f} s"
                 break
@@ -243,6 +248,13 @@ def run_closed_loop(
             failure = f"plant failed at t = {t_ms / 1000:.3f} s: {e!r}"
             break
     return _result(scenario, controller, rows, failure)
+
+
+def _true_outputs(plant: Plant) -> Any:
+    """The plant's true state: ``true_outputs()`` where it has one (a scenario's sensor bias
+    and steering offset left out), else ``outputs()``."""
+    true_outputs = getattr(plant, "true_outputs", None)
+    return true_outputs() if true_outputs is not None else plant.outputs()
 
 
 def _finite_outputs(outputs: Any) -> bool:

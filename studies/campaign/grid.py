@@ -18,6 +18,7 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     model = ["default", "models/artifacts/dk_paper_nominal.npz"]   # Koopman artefact
     seed = [0, 1]                               # seed of the random faults
     ecu = ["python", "c"]                       # the Python ECU in-process, the C executable
+    disturbance = ["none", "wind"]              # "none" or a [disturbances.NAME] table
 
     [[exclude]]                  # a cell matching every key of one table is dropped
     controller = "nmpc"
@@ -34,6 +35,10 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     [faults."my fault"]          # a [faults] table of hil/faults.py
     vehicle = { steer_offset_rad = 0.02 }
 
+    [disturbances.wind]          # a scenario's [disturbances] table (models/disturbance.py)
+    crosswind_force_n = 400.0
+    crosswind_cp_m = 0.6
+
 The ``ecu`` axis (default ``["python"]``) runs a cell on the Python ECU (firmware_sim,
 in-process) or on the C ECU executable (``build/firmware/ecu``, ``make firmware``; a
 process on a loopback socketcand hub, as ``hil run --ecu c``). A C cell the C ECU cannot
@@ -43,7 +48,8 @@ per reason in ``Grid.c_left_out``.
 
 Each cell becomes one scenario TOML (:func:`scenario_document`): the base scenario's file
 with the cell's values written in, its ``[faults]`` table holding the fault, the lag and
-the seed. ``python -m hil run --scenario THAT.toml --controller NAME --faults`` is the
+the seed, its ``[disturbances]`` table the cell's disturbance (replacing the base
+scenario's own; "none" keeps the base scenario's, as the fault axis does). ``python -m hil run --scenario THAT.toml --controller NAME --faults`` is the
 same run as the cell's (tests/test_campaign.py checks it); a C cell's adds ``--ecu c``.
 
 Every error is raised before any cell runs and names the file and the key.
@@ -66,11 +72,13 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 GRID_DIR = Path(__file__).resolve().parent / "grids"
 #: Every axis, in the order of a cell's fields and of cells.csv.
 AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
-        "model", "seed", "ecu")
+        "model", "seed", "ecu", "disturbance")
 REQUIRED_AXES = ("controller", "scenario")
 #: Value of an axis the grid does not set: the scenario's own (mu, speed, mass), x1, none.
 SCENARIO_VALUE = "scenario"
 NO_FAULT = "none"
+#: The disturbance axis' value for "nothing added" (a grid without the axis has only it).
+NO_DISTURBANCE = "none"
 DEFAULT_MODEL = "default"
 #: The ECU of a grid without an ``ecu`` axis (and the only one before the axis existed).
 DEFAULT_ECU = "python"
@@ -79,7 +87,7 @@ KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
 #: Path the MPC horizons need beyond a run's last position (m): 30 steps at 25 ms, 70 km/h.
 HORIZON_ROOM_M = 15.0
 CONTROL_PERIOD_S = 0.025
-_TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults"}
+_TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults", "disturbances"}
 _RUN_KEYS = {"distance_m", "margin_s"}
 _KMH = 1.0 / 3.6
 
@@ -102,6 +110,7 @@ class Cell:
     model: str = DEFAULT_MODEL
     seed: int | str = SCENARIO_VALUE
     ecu: str = DEFAULT_ECU
+    disturbance: str = NO_DISTURBANCE
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -132,6 +141,8 @@ class Grid:
     not_applicable: int
     #: C cells left out because the C ECU cannot run them: reason -> count.
     c_left_out: Mapping[str, int] = field(default_factory=dict)
+    #: disturbance axis value -> its ``[disturbances]`` table ("none": empty).
+    disturbances: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def scenario_document(self, cell: Cell) -> dict[str, Any]:
         """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
@@ -175,6 +186,7 @@ def load_grid(file: str | Path) -> Grid:
     axes = {name: _axis_values(file, name, axes_raw.get(name)) for name in AXES}
     scenario_files = {name: _scenario_file(file, name) for name in axes["scenario"]}
     faults = _faults(file, axes["fault"], grid_faults)
+    disturbances = _disturbances(file, axes["disturbance"], raw.get("disturbances", {}))
     for name, value in (("speed", v) for v in axes["speed"]):
         if isinstance(value, str) and value not in (SCENARIO_VALUE, *profiles):
             raise GridError(f"{file}: axes.{name} = {value!r}: not a number (km/h) and not a "
@@ -209,7 +221,8 @@ def load_grid(file: str | Path) -> Grid:
                 source=file.resolve(), cells=tuple(cells), scenario_files=scenario_files,
                 speed_profiles=profiles, faults=faults,
                 distance_m=None if distance is None else float(distance), margin_s=float(margin),
-                excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out)
+                excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out,
+                disturbances=disturbances)
     if not cells:
         left_out = "".join(f"; {n} C cells left out: {why}" for why, n in c_left_out.items())
         raise GridError(f"{file}: no cell left after the exclusions{left_out}")
@@ -221,7 +234,8 @@ def load_grid(file: str | Path) -> Grid:
 def _axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
     defaults = {"controller": None, "scenario": None, "mu": SCENARIO_VALUE, "speed": SCENARIO_VALUE,
                 "mass_offset_kg": SCENARIO_VALUE, "lag_factor": 1.0, "fault": NO_FAULT,
-                "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE, "ecu": DEFAULT_ECU}
+                "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE, "ecu": DEFAULT_ECU,
+                "disturbance": NO_DISTURBANCE}
     if raw is None:
         return (defaults[name],)
     values = raw if isinstance(raw, list) else [raw]
@@ -250,7 +264,7 @@ def _axis_value(file: Path, name: str, value: Any) -> Any:
         if value not in ECU_IMPLEMENTATIONS:
             raise bad(f"unknown ECU; choose from {', '.join(ECU_IMPLEMENTATIONS)}")
         return value
-    if name in ("scenario", "fault", "model"):
+    if name in ("scenario", "fault", "model", "disturbance"):
         if not isinstance(value, str) or not value:
             raise bad("must be a non-empty string")
         return value
@@ -364,6 +378,29 @@ def _faults(file: Path, names: Sequence[str], grid_faults: Mapping[str, Any]) ->
     return out
 
 
+def _disturbances(file: Path, names: Sequence[str], tables: Any) -> dict[str, dict]:
+    """Each disturbance axis value's ``[disturbances]`` table, checked as a scenario's."""
+    from models.disturbance import DisturbanceError, Disturbances
+
+    if not isinstance(tables, dict) or not all(isinstance(v, dict) for v in tables.values()):
+        raise GridError(f"{file}: [disturbances.NAME] must be tables of a scenario's [disturbances] schema")
+    for name, table in tables.items():
+        try:
+            Disturbances.from_mapping(table, f"{file}: disturbances.{name}")
+        except DisturbanceError as e:
+            raise GridError(str(e)) from e
+    out: dict[str, dict] = {}
+    for name in names:
+        if name == NO_DISTURBANCE:
+            out[name] = {}
+        elif name in tables:
+            out[name] = copy.deepcopy(tables[name])
+        else:
+            raise GridError(f"{file}: axes.disturbance value {name!r}: not {NO_DISTURBANCE!r} and not a "
+                            f"[disturbances.NAME] table of the file ({', '.join(map(repr, tables)) or 'none defined'})")
+    return out
+
+
 def _excludes(file: Path, raw: Any, axes: Mapping[str, tuple]) -> list[dict[str, tuple]]:
     if not isinstance(raw, list) or not all(isinstance(r, dict) for r in raw):
         raise GridError(f"{file}: exclude must be an array of tables ([[exclude]])")
@@ -391,7 +428,8 @@ def _matches(cell: Cell, rule: Mapping[str, tuple]) -> bool:
 
 def scenario_document(grid: Grid, cell: Cell) -> dict[str, Any]:
     """The cell's scenario TOML document: the base scenario with the cell's mu, speed, mass,
-    duration and a ``[faults]`` table (fault, lag, seed). ``path.file`` is absolute.
+    duration, a ``[faults]`` table (fault, lag, seed) and its disturbance's
+    ``[disturbances]`` table. ``path.file`` is absolute.
 
     Raises:
         GridError: the path ends before the run's last position plus the horizons.
@@ -433,6 +471,8 @@ def scenario_document(grid: Grid, cell: Cell) -> dict[str, Any]:
         faults["seed"] = cell.seed
     if faults or "faults" in document:
         document["faults"] = {**document.get("faults", {}), **faults}
+    if cell.disturbance != NO_DISTURBANCE:
+        document["disturbances"] = copy.deepcopy(dict(grid.disturbances[cell.disturbance]))
     _check_path_length(grid, cell, document, base, start_speed_kmh)
     return document
 

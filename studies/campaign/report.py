@@ -16,16 +16,18 @@ from typing import Any
 from studies.campaign.grid import AXES, DEFAULT_ECU, Grid
 
 #: Columns of cells.csv, in order (the axes as the issue names them, then the results).
-CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "model", "seed",
+CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "disturbance",
+              "model", "seed",
               "e_y_rmse", "e_y_max", "heading_rmse", "completed", "end_reason",
               "step_p50_us", "step_p99_us", "overruns", "wall_s", "error", "key")
 #: cells.csv column -> Cell field.
 _AXIS_COLUMN = {"mass": "mass_offset_kg", "lag": "lag_factor"}
 #: Axes the pivot tables and heat maps split by (controller is always the columns).
-PIVOT_AXES = ("scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault", "model", "seed")
+PIVOT_AXES = ("scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault", "disturbance",
+              "model", "seed")
 _TITLES = {"mass_offset_kg": "mass offset (kg)", "lag_factor": "steering lag (x time constant)",
            "mu": "mu", "speed": "speed (km/h)", "scenario": "scenario", "fault": "fault",
-           "model": "model", "seed": "seed"}
+           "disturbance": "disturbance", "model": "model", "seed": "seed"}
 
 
 def _text(value: Any, digits: int = 6) -> str:
@@ -250,7 +252,7 @@ def _shown(path: Path) -> str:
 def heatmap_axes(grid: Grid) -> tuple[str, str]:
     """The two axes of the heat maps: the two with the most values (mu and speed first)."""
     varying = [a for a in ("mu", "speed", "mass_offset_kg", "lag_factor", "scenario", "fault",
-                           "model", "seed")
+                           "disturbance", "model", "seed")
                if len({getattr(c, a) for c in grid.cells}) > 1]
     if len(varying) >= 2:
         ranked = sorted(varying, key=lambda a: -len({getattr(c, a) for c in grid.cells}))
@@ -319,7 +321,7 @@ def write_heatmaps(grid: Grid, rows: Sequence[dict[str, Any]], out_dir: Path) ->
                 ax.text(b, a, text, ha="center", va="center", fontsize=7,
                         color="white" if not np.isfinite(values[a, b]) or values[a, b] < vmax / 2 else "black")
         ax.set_xticks(range(len(col_values)), [_text(v, 0) for v in col_values], fontsize=7,
-                      rotation=30 if col_axis in ("controller", "scenario", "fault") else 0)
+                      rotation=30 if col_axis in ("controller", "scenario", "fault", "disturbance") else 0)
         ax.set_yticks(range(len(row_values)), [_text(v, 0) for v in row_values], fontsize=7)
         ax.set_xlabel(_TITLES.get(col_axis, col_axis), fontsize=8)
         if j == 0:  # the panels of a row share the rows' axis

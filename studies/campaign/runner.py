@@ -34,7 +34,8 @@ from hil.errors import HilError
 from hil.session import C_ECU_EXECUTABLE
 from studies.campaign.cell import ROOT, CellJob
 from studies.campaign.executors import Executor
-from studies.campaign.grid import DEFAULT_ECU, Cell, Grid, effective_values, model_file, to_toml
+from studies.campaign.grid import (DEFAULT_ECU, NO_DISTURBANCE, Cell, Grid, effective_values,
+                                   model_file, to_toml)
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
@@ -105,6 +106,8 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
     if artefact is not None:
         digests.update(model=_digest(artefact), model_json=_digest(artefact.with_suffix(".json")))
     values = cell.as_dict()
+    if cell.disturbance == NO_DISTURBANCE:
+        del values["disturbance"]  # as before the disturbance axis (its scenario text says it)
     if cell.ecu == DEFAULT_ECU:
         # the key material of a Python cell as before the ecu axis: its cached results stay
         del values["ecu"]
