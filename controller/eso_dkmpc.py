@@ -5,8 +5,9 @@ w_hat[k+1] = w_hat[k] - beta2 (z_k - z_hat_k), which already contains z_k
 (``models.eso.innovated_disturbance``). Prediction step i adds ``decay**i * w_hat``
 (``disturbance_decay`` of the tuning; 1 = held over the horizon as in eq. 15). The gains
 place the two error poles of eq. 24 at ``eso_pole`` and ``eso_second_pole`` (a fast and a
-slow one, see ``models.eso.design_gains``). After the command u_k is known the observer
-advances with (z_k, u_k). Restarts and fallbacks: ``controller.observed_mpc`` (shared with
+slow one, see ``models.eso.design_gains``); the correction g2 bounds the innovation's vy and
+yaw-rate entries (``eso_innovation_limit``, ``models.eso.InnovationSaturation``). After
+the command u_k is known the observer advances with (z_k, u_k). Restarts and fallbacks: ``controller.observed_mpc`` (shared with
 the LMPC-ESO ablation).
 """
 from __future__ import annotations
@@ -17,13 +18,16 @@ import numpy as np
 
 from controller.base import Command, VehicleSample
 from controller.lifted_mpc import VEHICLE_STATES, LiftedMpc, PredictionMaps, decayed_sums
-from controller.observed_mpc import ObservedMpc
+from controller.observed_mpc import ObservedMpc, innovation_bound
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains
 from models.eso_dk import observer_params
 
 if TYPE_CHECKING:
     from models.koopman import KoopmanModel
+
+#: Rows of vy and the yaw rate in the lifted state z = [x; Phi(x)] (the innovation bound's).
+LATERAL_ROWS = (VEHICLE_STATES.index("vy"), VEHICLE_STATES.index("yaw_rate"))
 
 
 class EsoDkmpc(ObservedMpc, LiftedMpc):
@@ -58,7 +62,8 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
         if cached is None or cached[0] is not local:
             tuning = self._eso_tuning
             gains = design_gains(local.A, tuning.eso_pole, second_pole=tuning.eso_second_pole, structure="matrix")
-            params = observer_params(local if self._scheduled else self.model, gains.beta1, gains.beta2)
+            params = observer_params(local if self._scheduled else self.model, gains.beta1, gains.beta2,
+                                     innovation_bound(tuning, LATERAL_ROWS))
             decayed = decayed_sums(local.A, tuning.prediction_horizon, tuning.disturbance_decay)
             if len(self._observer_cache) > 2048:
                 self._observer_cache.clear()

@@ -11,15 +11,31 @@ refused, and after any step that did not see a valid sample (status NOT_RUN): th
 (x, u) no longer describes the transition into the next sample. After a solver fallback
 it advances with the fallback command, which is what the vehicle received.
 
+Before any of this, the measured yaw rate is corrected by the estimate of its sensor bias
+(``models.yaw_rate_bias``: the rate against the heading's change, the observer's output
+disturbance), so the lifted observer, the prediction and the pose rows all see the
+corrected rate. The estimate restarts at zero on ``reset()`` only (it is a property of the
+sensor, not of the manoeuvre); a gap in the samples only skips its update.
+
 "x" here is the observer's state, whatever the subclass's model calls its state.
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
 from controller.base import Command, SolverStatus, StepDebug, VehicleSample
 from controller.mpc_base import Plan, SteeringMpc
-from models.eso import ExtendedStateObserver, innovated_disturbance
+from controller.tuning import EsoQpMpcTuning
+from models.eso import ExtendedStateObserver, InnovationSaturation, innovated_disturbance
+from models.yaw_rate_bias import YawRateBiasState, yaw_rate_bias_update
+
+
+def innovation_bound(tuning: EsoQpMpcTuning, lateral_rows: tuple[int, int]) -> InnovationSaturation:
+    """The observer's g2 (eq. 13): the tuning's bound on the innovation's vy and yaw-rate
+    entries, at ``lateral_rows`` of the observer's state."""
+    return InnovationSaturation(lateral_rows, tuning.eso_innovation_limit)
 
 
 class ObservedMpc(SteeringMpc):
@@ -31,11 +47,26 @@ class ObservedMpc(SteeringMpc):
     """
 
     observer: ExtendedStateObserver
+    _eso_tuning: EsoQpMpcTuning
 
     def reset(self) -> None:
-        """Forget plans, progress and the observer state."""
+        """Forget plans, progress, the observer state and the yaw-rate bias estimate."""
         self._observer_running = False
+        self._yaw_rate_bias = YawRateBiasState()
         super().reset()
+
+    @property
+    def yaw_rate_bias(self) -> float:
+        """The yaw-rate sensor bias estimate (rad/s) the last step corrected by."""
+        return self._yaw_rate_bias.bias
+
+    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
+        """The MPC's step on the sample with its yaw rate corrected by the bias estimate."""
+        self._yaw_rate_bias = yaw_rate_bias_update(self._yaw_rate_bias, sample.yaw, sample.yaw_rate,
+                                                   self._eso_tuning.yaw_rate_bias_pole, self.ts)
+        if self._yaw_rate_bias.bias != 0.0:
+            sample = replace(sample, yaw_rate=sample.yaw_rate - self._yaw_rate_bias.bias)
+        return super().step(sample)
 
     def disturbance(self, observed_state: np.ndarray) -> np.ndarray:
         """w_hat (n,) including the measurement ``observed_state`` (n,); restarts the

@@ -124,12 +124,17 @@ class EsoDkmpcTuning(QpMpcTuning):
     poles of eq. 24 in every lifted direction (a fast one lets z_hat follow z, a slow one
     sets how quickly w_hat moves). ``disturbance_decay`` shapes w_hat over the horizon:
     step i of the prediction adds ``disturbance_decay**i * w_hat``; 1 holds it constant,
-    as eq. 15 does.
+    as eq. 15 does. ``eso_innovation_limit`` bounds the innovation that moves w_hat in one
+    step (``models.eso.InnovationSaturation`` on the vy and yaw-rate entries, m/s and
+    rad/s; 0: no bound). ``yaw_rate_bias_pole`` is the pole of the yaw-rate sensor bias
+    estimate from the heading (``models.yaw_rate_bias``; 1: no estimate).
     """
 
     eso_pole: float
     eso_second_pole: float
     disturbance_decay: float
+    eso_innovation_limit: float
+    yaw_rate_bias_pole: float
 
 
 #: The same fields for every QP MPC with the eq. 13 observer: ESO-DKMPC and the ablations
@@ -232,6 +237,8 @@ _RULES: dict[str, _Rule] = {
     "eso_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
     "eso_second_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
     "disturbance_decay": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
+    "eso_innovation_limit": (lambda v: 0.0 <= v <= 10.0, "must be in [0, 10] (0: no bound)"),
+    "yaw_rate_bias_pole": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1] (1: no estimate)"),
     "cross_track_gain": _POSITIVE,
     "softening_speed": _POSITIVE,
     "yaw_rate_gain": _NON_NEGATIVE,

@@ -64,6 +64,40 @@ def identity_correction(z_tilde: np.ndarray) -> np.ndarray:
     return z_tilde
 
 
+@dataclass(frozen=True)
+class InnovationSaturation:
+    """g2 of eq. 13 that bounds how far w_hat moves in one step (no windup on model breakdown).
+
+    ``g2(z~) = z~ / s`` with ``s = max(1, max_i |z~[i]| / limit)`` over the ``rows`` of the
+    physical lateral states (vy and yaw rate): the whole innovation vector is scaled down, its
+    direction kept, once its vy or yaw-rate entry exceeds ``limit`` (m/s, rad/s per step).
+
+    Why: the disturbance model holds w constant. A constant disturbance (an offset, a bank,
+    a crosswind) leaves small, persistent one-step innovations once the transient is gone; a
+    tyre at its friction limit leaves large ones that change sign with the manoeuvre, and
+    integrating those at the full gain and holding them over the horizon made the low-mu lane
+    change oscillate (docs/eso.md). Bounding the step keeps the slow part and drops the rest.
+    With every innovation below the limit g2 is the identity and the error poles of eq. 24
+    hold; ``limit`` 0 means no bound (the identity). Non-finite entries propagate.
+    """
+
+    rows: tuple[int, ...]
+    limit: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.limit) and self.limit >= 0.0):
+            raise EsoShapeError(f"innovation limit must be finite and >= 0, got {self.limit!r}")
+        if not self.rows:
+            raise EsoShapeError("innovation saturation needs at least one row")
+
+    def __call__(self, z_tilde: np.ndarray) -> np.ndarray:
+        """(n_z,) -> (n_z,)."""
+        if self.limit == 0.0:
+            return z_tilde
+        scale = float(np.max(np.abs(z_tilde[list(self.rows)]))) / self.limit
+        return z_tilde / scale if scale > 1.0 else z_tilde  # NaN: not > 1, propagates
+
+
 def _gain_matrix(gain: Gain, n_z: int, name: str) -> np.ndarray:
     """Scalar -> scalar * I (n_z, n_z); matrix checked for shape and finiteness."""
     matrix = np.asarray(gain, dtype=float)

@@ -17,7 +17,8 @@ from typing import Protocol
 
 import numpy as np
 
-from models.eso import EsoParams, EsoShapeError, ExtendedStateObserver
+from models.eso import (CorrectionFunction, EsoParams, EsoShapeError, ExtendedStateObserver,
+                        identity_correction)
 
 
 class LiftedLinearModel(Protocol):
@@ -35,10 +36,12 @@ class LiftedLinearModel(Protocol):
         ...
 
 
-def observer_params(model: LiftedLinearModel, beta1: np.ndarray | float, beta2: np.ndarray | float) -> EsoParams:
-    """The ESO of eq. 13 on ``model`` (A, B, offset and, for a bilinear model, N) with these gains."""
+def observer_params(model: LiftedLinearModel, beta1: np.ndarray | float, beta2: np.ndarray | float,
+                    g2: CorrectionFunction = identity_correction) -> EsoParams:
+    """The ESO of eq. 13 on ``model`` (A, B, offset and, for a bilinear model, N) with these
+    gains and correction g2 (the identity by default, as the paper)."""
     bilinear = getattr(model, "N", None) if getattr(model, "form", "linear") == "bilinear" else None
-    return EsoParams(model.A, model.B, model.offset, beta1, beta2, bilinear=bilinear)
+    return EsoParams(model.A, model.B, model.offset, beta1, beta2, g2=g2, bilinear=bilinear)
 
 
 def rollout_lifted(

@@ -86,10 +86,11 @@ def run(controller, path: ReferencePath, plant: LinearPlant, steps: int):
     return np.array(errors), commands, debugs
 
 
-def pose_mismatch(sample: VehicleSample, debug, ts: float = TS) -> tuple[float, float]:
+def pose_mismatch(sample: VehicleSample, debug, ts: float = TS, yaw_rate_bias: float = 0.0) -> tuple[float, float]:
     """Max |position| and |yaw| difference between the QP's predicted poses and eq. 20
-    integrated with the QP's predicted states (the same inputs)."""
-    states = np.vstack((sample.state(), debug.predicted_state[:-1]))
+    integrated with the QP's predicted states (the same inputs). ``yaw_rate_bias``: the
+    observer's estimate of the yaw-rate sensor bias, which the QP's step 0 is corrected by."""
+    states = np.vstack((sample.state() - np.array([0.0, 0.0, yaw_rate_bias]), debug.predicted_state[:-1]))
     rollout = rollout_pose(sample.pose(), states, ts)
     position = np.max(np.hypot(*(rollout[:, :2] - debug.predicted_pose[:, :2]).T))
     return float(position), float(np.max(np.abs(rollout[:, 2] - debug.predicted_pose[:, 2])))
@@ -110,7 +111,7 @@ def test_predicted_pose_matches_nonlinear_kinematics(name: str, shape: str) -> N
         command, debug = controller.step(sample)
         assert debug.status == SolverStatus.SOLVED
         if k > 0:  # from the second step on the linearisation point is the shifted solution
-            position, yaw = pose_mismatch(sample, debug)
+            position, yaw = pose_mismatch(sample, debug, yaw_rate_bias=getattr(controller, "yaw_rate_bias", 0.0))
             worst_position, worst_yaw = max(worst_position, position), max(worst_yaw, yaw)
         plant.apply(command.steer_angle, command.drive_torque)
     print(f"{name} {shape}: max |QP pose - eq. 20 rollout| = {worst_position * 100:.2f} cm, "

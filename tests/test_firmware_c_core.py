@@ -185,7 +185,7 @@ def test_data_of_another_shape_is_refused(native, tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"\[lmpc\] horizons \(Np 20, Nc 8\) differ from this build's \(Np 30"):
         native.NativeController("lmpc", tmp_path / "horizon.bin")
     schedule = records["tuning.dkmpc"].copy()
-    schedule[-2:] = [14.0, 11.0]  # weight_schedule_speeds, the last two values: low > high
+    schedule[23:25] = [14.0, 11.0]  # weight_schedule_speeds (values 23, 24 of TUNING_FIELDS): low > high
     ecu_data.write_data(dict(records, **{"tuning.dkmpc": schedule}), tmp_path / "schedule.bin")
     with pytest.raises(ConfigError, match=r"\[dkmpc\] weight_schedule_speeds \[14, 11\] must be 0 <= low < high"):
         native.NativeController("dkmpc", tmp_path / "schedule.bin")

@@ -54,6 +54,10 @@ static double local_N[NZ][NZ];
 #endif
 static double lifted[NZ];
 static double decay_power[NP]; /* disturbance_decay^i, i = 0..Np-1 (set at load: pow once) */
+/* Yaw-rate sensor bias estimate (models/yaw_rate_bias.py): the estimate, the previous
+ * sample's heading and measured rate; has_bias_previous 0: none (start, or after a gap). */
+static double yaw_rate_bias, bias_previous_yaw, bias_previous_rate;
+static int has_bias_previous;
 
 static double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -82,9 +86,12 @@ int ecu_load(const char *data_path, const char *name, char *err, size_t err_len)
   if (ecu_read_data(data_path, &cfg, err, err_len) != 0) return -1;
   const ecu_tuning_t *t = &cfg.tuning[id];
   if (id == ECU_ESO_DKMPC && !(t->eso_pole >= 0.0 && t->eso_pole < 1.0 && t->eso_second_pole >= 0.0 &&
-                               t->eso_second_pole < 1.0 && isfinite(t->disturbance_decay))) {
-    snprintf(err, err_len, "%s: [eso-dkmpc] eso_pole, eso_second_pole must be in [0, 1) and "
-             "disturbance_decay finite", data_path);
+                               t->eso_second_pole < 1.0 && isfinite(t->disturbance_decay) &&
+                               t->eso_innovation_limit >= 0.0 && t->eso_innovation_limit <= 10.0 &&
+                               t->yaw_rate_bias_pole >= 0.0 && t->yaw_rate_bias_pole <= 1.0)) {
+    snprintf(err, err_len, "%s: [eso-dkmpc] eso_pole, eso_second_pole must be in [0, 1), "
+             "disturbance_decay finite, eso_innovation_limit in [0, 10] and yaw_rate_bias_pole in [0, 1]",
+             data_path);
     return -1;
   }
   if (ecu_qp_init(id, t, err, err_len) != 0) return -1;
@@ -136,6 +143,8 @@ void ecu_reset(void) {
   has_progress = 0;
   observer_running = 0;
   observer_reset = 0;
+  yaw_rate_bias = 0.0;
+  has_bias_previous = 0;
 }
 
 /* ------------------------------------------------------------------ reference */
@@ -256,9 +265,36 @@ static double dot(const double *a, const double *b, int n) {
   return sum;
 }
 
+/* models.eso.InnovationSaturation, the observer's g2: the innovation z_tilde (n_z,) scaled
+ * down, direction kept, once its vy or yaw-rate entry exceeds the limit (0: no bound). */
+static void bounded_innovation(const double z_tilde[NZ], double g[NZ]) {
+  double limit = tun->eso_innovation_limit;
+  double scale = limit == 0.0 ? 0.0 : fmax(fabs(z_tilde[1]), fabs(z_tilde[2])) / limit;
+  for (int i = 0; i < NZ; i++) g[i] = scale > 1.0 ? z_tilde[i] / scale : z_tilde[i];
+}
+
+/* models.yaw_rate_bias.yaw_rate_bias_update: the bias of the measured yaw rate from the
+ * heading's change; a non-finite sample keeps the estimate and forgets the previous one. */
+static void update_yaw_rate_bias(const ecu_sample_t *sample) {
+  double yaw = sample->yaw, rate = sample->yaw_rate;
+  if (!(isfinite(yaw) && isfinite(rate))) {
+    has_bias_previous = 0;
+    return;
+  }
+  if (has_bias_previous) {
+    double heading_rate = remainder(yaw - bias_previous_yaw, TWO_PI) / cfg.ts;
+    double residual = 0.5 * (rate + bias_previous_rate) - heading_rate;
+    double bias = yaw_rate_bias + (1.0 - tun->yaw_rate_bias_pole) * (residual - yaw_rate_bias);
+    if (isfinite(bias)) yaw_rate_bias = bias;
+  }
+  bias_previous_yaw = yaw;
+  bias_previous_rate = rate;
+  has_bias_previous = 1;
+}
+
 /* ObservedMpc.disturbance: w_hat[k+1] including z_k, or zero on a (re)start. */
 static void disturbance(const double z[NZ], double w[NZ]) {
-  double beta2 = -(1.0 - tun->eso_pole) * (1.0 - tun->eso_second_pole), z_tilde[NZ];
+  double beta2 = -(1.0 - tun->eso_pole) * (1.0 - tun->eso_second_pole), z_tilde[NZ], g[NZ];
   if (!observer_running) {
     memcpy(z_hat, z, sizeof z_hat);
     memset(w_hat, 0, sizeof w_hat);
@@ -270,8 +306,9 @@ static void disturbance(const double z[NZ], double w[NZ]) {
   for (int i = 0; i < NZ; i++) z_tilde[i] = z[i] - z_hat[i];
   memcpy(w, w_hat, NZ * sizeof(double));
   if (!isfinite(dot(z_tilde, z_tilde, NZ))) return;
+  bounded_innovation(z_tilde, g);
   double next[NZ];
-  for (int i = 0; i < NZ; i++) next[i] = w_hat[i] - beta2 * z_tilde[i];
+  for (int i = 0; i < NZ; i++) next[i] = w_hat[i] - beta2 * g[i];
   if (isfinite(dot(next, next, NZ))) memcpy(w, next, sizeof next);
 }
 
@@ -281,8 +318,9 @@ static void disturbance(const double z[NZ], double w[NZ]) {
 static void observe(const double z[NZ], double torque, double steer) {
   double c = tun->eso_pole + tun->eso_second_pole - 1.0;
   double beta2 = -(1.0 - tun->eso_pole) * (1.0 - tun->eso_second_pole);
-  double u[2] = {torque, steer}, z_tilde[NZ], next_z[NZ], next_w[NZ];
+  double u[2] = {torque, steer}, z_tilde[NZ], g[NZ], next_z[NZ], next_w[NZ];
   for (int i = 0; i < NZ; i++) z_tilde[i] = z[i] - z_hat[i];
+  bounded_innovation(z_tilde, g);
   double check = dot(z_hat, z_hat, NZ) + dot(w_hat, w_hat, NZ) + dot(u, u, 2) + 2.0 * dot(z_tilde, z_tilde, NZ);
   if (!isfinite(check)) {
     observer_running = 0;
@@ -299,7 +337,7 @@ static void observe(const double z[NZ], double torque, double steer) {
     sum += steer * dot(local_N[i], z, NZ);
 #endif
     next_z[i] = sum;
-    next_w[i] = w_hat[i] - beta2 * z_tilde[i];
+    next_w[i] = w_hat[i] - beta2 * g[i];
   }
   if (!isfinite(dot(next_z, next_z, NZ) + dot(next_w, next_w, NZ))) {
     observer_running = 0;
@@ -570,8 +608,10 @@ static void fallback(int status, double torque, const plan_t *plan, int sample_v
   observer_reset = 0;
 }
 
-static void step_body(const ecu_sample_t *sample, ecu_output_t *out) {
+static void step_body(const ecu_sample_t *measured, ecu_output_t *out) {
   static double reference[NP][3];
+  ecu_sample_t corrected = *measured;
+  const ecu_sample_t *sample = &corrected;
   const double *values = &sample->vx;
   int finite = 1;
   plan_t plan;
@@ -582,6 +622,10 @@ static void step_body(const ecu_sample_t *sample, ecu_output_t *out) {
     out->status = ECU_NOT_RUN;
     out->fallback = 1;
     return;
+  }
+  if (controller == ECU_ESO_DKMPC) { /* ObservedMpc.step: the yaw rate corrected by its bias */
+    update_yaw_rate_bias(measured);
+    if (yaw_rate_bias != 0.0) corrected.yaw_rate = measured->yaw_rate - yaw_rate_bias;
   }
   if (path_n < 2 || !finite) {
     fallback(ECU_NOT_RUN, NAN, NULL, 0, out);

@@ -1,0 +1,209 @@
+"""The observer stage of the tuning procedure on the tuning set with disturbances added
+(``make tune-observer``).
+
+``make tune`` (``studies.tuning_sweep``) chose every controller's weights, and the observer
+poles and decay of the controllers with an observer, on the tuning set
+(``studies.tuning_set``): eight nominal manoeuvres, no disturbance. An observer exists for
+disturbances, so on that set the sweep could only learn that it costs something: it chose
+the slowest pole on its grid. This module reruns the sweep's observer stage (stage 2: the
+observer fields over a grid, every other field at the tuning file's value) for each
+controller with an observer, on the tuning set plus the same eight manoeuvres each with one
+constant disturbance (:data:`TUNING_DISTURBANCES`). Sizes and paths differ from those the
+disturbance study reports (``make disturbances``): the study's two sizes per disturbance and
+its lane change and straight-curve-straight path never enter here.
+
+Objective, runs and failure penalty: the sweep's (``studies.tuning_sweep.objective``, the
+mean e_Y RMSE over the 16 runs, a run that does not complete counts 10 m). The setting with
+the smallest objective is written into ``controller/tuning.toml`` (its observer fields only,
+each table's other fields untouched) unless ``--no-write``; ``results/observer_tuning.md``
+and ``.json`` list every evaluation.
+
+Usage: ``python -m studies.observer_tuning [--controllers ...] [--workers N] [--out DIR]
+[--no-write] [--no-progress]``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
+from hil.errors import HilError
+from hil.scenario import Scenario
+from studies.closed_loop import run_closed_loop
+from studies.tuning_set import tuning_scenarios
+from studies.tuning_sweep import (Evaluation, Setting, SweepExecutor, SweepGrid, best,
+                                  tuning_table_attribute, update_tuning_text)
+
+#: The controllers with an observer (their tables have the observer fields).
+OBSERVED_CONTROLLERS = ("eso-dkmpc", "lmpc-eso", "dmdc-eso")
+#: The observer grid: error poles, horizon decay, innovation bound, yaw-rate bias pole.
+OBSERVER_GRID = SweepGrid((
+    ("eso_pole", (0.0, 0.5)),
+    ("eso_second_pole", (0.95, 0.98, 0.995)),
+    ("disturbance_decay", (0.8, 1.0)),
+    ("eso_innovation_limit", (0.0, 0.003, 0.01)),
+    ("yaw_rate_bias_pole", (1.0, 0.99)),
+))
+#: One constant disturbance per tuning manoeuvre (``[disturbances]`` keys of
+#: ``models.disturbance``), acting from the start.
+TUNING_DISTURBANCES: dict[str, dict[str, Any]] = {
+    "tuning_40kmh_mu085": {"steer_offset_rad": 0.015},
+    "tuning_60kmh_mu085": {"crosswind_force_n": 500.0, "crosswind_cp_m": 0.5},
+    "tuning_80kmh_mu085": {"bank_angle_rad": 0.04},
+    "tuning_40kmh_mu04": {"yaw_rate_bias_rad_s": 0.007},
+    "tuning_60kmh_mu04": {"pull_wheel": "FL", "pull_stiffness_scale": 0.6},
+    "tuning_80kmh_mu03": {"bank_angle_rad": -0.04},
+    "tuning_speedup_mu06": {"steer_offset_rad": -0.015},
+    "tuning_slowdown_mu04": {"crosswind_force_n": -500.0, "crosswind_cp_m": 0.5},
+}
+#: The comment the written observer fields carry in the tuning file.
+TUNING_COMMENT = "chosen by make tune-observer on the tuning set with disturbances, results/observer_tuning.md"
+
+
+def disturbed_tuning_set() -> list[Scenario]:
+    """The tuning set, then each manoeuvre again with its disturbance (named
+    ``<manoeuvre>+disturbed``): 16 scenarios."""
+    from models.disturbance import Disturbances
+
+    nominal = tuning_scenarios()
+    missing = sorted(set(TUNING_DISTURBANCES) - {s.name for s in nominal})
+    if missing:
+        raise HilError(f"TUNING_DISTURBANCES names manoeuvres not in the tuning set: {missing}")
+    disturbed = [dataclasses.replace(s, name=f"{s.name}+disturbed",
+                                     disturbances=Disturbances.from_mapping(TUNING_DISTURBANCES[s.name],
+                                                                            f"TUNING_DISTURBANCES[{s.name}]"))
+                 for s in nominal]
+    return nominal + disturbed
+
+
+def observer_settings(tuning: Any, name: str, grid: SweepGrid = OBSERVER_GRID) -> list[Setting]:
+    """The grid's settings for controller ``name`` (its table must have every grid field)."""
+    table = getattr(tuning, tuning_table_attribute(tuning, name))
+    missing = [field for field, _ in grid.levels if not hasattr(table, field)]
+    if missing:
+        raise HilError(f"[{name}] has no observer field(s) {missing}")
+    return grid.settings()
+
+
+def tune(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *, workers: int,
+         progress: bool = True, grid: SweepGrid = OBSERVER_GRID) -> dict[str, list[Evaluation]]:
+    """Every grid setting of each controller on every scenario: controller -> evaluations in
+    grid order."""
+    jobs = [(name, "observer", setting) for name in controllers for setting in observer_settings(tuning, name, grid)]
+    bar = tqdm(total=len(jobs) * len(scenarios), desc="observer tuning", unit="run", disable=not progress)
+    executor = SweepExecutor(scenarios, tuning, run_closed_loop, workers, bar)
+    try:
+        evaluations = executor.evaluate(jobs)
+    finally:
+        executor.close()
+        bar.close()
+    out: dict[str, list[Evaluation]] = {name: [] for name in controllers}
+    for evaluation in evaluations:
+        out[evaluation.controller].append(evaluation)
+    return out
+
+
+def _setting_text(setting: Setting) -> str:
+    return ", ".join(f"{field} {value:g}" for field, value in setting)
+
+
+def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[str, Setting],
+                    scenarios: Sequence[Scenario], *, command: str, seconds: float) -> str:
+    """The report: per controller the previous and the chosen observer setting with their
+    objectives (nominal half, disturbed half, all), and the five best settings."""
+    nominal = [s.name for s in scenarios if not s.name.endswith("+disturbed")]
+    disturbed = [s.name for s in scenarios if s.name.endswith("+disturbed")]
+
+    def half(e: Evaluation, names: Sequence[str]) -> str:
+        values = [e.rmse_m[n] if e.completed[n] else float("nan") for n in names]
+        failed = sum(not e.completed[n] for n in names)
+        mean = sum(v for v in values if v == v) / max(1, len(values) - failed)
+        return f"{mean:.4f}" + (f" ({failed} failed)" if failed else "")
+
+    lines = ["# Observer tuning on the tuning set with disturbances", "",
+             f"Written by `{command}` ({seconds / 60:.1f} min). Each setting runs the 8 manoeuvres "
+             "of the tuning set and the same 8 with one constant disturbance each "
+             "(`studies.observer_tuning.TUNING_DISTURBANCES`); the objective is the mean e_Y RMSE (m) "
+             "over the 16 runs, 10 m for a run that does not complete. Every other field of the "
+             "controller's table stays as `controller/tuning.toml` has it (weights from `make tune`).", "",
+             "Disturbances: " + "; ".join(f"{n}: " + ", ".join(f"{k} {v}" for k, v in d.items())
+                                          for n, d in TUNING_DISTURBANCES.items()) + ".", "",
+             f"Grid: {', '.join(f'{f} {list(v)}' for f, v in OBSERVER_GRID.levels)}.", ""]
+    for name, evaluations in results.items():
+        chosen = best(evaluations)
+        before = next((e for e in evaluations if dict(e.setting) == dict(previous[name])), None)
+        lines += [f"## {name}", "", "| setting | objective (m) | nominal 8 | disturbed 8 |", "|---|---|---|---|"]
+        if before is not None:
+            lines.append(f"| before: {_setting_text(before.setting)} | {before.objective_m:.4f} | "
+                         f"{half(before, nominal)} | {half(before, disturbed)} |")
+        else:
+            lines.append(f"| before: {_setting_text(previous[name])} (not on the grid) | | | |")
+        lines.append(f"| **chosen: {_setting_text(chosen.setting)}** | {chosen.objective_m:.4f} | "
+                     f"{half(chosen, nominal)} | {half(chosen, disturbed)} |")
+        ranked = sorted(evaluations, key=lambda e: e.objective_m)[:5]
+        lines += ["", "Best five:", "", "| setting | objective (m) | nominal 8 | disturbed 8 |", "|---|---|---|---|"]
+        lines += [f"| {_setting_text(e.setting)} | {e.objective_m:.4f} | {half(e, nominal)} | {half(e, disturbed)} |"
+                  for e in ranked]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _previous(tuning: Any, name: str) -> Setting:
+    table = getattr(tuning, tuning_table_attribute(tuning, name))
+    return tuple((field, float(getattr(table, field))) for field, _ in OBSERVER_GRID.levels)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.observer_tuning", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--controllers", nargs="+", default=list(OBSERVED_CONTROLLERS),
+                        choices=OBSERVED_CONTROLLERS, help="controllers to tune (default: all with an observer)")
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (Ray)")
+    parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
+    parser.add_argument("--tuning", type=Path, default=DEFAULT_TUNING_PATH, help="tuning file read and written")
+    parser.add_argument("--no-write", action="store_true", help="do not write the tuning file")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if not args.out.is_dir():
+        print(f"error: --out {args.out}: no such folder", file=sys.stderr)
+        return 1
+    started = time.perf_counter()
+    try:
+        tuning = load_tuning(args.tuning)
+        scenarios = disturbed_tuning_set()
+        previous = {name: _previous(tuning, name) for name in args.controllers}
+        results = tune(args.controllers, scenarios, tuning, workers=args.workers, progress=not args.no_progress)
+    except HilError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    seconds = time.perf_counter() - started
+    command = "make tune-observer"
+    (args.out / "observer_tuning.md").write_text(
+        report_markdown(results, previous, scenarios, command=command, seconds=seconds), encoding="utf-8")
+    document = {"command": command, "seconds": seconds, "grid": {f: list(v) for f, v in OBSERVER_GRID.levels},
+                "disturbances": TUNING_DISTURBANCES,
+                "evaluations": [e.as_dict() for evaluations in results.values() for e in evaluations]}
+    (args.out / "observer_tuning.json").write_text(json.dumps(document, indent=1, sort_keys=True) + "\n",
+                                                  encoding="utf-8")
+    chosen = {name: best(evaluations).setting for name, evaluations in results.items()}
+    for name, setting in chosen.items():
+        print(f"{name}: {_setting_text(setting)} (objective {best(results[name]).objective_m:.4f} m)")
+    if not args.no_write:
+        text = args.tuning.read_text(encoding="utf-8")
+        temporary = args.tuning.with_name(args.tuning.name + ".tmp")
+        temporary.write_text(update_tuning_text(text, chosen, comment=TUNING_COMMENT), encoding="utf-8")
+        os.replace(temporary, args.tuning)
+        print(f"wrote the observer fields into {args.tuning}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
