@@ -1,5 +1,5 @@
-"""The shipped reference path files: the double lane change and a slalom, written in the
-contract's CSV format (header ``x,y,yaw``; metres, metres, radians; points at most 0.5 m
+"""The shipped reference path files: the double lane change, a slalom and a
+straight-curve-straight path, written in the contract's CSV format (header ``x,y,yaw``; metres, metres, radians; points at most 0.5 m
 apart, in driving order), and the HIL's reader of path files.
 
 The formula and the CSV format are `controller.reference`'s (`double_lane_change_curve`,
@@ -8,8 +8,10 @@ code. Here their errors become `PathFileError`, the HIL's error for path files.
 
 Regenerate the shipped paths with ``python -m hil.path_files`` (writes ``hil/paths/dlc.csv``)
 and ``python -m hil.path_files --path slalom`` (``hil/paths/slalom.csv``, ``make
-slalom-path``); ``tests/test_scenario.py`` and ``tests/test_robustness_grid.py`` check that
-the shipped files equal the regenerated ones.
+slalom-path``), ``python -m hil.path_files --path straight_curve``
+(``hil/paths/straight_curve.csv``, the disturbance study's); ``tests/test_scenario.py``,
+``tests/test_robustness_grid.py`` and ``tests/test_disturbance_study.py`` check that the
+shipped files equal the regenerated ones.
 """
 from __future__ import annotations
 
@@ -28,9 +30,11 @@ from controller.reference import MAX_POINT_SPACING_M
 from controller.reference import double_lane_change_curve as double_lane_change
 from hil.errors import PathFileError
 
-__all__ = ["PATH_DIR", "DLC_PATH_FILE", "SLALOM_PATH_FILE", "MAX_POINT_SPACING_M",
-           "PATH_CSV_HEADER", "SlalomLayout", "SLALOM", "double_lane_change",
-           "double_lane_change_points", "slalom_curve", "slalom_points", "format_path_csv",
+__all__ = ["PATH_DIR", "DLC_PATH_FILE", "SLALOM_PATH_FILE", "STRAIGHT_CURVE_PATH_FILE",
+           "MAX_POINT_SPACING_M", "PATH_CSV_HEADER", "SlalomLayout", "SLALOM",
+           "StraightCurveLayout", "STRAIGHT_CURVE", "double_lane_change",
+           "double_lane_change_points", "slalom_curve", "slalom_points",
+           "straight_curve_curvature", "straight_curve_points", "format_path_csv",
            "write_path_csv", "read_path_csv", "main"]
 
 #: Folder of the shipped path CSVs.
@@ -39,6 +43,8 @@ PATH_DIR = Path(__file__).resolve().parent / "paths"
 DLC_PATH_FILE = PATH_DIR / "dlc.csv"
 #: The slalom of the robustness grid (``studies.robustness_grid``).
 SLALOM_PATH_FILE = PATH_DIR / "slalom.csv"
+#: The disturbance study's straight, curve, straight (``hil/scenarios/straight_curve.toml``).
+STRAIGHT_CURVE_PATH_FILE = PATH_DIR / "straight_curve.csv"
 
 # Shipped path extent: 20 m behind the start (X = 0) so a tracker that looks back has
 # points, and 150 m ahead: the manoeuvre ends near X = 90 m, the rest shows settling and
@@ -163,6 +169,109 @@ def slalom_points(layout: SlalomLayout = SLALOM) -> np.ndarray:
     return np.column_stack([x, y, yaw])
 
 
+@dataclass(frozen=True)
+class StraightCurveLayout:
+    """A straight, a left curve of constant radius between two clothoids, a straight.
+
+    From arc length 0 (``lead_in_m`` behind the start X = 0, heading +X): ``lead_in_m`` +
+    ``first_straight_m`` of straight, a clothoid of ``clothoid_m`` (curvature rising
+    linearly from 0 to 1 / ``radius_m``), the arc, a clothoid back to 0, ``final_straight_m``
+    of straight and ``margin_m`` more (beyond where a run ends: room for the MPC horizons).
+    The whole curve turns by ``turn_deg``. Points every ``step_m`` of arc length (m, deg).
+    """
+
+    lead_in_m: float = 20.0
+    first_straight_m: float = 60.0
+    clothoid_m: float = 25.0
+    radius_m: float = 50.0
+    turn_deg: float = 90.0
+    final_straight_m: float = 80.0
+    margin_m: float = 30.0
+    step_m: float = 0.25
+
+    @property
+    def arc_m(self) -> float:
+        """Length of the constant-radius arc between the clothoids (m)."""
+        return self.radius_m * (math.radians(self.turn_deg) - self.clothoid_m / self.radius_m)
+
+    @property
+    def curve_start_m(self) -> float:
+        """Arc length where the first clothoid begins (m from the path's first point)."""
+        return self.lead_in_m + self.first_straight_m
+
+    @property
+    def curve_end_m(self) -> float:
+        """Arc length where the second clothoid ends and the final straight begins (m)."""
+        return self.curve_start_m + 2.0 * self.clothoid_m + self.arc_m
+
+    @property
+    def run_end_m(self) -> float:
+        """Arc length of the final straight's end, where a run stops (m)."""
+        return self.curve_end_m + self.final_straight_m
+
+    @property
+    def length_m(self) -> float:
+        """Whole path length (m)."""
+        return self.run_end_m + self.margin_m
+
+
+#: The shipped straight-curve-straight path (``hil/paths/straight_curve.csv``): 60 m of
+#: straight from the start, 25 m clothoids into and out of a 50 m radius (3.9 m/s^2 at
+#: 50 km/h), 90 degrees in all (the arc 53.5 m), then 80 m of straight and 30 m beyond.
+STRAIGHT_CURVE = StraightCurveLayout()
+
+
+def straight_curve_curvature(s: np.ndarray, layout: StraightCurveLayout = STRAIGHT_CURVE) -> np.ndarray:
+    """Curvature (1/m) of the layout at arc lengths ``s`` (m), shape (n,) -> (n,)."""
+    s = np.asarray(s, dtype=float)
+    peak = 1.0 / layout.radius_m
+    into = np.clip((s - layout.curve_start_m) / layout.clothoid_m, 0.0, 1.0)
+    out_of = np.clip((layout.curve_end_m - s) / layout.clothoid_m, 0.0, 1.0)
+    return peak * np.minimum(into, out_of)
+
+
+def _straight_curve_heading(s: np.ndarray, layout: StraightCurveLayout) -> np.ndarray:
+    """Heading (rad) at arc lengths ``s``: the curvature's integral, piecewise quadratic."""
+    s = np.asarray(s, dtype=float)
+    peak, c = 1.0 / layout.radius_m, layout.clothoid_m
+    into = np.clip(s - layout.curve_start_m, 0.0, c)
+    arc = np.clip(s - layout.curve_start_m - c, 0.0, layout.arc_m)
+    out_of = np.clip(s - layout.curve_start_m - c - layout.arc_m, 0.0, c)
+    return peak * (into ** 2 / (2.0 * c) + arc + out_of - out_of ** 2 / (2.0 * c))
+
+
+def _cumulative_simpson(values: np.ndarray, h: float) -> np.ndarray:
+    """Integral of samples ``values`` (2m + 1,) spaced ``h`` apart from the first sample to
+    every second one, by Simpson's rule on each pair of steps: shape (m + 1,)."""
+    pairs = (values[0:-1:2] + 4.0 * values[1::2] + values[2::2]) * h / 3.0
+    return np.concatenate(([0.0], np.cumsum(pairs)))
+
+
+def straight_curve_points(layout: StraightCurveLayout = STRAIGHT_CURVE) -> np.ndarray:
+    """Sample the layout every ``layout.step_m`` of arc length, the start (arc length
+    ``lead_in_m``) at the origin heading +X.
+
+    The heading is exact; the positions are its cosine and sine integrated with Simpson's
+    rule on 100 sub-steps per point (errors far below the file's micrometres).
+
+    Returns:
+        Path points ``[x, y, yaw]``, shape (n, 3), in driving order.
+    """
+    if not (layout.clothoid_m > 0.0 and layout.arc_m >= 0.0 and layout.radius_m > 0.0):
+        raise PathFileError(f"straight_curve: the clothoids turn more than the curve: {layout}")
+    if not 0.0 < layout.step_m <= MAX_POINT_SPACING_M / 1.5:
+        raise PathFileError(f"straight_curve: step_m = {layout.step_m} must be in "
+                            f"(0, {MAX_POINT_SPACING_M / 1.5:.3f}] m")
+    n_points = int(round(layout.length_m / layout.step_m)) + 1
+    fine = np.linspace(0.0, (n_points - 1) * layout.step_m, 200 * (n_points - 1) + 1)
+    heading = _straight_curve_heading(fine, layout)
+    x = _cumulative_simpson(np.cos(heading), fine[1] - fine[0])[::100]
+    y = _cumulative_simpson(np.sin(heading), fine[1] - fine[0])[::100]
+    s = layout.step_m * np.arange(n_points)
+    start = int(round(layout.lead_in_m / layout.step_m))
+    return np.column_stack([x - x[start], y - y[start], _straight_curve_heading(s, layout)])
+
+
 def format_path_csv(points: np.ndarray) -> str:
     """CSV text of path points (n, 3) with the contract header; 6 decimals (um, urad)."""
     try:
@@ -193,7 +302,8 @@ def read_path_csv(file: Path) -> np.ndarray:
 
 #: ``--path`` choices: the generator and the shipped file of each path.
 _SHIPPED_PATHS = {"dlc": (double_lane_change_points, DLC_PATH_FILE),
-                  "slalom": (slalom_points, SLALOM_PATH_FILE)}
+                  "slalom": (slalom_points, SLALOM_PATH_FILE),
+                  "straight_curve": (straight_curve_points, STRAIGHT_CURVE_PATH_FILE)}
 
 
 def main(argv: list[str] | None = None) -> int:

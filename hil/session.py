@@ -41,7 +41,7 @@ from can_defs.frames import CtrlMode
 from hil.bus import BusConfig, open_bus, private_virtual_channel
 from hil.errors import HilError
 from hil.logio import LogMetadata, write_sidecar
-from hil.metrics import TrackingMetrics, path_errors, tracking_metrics
+from hil.metrics import PathErrors, TrackingMetrics, path_errors, tracking_metrics
 from hil.plant_node import PlantNode
 from hil.planner_node import PlannerNode, engage_from_start
 from hil.recorder import BusRecorder, EcuFrameMonitor
@@ -490,18 +490,27 @@ def reference_path(scenario: Scenario) -> Any:
     return ReferencePath.from_csv(scenario.path_file)
 
 
-def control_instant_metrics(plant_trace: dict[str, np.ndarray], path: Any) -> TrackingMetrics:
-    """e_Y and heading-error statistics of the true pose at t = 0, 25, 50, ... ms.
+def control_instant_errors(plant_trace: dict[str, np.ndarray], path: Any) -> tuple[np.ndarray, PathErrors]:
+    """The true pose's errors to the path at t = 0, 25, 50, ... ms.
 
     Args:
         plant_trace: the plant node's trace (``time``, ``x``, ``y``, ``yaw``: (n_ticks,)).
         path: the reference path (``controller.reference.ReferencePath``).
+
+    Returns:
+        (the control instants (s), shape (k,); their e_Y, heading error and progress, (k,) each).
     """
     time_ms = np.round(plant_trace["time"] * 1000.0).astype(np.int64)
     at_control = time_ms % CONTROL_PERIOD_MS == 0
     pose = np.column_stack([plant_trace["x"][at_control], plant_trace["y"][at_control],
                             plant_trace["yaw"][at_control]])
-    errors = path_errors(pose, path)
+    return plant_trace["time"][at_control], path_errors(pose, path)
+
+
+def control_instant_metrics(plant_trace: dict[str, np.ndarray], path: Any) -> TrackingMetrics:
+    """e_Y and heading-error statistics of the true pose at t = 0, 25, 50, ... ms
+    (:func:`control_instant_errors`)."""
+    _, errors = control_instant_errors(plant_trace, path)
     return tracking_metrics(errors.lateral_error, errors.heading_error)
 
 

@@ -98,11 +98,12 @@ def test_path_round_trip_and_missing_file(tmp_path: Path) -> None:
 
 def test_shipped_scenarios_are_listed_and_load() -> None:
     names = list_scenarios()
-    assert {"dlc_high_mu", "dlc_low_mu", "dlc_smoke"} <= set(names)
+    assert {"dlc_high_mu", "dlc_low_mu", "dlc_smoke", "straight_curve"} <= set(names)
     for name in names:
         scenario = load_scenario(name)
         assert scenario.name == name
-        assert scenario.path_file == DLC_PATH_FILE.resolve()
+        if name.startswith("dlc_"):
+            assert scenario.path_file == DLC_PATH_FILE.resolve()
 
 
 def test_high_mu_is_the_papers_first_case() -> None:

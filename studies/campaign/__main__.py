@@ -60,8 +60,8 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
                                          write_heatmaps)
     from studies.campaign.cell import run_cell
     from studies.campaign.executors import open_executor
-    from studies.campaign.runner import (CampaignError, Cache, cell_job, check_c_ecu_built,
-                                         code_version, run_campaign)
+    from studies.campaign.runner import (CampaignError, cached_rows, check_c_ecu_built,
+                                         run_campaign)
     from studies.machine import machine_description
 
     grid = load_grid(args.grid)  # every error before any cell runs
@@ -71,10 +71,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CampaignError(f"cannot create {out}: {e.strerror}") from e
-    version = code_version()
-    cache = Cache(out)
-    already = [row for row in (cache.get(cell_job(grid, c, version).key) for c in grid.cells) if row]
-    appender = CsvAppender(out / "cells.csv", already)
+    appender = CsvAppender(out / "cells.csv", cached_rows(grid, out))
     executor = open_executor(run_cell, address=args.address, workers=args.workers, serial=args.serial)
     try:
         result = run_campaign(grid, out, executor, progress=args.progress, on_row=appender)

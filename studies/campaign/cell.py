@@ -17,7 +17,11 @@ Row fields (``cells.csv``): the axes, then
 - ``step_p50_us`` / ``step_p99_us``: the ECU's control task time (CTRL_DIAG CYCLE_TIME_US)
   over its active cycles, wall clock of the worker; ``overruns``: the ECU's deadline
   overrun counter at the end (saturates at 15);
-- ``wall_s``: the cell's wall time in its worker; ``error``: ``Type: message``.
+- ``wall_s``: the cell's wall time in its worker; ``error``: ``Type: message``;
+- with ``CellJob.keep_trace`` (a grid's ``[run] keep_trace = true``), ``trace``: the true
+  pose's errors at the control instants, ``{"time_s": [...], "e_y": [...], "progress":
+  [...]}`` (s, m, m of path arc length; lists of equal length, to the micrometre), for
+  studies that need more than the summary figures (``studies.disturbance_report``).
 """
 from __future__ import annotations
 
@@ -46,7 +50,8 @@ class CellJob:
     ``scenario_toml``: the cell's scenario file (``studies.campaign.grid.to_toml``) with
     ``path.file`` relative to the repository root (``{ROOT}/`` prefix), so the job is the
     same on any node with a checkout; ``model``: artefact path relative to the root, or
-    None for the controllers' default; ``ecu``: "python" or "c" (``hil.session.RunOptions.ecu``).
+    None for the controllers' default; ``ecu``: "python" or "c" (``hil.session.RunOptions.ecu``);
+    ``keep_trace``: add the e_Y trace to the row (``trace``, see the module docstring).
     """
 
     key: str
@@ -54,6 +59,7 @@ class CellJob:
     scenario_toml: str
     model: str | None = None
     ecu: str = "python"
+    keep_trace: bool = False
 
 
 def model_factory(artefact: Path) -> Any:
@@ -129,6 +135,18 @@ def run_cell(job: CellJob) -> dict[str, Any]:
         reason = f"ended in {CtrlMode(int(ecu['ctrl_mode'][-1])).name}"
     else:
         reason = "duration"
+    if job.keep_trace:
+        row["trace"] = _error_trace(result, scenario)
     row.update(end_reason=reason, completed=int(reason == "duration"),
                wall_s=time.perf_counter() - started)
     return row
+
+
+def _error_trace(result: Any, scenario: Any) -> dict[str, list[float]]:
+    """The run's e_Y and path progress at the control instants (module docstring)."""
+    from hil.session import control_instant_errors, reference_path
+
+    times, errors = control_instant_errors(result.plant_trace, reference_path(scenario))
+    return {"time_s": [round(float(t), 3) for t in times],
+            "e_y": [round(float(e), 6) for e in errors.lateral_error],
+            "progress": [round(float(s), 6) for s in errors.progress]}

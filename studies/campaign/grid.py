@@ -6,7 +6,8 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     description = "..."
 
     [axes]                       # controller and scenario are required, the rest optional
-    controller = ["eso-dkmpc", "lmpc"]          # controller.registry names
+    controller = ["eso-dkmpc", "lmpc"]          # controller.registry names, or ["all"]:
+                                                # every name of ALL_CONTROLLER_NAMES
     scenario = ["dlc_high_mu", "my.toml"]       # shipped name, or a file (relative to this file)
     mu = [0.5, 0.85]                            # road friction (replaces the scenario's)
     speed = [30.0, "gentle"]                    # km/h constant (start and target), or the
@@ -27,6 +28,7 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     [run]
     distance_m = 110.0           # cells at a constant speed run this far (+ margin_s);
     margin_s = 1.0               # without it a cell keeps its scenario's duration
+    keep_trace = false           # true: each row also has the run's e_Y trace (cell.py)
 
     [speed_profiles.gentle]      # as a scenario's [speed_profile]; starts at its first target
     time_s = [0.0, 3.0]
@@ -88,7 +90,10 @@ KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
 HORIZON_ROOM_M = 15.0
 CONTROL_PERIOD_S = 0.025
 _TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults", "disturbances"}
-_RUN_KEYS = {"distance_m", "margin_s"}
+_RUN_KEYS = {"distance_m", "margin_s", "keep_trace"}
+#: The controller axis' value for every controller of ``controller.registry``, as the
+#: registry has them when the grid loads.
+ALL_CONTROLLERS = "all"
 _KMH = 1.0 / 3.6
 
 
@@ -143,6 +148,8 @@ class Grid:
     c_left_out: Mapping[str, int] = field(default_factory=dict)
     #: disturbance axis value -> its ``[disturbances]`` table ("none": empty).
     disturbances: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    #: ``[run] keep_trace``: the cells' rows carry their e_Y trace.
+    keep_trace: bool = False
 
     def scenario_document(self, cell: Cell) -> dict[str, Any]:
         """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
@@ -203,6 +210,9 @@ def load_grid(file: str | Path) -> Grid:
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not 0 <= value < 1e5):
             raise GridError(f"{file}: run.{key} = {value!r}: must be a number >= 0")
+    keep_trace = run.get("keep_trace", False)
+    if not isinstance(keep_trace, bool):
+        raise GridError(f"{file}: run.keep_trace = {keep_trace!r}: must be true or false")
     excludes = _excludes(file, raw.get("exclude", []), axes)
 
     cells, excluded, not_applicable = [], 0, 0
@@ -222,7 +232,7 @@ def load_grid(file: str | Path) -> Grid:
                 speed_profiles=profiles, faults=faults,
                 distance_m=None if distance is None else float(distance), margin_s=float(margin),
                 excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out,
-                disturbances=disturbances)
+                disturbances=disturbances, keep_trace=keep_trace)
     if not cells:
         left_out = "".join(f"; {n} C cells left out: {why}" for why, n in c_left_out.items())
         raise GridError(f"{file}: no cell left after the exclusions{left_out}")
@@ -241,6 +251,12 @@ def _axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
     values = raw if isinstance(raw, list) else [raw]
     if not values:
         raise GridError(f"{file}: axes.{name} is empty")
+    if name == "controller" and ALL_CONTROLLERS in values:
+        if len(values) > 1:
+            raise GridError(f"{file}: axes.controller = {values!r}: {ALL_CONTROLLERS!r} stands alone")
+        from controller.registry import ALL_CONTROLLER_NAMES
+
+        values = list(ALL_CONTROLLER_NAMES)
     checked = tuple(_axis_value(file, name, v) for v in values)
     if len(set(checked)) != len(checked):
         raise GridError(f"{file}: axes.{name} = {values!r}: repeated value")

@@ -113,11 +113,14 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
         del values["ecu"]
     else:
         digests.update({path.name: _digest(path) for path in C_ECU_FILES})
-    material = json.dumps({"version": CACHE_VERSION, "cell": values, "scenario": text,
-                           "digests": digests, "code": version}, sort_keys=True)
+    facts = {"version": CACHE_VERSION, "cell": values, "scenario": text, "digests": digests,
+             "code": version}
+    if grid.keep_trace:
+        facts["trace"] = True  # such a row has more in it (a grid without it: the key as before)
+    material = json.dumps(facts, sort_keys=True)
     key = hashlib.sha256(material.encode()).hexdigest()[:24]
     return CellJob(key=key, controller=cell.controller, scenario_toml=text, model=model,
-                   ecu=cell.ecu)
+                   ecu=cell.ecu, keep_trace=grid.keep_trace)
 
 
 def cell_key(grid: Grid, cell: Cell, version: str | None = None) -> str:
@@ -216,6 +219,15 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
                           failed=sum(1 for r in rows if not r.get("completed")),
                           total=len(jobs), wall_s=time.monotonic() - started,
                           executor=executor.description, interrupted=interrupted)
+
+
+def cached_rows(grid: Grid, out_dir: Path, version: str | None = None) -> list[dict[str, Any]]:
+    """The rows of ``grid``'s cells cached in ``out_dir`` for the code ``version`` (default:
+    this checkout's), in grid order; cells without a cached result are left out."""
+    version = version or code_version()
+    cache = Cache(out_dir)
+    rows = (cache.get(cell_job(grid, cell, version).key) for cell in grid.cells)
+    return [row for row in rows if row]
 
 
 def finished_rows(rows: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
