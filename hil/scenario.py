@@ -17,6 +17,8 @@ everything else SI; the attributes of :class:`Scenario` are SI)::
 
     [vehicle]
     mass_offset_kg = 0.0         # or mass_kg = 1648.0 (not both; neither = nominal)
+    variant = "van"              # optional: a car of models/vehicle_variants.toml
+                                 # (the masses above are then the variant's)
 
     [start]                      # plant initial state
     x_m = 0.0
@@ -48,6 +50,7 @@ Every error names the file, the field and the offending value.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import tomllib
 import types
@@ -78,7 +81,7 @@ _ALLOWED_FIELDS: dict[str, frozenset[str]] = {
                    "speed_profile", "faults", "disturbances"}),
     "path": frozenset({"id", "file"}),
     "road": frozenset({"mu"}),
-    "vehicle": frozenset({"mass_kg", "mass_offset_kg"}),
+    "vehicle": frozenset({"mass_kg", "mass_offset_kg", "variant"}),
     "start": frozenset({"x_m", "y_m", "yaw_rad", "speed_kmh"}),
     "speed_profile": frozenset({"time_s", "target_speed_kmh"}),
 }
@@ -129,6 +132,7 @@ class Scenario:
     ``faults`` is the file's ``[faults]`` table, read-only and uninterpreted here.
     ``disturbances``: the ``[disturbances]`` table as ``models.disturbance.Disturbances``
     (all zero without one); :meth:`vehicle` builds the plant with them.
+    ``vehicle_variant``: a variant of ``models/vehicle_variants.toml`` (None: the nominal car).
     """
 
     name: str
@@ -146,6 +150,7 @@ class Scenario:
         default_factory=lambda: types.MappingProxyType({}), hash=False, compare=False
     )
     disturbances: Any = field(default_factory=_no_disturbances)
+    vehicle_variant: str | None = None
 
     @classmethod
     def load(cls, file: str | Path) -> "Scenario":
@@ -182,12 +187,18 @@ class Scenario:
         return nominal_mass_kg + self.mass_offset_kg
 
     def vehicle_params(self) -> Any:
-        """The plant's ``models.vehicle_params.VehicleParams`` with this scenario's mu and
-        mass (lazy import: scenario files load without the models package)."""
+        """The plant's ``models.vehicle_params.VehicleParams`` (the nominal car's or the
+        vehicle variant's) with this scenario's mu and mass (lazy import: scenario files
+        load without the models package)."""
         from models.vehicle_params import load_vehicle_params
 
-        nominal = load_vehicle_params()
-        return load_vehicle_params(mu=self.mu, mass=self.plant_mass(nominal.mass))
+        if self.vehicle_variant is None:
+            nominal = load_vehicle_params()
+            return load_vehicle_params(mu=self.mu, mass=self.plant_mass(nominal.mass))
+        from models.vehicle_variants import load_variant
+
+        car = load_variant(self.vehicle_variant).params
+        return dataclasses.replace(car, mu=self.mu, mass=self.plant_mass(car.mass))
 
     def vehicle(self, params: Any = None) -> Any:
         """The plant of this scenario: ``models.vehicle.FourWheelVehicle`` with ``params``
@@ -318,6 +329,7 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
         )
     mass_kg = vehicle.number("mass_kg", *_MASS_RANGE_KG) if vehicle.has("mass_kg") else None
     mass_offset_kg = vehicle.number("mass_offset_kg", -1000.0, 2000.0, default=0.0)
+    variant = _vehicle_variant(vehicle) if vehicle.has("variant") else None
 
     start_fields = _Fields(file, top.table_of("start"), "start")
     start = StartState(
@@ -362,4 +374,17 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
         speed_profile=profile,
         faults=types.MappingProxyType(copy.deepcopy(faults_raw)),
         disturbances=disturbances,
+        vehicle_variant=variant,
     )
+
+
+def _vehicle_variant(vehicle: _Fields) -> str:
+    """``[vehicle] variant``, checked against ``models/vehicle_variants.toml``."""
+    from models.vehicle_variants import VehicleVariantError, load_variant
+
+    name = vehicle.text("variant")
+    try:
+        load_variant(name)
+    except VehicleVariantError as e:
+        raise vehicle.error("variant", name, str(e)) from e
+    return name

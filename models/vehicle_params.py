@@ -131,19 +131,26 @@ def load_vehicle_params(path: str | Path | None = None, **overrides: float) -> V
     Raises ``VehicleParamsError`` for a missing file, unknown or missing keys, bad values.
     """
     source = Path(path) if path is not None else DEFAULT_PARAMS_PATH
-    try:
-        with open(source, "rb") as handle:
-            document = tomllib.load(handle)
-    except FileNotFoundError as exc:
-        raise VehicleParamsError(f"{source}: parameter file not found") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise VehicleParamsError(f"{source}: invalid TOML: {exc}") from exc
+    document = read_toml_file(source, "parameter file")
     values: dict[str, Any] = {}
     for section, table in document.items():
         if not isinstance(table, dict):
             raise VehicleParamsError(f"{source}: {section}: expected a [section] table")
         values.update(table)
     return _build(values, overrides, str(source))
+
+
+def read_toml_file(source: Path, what: str,
+                   error: type[VehicleParamsError] = VehicleParamsError) -> dict[str, Any]:
+    """The TOML document of the file ``source``; a missing file ("``what`` not found") or
+    bad TOML is one ``error`` naming the file."""
+    try:
+        with open(source, "rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError as exc:
+        raise error(f"{source}: {what} not found") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{source}: invalid TOML: {exc}") from exc
 
 
 def _build(values: dict[str, Any], overrides: dict[str, float], source: str) -> VehicleParams:

@@ -191,7 +191,6 @@ def record_drive(log: Path) -> dict[str, Any]:
     LMPC with the excitation, every frame recorded to ``log``."""
     from hil.faults import FaultSpec, VehicleFaults
     from hil.scenario import load_scenario
-    from hil.session import default_options, run_hil
     from models.vehicle_params import load_vehicle_params
 
     nominal_lag = load_vehicle_params().steer_time_constant
@@ -199,9 +198,19 @@ def record_drive(log: Path) -> dict[str, Any]:
     spec = FaultSpec(vehicle=VehicleFaults(mass_offset_kg=CHANGED_MASS_OFFSET_KG,
                                            steer_extra_lag_s=(CHANGED_LAG_FACTOR - 1.0) * nominal_lag,
                                            cornering_stiffness_rear_scale=CHANGED_REAR_STIFFNESS_SCALE))
-    options = dataclasses.replace(default_options(DRIVE_CONTROLLER, log_path=log), faults=spec,
+    return drive_over_can(load_scenario(IDENTIFICATION_SCENARIO_FILE), log, spec)
+
+
+def drive_over_can(scenario: Any, log: Path, faults: Any = None) -> dict[str, Any]:
+    """Drive ``scenario`` (``hil.scenario.Scenario``, e.g. the identification drive) over
+    CAN (virtual bus, lockstep) with LMPC and the excitation, every frame recorded to
+    ``log``; ``faults`` (``hil.faults.FaultSpec``) change the plant. Returns the drive's
+    facts (frames, active cycles, tracking, the log's SHA-256)."""
+    from hil.session import default_options, run_hil
+
+    options = dataclasses.replace(default_options(DRIVE_CONTROLLER, log_path=log), faults=faults,
                                   excite=DRIVE_EXCITATION)
-    result = run_hil(load_scenario(IDENTIFICATION_SCENARIO_FILE), options)
+    result = run_hil(scenario, options)
     summary = result.summary()
     return {"controller": DRIVE_CONTROLLER, "excitation": DRIVE_EXCITATION,
             "frames_logged": summary["frames_logged"], "active_cycles": summary["active_cycles"],
@@ -213,25 +222,38 @@ def weighed_vehicle_file(work: Path) -> Path:
     """The vehicle file an owner of the changed plant would write: the nominal file with
     the mass weighed (+300 kg); the tyres are not measured (no rear factor in it). The
     bicycle takes mass and geometry from it; the fit finds the tyres and the inertia."""
-    from models.vehicle_params import DEFAULT_PARAMS_PATH, load_vehicle_params
+    from models.vehicle_params import load_vehicle_params
 
-    text = DEFAULT_PARAMS_PATH.read_text()
     mass = load_vehicle_params().mass + CHANGED_MASS_OFFSET_KG
-    lines = [f"mass = {mass}" if line.split("=")[0].strip() == "mass" else line for line in text.splitlines()]
-    out = work / "vehicle_changed.toml"
+    return measured_vehicle_file(work / "vehicle_changed.toml", {"mass": mass})
+
+
+def measured_vehicle_file(out: Path, measured: dict[str, float]) -> Path:
+    """Write ``out``: the nominal vehicle file with the ``measured`` values (field ->
+    value, e.g. the weighed mass) in place of the nominal ones, every other line as it is."""
+    from models.vehicle_params import DEFAULT_PARAMS_PATH, load_vehicle_params, params_as_dict
+
+    lines = [f"{key} = {measured[key]!r}" if (key := line.split("=")[0].strip()) in measured else line
+             for line in DEFAULT_PARAMS_PATH.read_text().splitlines()]
     out.write_text("\n".join(lines) + "\n")
-    if load_vehicle_params(out).mass != mass:
-        raise SystemExit(f"error: {out}: the mass line of {DEFAULT_PARAMS_PATH} was not found")
+    written = params_as_dict(load_vehicle_params(out))
+    missing = sorted(key for key, value in measured.items() if written.get(key) != value)
+    if missing:
+        raise SystemExit(f"error: {out}: the line(s) of {', '.join(missing)} of {DEFAULT_PARAMS_PATH} "
+                         "were not found")
     return out
 
 
-def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path) -> None:
-    """``python -m models.koopman_train --logs LOG --out DIR --vehicle FILE`` in this process."""
+def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path,
+             options: Sequence[str] = ()) -> None:
+    """``python -m models.koopman_train --logs LOG --out DIR --vehicle FILE [OPTIONS]`` in
+    this process (``options``: more training options, e.g. ``--steps-per-epoch 5``)."""
     from models import koopman_train  # torch: only here
 
     argv = ["--logs", str(log), "--out", str(model_dir), "--no-progress", "--vehicle", str(vehicle_file)]
     if epochs is not None:
         argv += ["--epochs", str(epochs)]
+    argv += list(options)
     if koopman_train.main(argv) != 0:
         raise SystemExit(f"error: training from {log} failed")
 
@@ -275,17 +297,19 @@ def _label(plant_kind: str, controller: str, identified: bool) -> str:
     return f"{law}, {model}, {plant_kind} plant"
 
 
-def bicycle_comparison(model_dir: Path) -> dict[str, Any]:
-    """The fitted bicycle's parameters against the nominal ones and the changed plant's
-    own (the stiffnesses: the flat-track slope at the changed plant's static loads,
+def bicycle_comparison(model_dir: Path, plant_params: Any = None) -> dict[str, Any]:
+    """The fitted bicycle's parameters against the nominal ones and the plant's own (the
+    stiffnesses: the flat-track slope at the plant's static loads,
     ``models.bicycle.nominal_model_params``; the mass: the vehicle file's, as given to the
-    fit)."""
+    fit). The plant (``VehicleParams``) is the changed plant unless ``plant_params`` is
+    given; its figures are under ``changed_plant``."""
     from models.bicycle import nominal_model_params
     from models.vehicle_params import load_vehicle_params
 
     fitted = json.loads((model_dir / "bicycle.json").read_text())
     nominal = nominal_model_params()
-    plant = nominal_model_params(changed_params(load_vehicle_params()))
+    plant = nominal_model_params(plant_params if plant_params is not None
+                                 else changed_params(load_vehicle_params()))
 
     def percent(value: float, reference: float) -> float:
         return round(100.0 * (value / reference - 1.0), 2)

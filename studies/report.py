@@ -38,9 +38,9 @@ PAPER_TRACKING: dict[str, dict[str, tuple[tuple[float, float, float], tuple[floa
 
 #: Display names and colours, fixed per controller so every figure reads alike.
 DISPLAY_NAME = {"eso-dkmpc": "ESO-DKMPC", "dkmpc": "DKMPC", "lmpc": "LMPC", "nmpc": "NMPC",
-                "lmpc-eso": "LMPC-ESO", "dmdc-eso": "DMDc-ESO"}
+                "lmpc-eso": "LMPC-ESO", "dmdc-eso": "DMDc-ESO", "stanley": "Stanley"}
 COLOUR = {"eso-dkmpc": "tab:red", "dkmpc": "tab:blue", "lmpc": "tab:green", "nmpc": "tab:orange",
-          "lmpc-eso": "tab:olive", "dmdc-eso": "tab:purple"}
+          "lmpc-eso": "tab:olive", "dmdc-eso": "tab:purple", "stanley": "tab:gray"}
 #: The ablations (issue 14 item 6): dashed in figures, explained under the tables.
 ABLATION_NOTES = {
     "lmpc-eso": "LMPC-ESO = LMPC + ESO-DKMPC's observer on the bicycle's [vy, yaw rate] (no lift)",
