@@ -467,7 +467,7 @@ def test_geometric_controller_runs_its_own_grid_and_no_later_stage(tmp_path: Pat
                        runner=runner, show_progress=False, evaluate_before=True, gain_grids={StanleyTuning: gains})
     lmpc, stanley = sweeps
     assert lmpc.own_grid is None and stanley.own_grid is gains
-    assert [e.stage for e in stanley.evaluations] == ["weights"] * len(gains)
+    assert [e.stage for e in stanley.evaluations] == ["gains"] * len(gains)
     assert stanley.weight_fields == gains.fields and stanley.observer_fields == ()
     assert dict(stanley.chosen.setting) == {"cross_track_gain": 4.0, "softening_speed": 1.0, "yaw_rate_gain": 0.0,
                                             "steer_rate_limit": 1.0, "steer_time_constant": 0.0}
