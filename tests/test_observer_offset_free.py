@@ -112,16 +112,30 @@ target_speed_kmh = [50.0]
     return load_scenario(folder / "straight.toml")
 
 
+def eso_dkmpc(**observer: float) -> "object":
+    """ESO-DKMPC with the tuning file's table, the given observer fields replaced."""
+    from controller.eso_dkmpc import EsoDkmpc
+    from controller.tuning import load_tuning
+
+    tuning = load_tuning()
+    return EsoDkmpc(KoopmanModel.load(), dataclasses.replace(tuning.eso_dkmpc, **observer), tuning.longitudinal)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("disturbance", ["steer_offset_rad = 0.02", "yaw_rate_bias_rad_s = 0.01"])
-def test_eso_dkmpc_settles_without_a_standing_offset(tmp_path: Path, disturbance: str) -> None:
+@pytest.mark.parametrize("disturbance, observer", [
+    ("steer_offset_rad = 0.02", {}),  # the shipped tuning
+    ("yaw_rate_bias_rad_s = 0.01", {"yaw_rate_bias_pole": 0.99}),  # with the bias estimate on
+])
+def test_eso_dkmpc_settles_without_a_standing_offset(tmp_path: Path, disturbance: str,
+                                                     observer: dict[str, float]) -> None:
     """A constant disturbance on a straight road: after 12 s the lateral error of ESO-DKMPC
     stays within 5 mm (the wheels' offset alone moves the car 0.02 rad x 13.9 m/s = 0.28 m/s
-    sideways before the controller acts)."""
+    sideways before the controller acts). The sensor bias needs the bias estimate, which the
+    shipped tuning leaves off (results/observer_tuning.md): the test turns it on."""
     from studies.closed_loop import run_closed_loop
 
     scenario = _straight_scenario(tmp_path, disturbance)
-    result = run_closed_loop(scenario, create_controller("eso-dkmpc"))
+    result = run_closed_loop(scenario, eso_dkmpc(**observer))
     assert result.completed, result.failure
     trace = result.trace
     settled = np.abs(trace.lateral_error[trace.time_s >= 12.0])
@@ -135,10 +149,20 @@ def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offs
     the same commands, status and iterations as the Python ESO-DKMPC step for step."""
     from studies.closed_loop import run_closed_loop
 
+    from test_firmware_c_core import _tool
+
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "steer_offset_rad = 0.02\nyaw_rate_bias_rad_s = 0.01"),
                                    duration_s=6.0)
-    python = create_controller("eso-dkmpc")
-    twin = Twin(python, native.NativeController("eso-dkmpc"), frozenset({60, 61}))
+    # The bias estimate on in both (the shipped tuning leaves it off) and the bound reached.
+    ecu_data = _tool("ecu_data")
+    records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
+    table = records["tuning.eso-dkmpc"].copy()
+    fields = list(ecu_data.TUNING_FIELDS)
+    bias_index = len(table) - len(fields) + fields.index("yaw_rate_bias_pole")  # after the 3-vector bounds
+    table[bias_index] = 0.99
+    ecu_data.write_data(dict(records, **{"tuning.eso-dkmpc": table}), tmp_path / "bias.bin")
+    python = eso_dkmpc(yaw_rate_bias_pole=0.99)
+    twin = Twin(python, native.NativeController("eso-dkmpc", tmp_path / "bias.bin"), frozenset({60, 61}))
     result = run_closed_loop(scenario, twin)
     assert result.completed, result.failure
     assert_twin_steps_equal("eso-dkmpc", twin)
