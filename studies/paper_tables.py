@@ -40,6 +40,9 @@ CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
 #: on LMPC's bicycle (LMPC-ESO) and ESO-DKMPC on a DMDc model with no lift (DMDc-ESO); see
 #: docs/controllers.md, "Ablations". ``--no-ablations`` runs the four only.
 ABLATIONS = ("lmpc-eso", "dmdc-eso")
+#: The geometric baseline (issue 35 item 5), a row after the ablations: what the MPCs buy
+#: over a controller with no model (docs/controllers.md, "Stanley").
+GEOMETRIC = ("stanley",)
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 #: Acceptance bound on |e_Y| over every run (m).
 MAX_LATERAL_ERROR_M = 2.0
@@ -248,9 +251,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS),
                         help="scenario names or TOML files (default: %(default)s)")
-    parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS + ABLATIONS),
-                        choices=CONTROLLERS + ABLATIONS,
-                        help="controllers (default: the paper's four and the ablations %(default)s)")
+    parser.add_argument("--controllers", nargs="+", default=list(CONTROLLERS + ABLATIONS + GEOMETRIC),
+                        choices=CONTROLLERS + ABLATIONS + GEOMETRIC,
+                        help="controllers (default: the paper's four, the ablations and Stanley %(default)s)")
     parser.add_argument("--no-ablations", action="store_true",
                         help=f"leave out the ablations ({', '.join(ABLATIONS)})")
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder")

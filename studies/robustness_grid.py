@@ -671,6 +671,31 @@ def goal_line(records: Sequence[RunRecord]) -> str | None:
             f"{len(cells) // 2}; a run that did not complete counts as an infinite RMSE).")
 
 
+def observer_line(records: Sequence[RunRecord]) -> str | None:
+    """What the observer adds on the grid (issue 35): ESO-DKMPC against DKMPC, the same
+    controller without it, head to head on the cells either completed, and on those with a
+    model mismatch (mass +300 kg or steering lag x3); a run that did not complete counts as
+    an infinite RMSE, a tie as neither winning. None without both controllers."""
+    grouped = by_cell(records)
+    pairs = [(runs["eso-dkmpc"], runs["dkmpc"]) for runs in grouped.values()
+             if "eso-dkmpc" in runs and "dkmpc" in runs and (runs["eso-dkmpc"].completed or runs["dkmpc"].completed)]
+    if not pairs:
+        return None
+
+    def rmse(run: RunRecord) -> float:
+        return run.e_y_rmse if run.completed else math.inf
+
+    def count(selected: list[tuple[RunRecord, RunRecord]]) -> str:
+        wins = sum(rmse(eso) < rmse(dk) for eso, dk in selected)
+        losses = sum(rmse(eso) > rmse(dk) for eso, dk in selected)
+        return f"{wins} of {len(selected)} (DKMPC lower on {losses})"
+
+    mismatch = [(eso, dk) for eso, dk in pairs if eso.mass_offset_kg > 0.0 or eso.lag_factor > 1.0]
+    return (f"The observer, head to head: ESO-DKMPC's e_Y RMSE below DKMPC's on {count(pairs)} of the "
+            f"cells either completed; on the model-mismatch cells (mass +300 kg or steering lag x3) on "
+            f"{count(mismatch)}.")
+
+
 # ---------------------------------------------------------------------------- outputs
 
 def write_csv(records: Sequence[RunRecord], file: Path) -> None:
@@ -780,6 +805,9 @@ def report_markdown(records: Sequence[RunRecord], summary: GridSummary, *, comma
     goal = goal_line(records)
     if goal:
         lines += ["", goal]
+    observer = observer_line(records)
+    if observer:
+        lines += ["", observer]
     lines += [
         "",
         f"## (d) Completed runs by mu x speed (of {summary.runs_per_group} per controller)",
@@ -923,6 +951,9 @@ def main(argv: list[str] | None = None) -> int:
     goal = goal_line(records)
     if goal:
         print(goal)
+    observer = observer_line(records)
+    if observer:
+        print(observer)
     print(f"wrote {out}/robustness.md, robustness.csv, robustness.png "
           f"({len(records)} runs, {time.monotonic() - started:.0f} s)")
     return 0

@@ -304,3 +304,16 @@ def test_the_summary_uses_only_the_cells_every_controller_completed() -> None:
     assert summary.completed_pivot[(0.3, 70.0)] == {"p": 1, "q": 0}
     line = grid.ranking_line(summary)
     assert "over the 2 cells" in line and "p, q (1 of 2 each)" in line
+
+
+def test_observer_line_counts_eso_dkmpc_against_dkmpc_overall_and_on_mismatch_cells() -> None:
+    nominal, heavy, lagging, lost = (Cell("dlc", 0.85, 30.0, 0.0, 1.0), Cell("dlc", 0.85, 30.0, 300.0, 1.0),
+                                     Cell("dlc", 0.5, 50.0, 0.0, 3.0), Cell("dlc", 0.3, 70.0, 300.0, 3.0))
+    records = [_record("eso-dkmpc", nominal, 0.2), _record("dkmpc", nominal, 0.1),
+               _record("eso-dkmpc", heavy, 0.1), _record("dkmpc", heavy, 0.2),
+               _record("eso-dkmpc", lagging, 0.3), _record("dkmpc", lagging, None),
+               _record("eso-dkmpc", lost, None), _record("dkmpc", lost, None)]  # neither: left out
+    line = grid.observer_line(records)
+    assert "below DKMPC's on 2 of 3 (DKMPC lower on 1)" in line
+    assert "(mass +300 kg or steering lag x3) on 2 of 2 (DKMPC lower on 0)" in line
+    assert grid.observer_line([_record("eso-dkmpc", nominal, 0.2)]) is None
