@@ -162,11 +162,15 @@ def checks_markdown(checks: Sequence[Mapping[str, Any]]) -> str:
 
 
 def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Path,
-              *, show_progress: bool = True, debug: bool = False) -> dict[str, Any]:
+              *, show_progress: bool = True, debug: bool = False,
+              tuning_path: Path | None = None) -> dict[str, Any]:
     """Run every controller on every scenario and write tables, figures, JSON and traces.
 
     A run whose controller or plant cannot be built is recorded with its ``error`` and
     the study goes on; ``debug`` prints its traceback.
+
+    ``tuning_path``: another tuning file than ``controller/tuning.toml`` (e.g. the one of
+    ``studies.unscheduled_tuning``).
 
     Returns:
         The document written to ``study_metrics.json``.
@@ -182,7 +186,7 @@ def run_study(scenarios: Sequence[Scenario], controllers: Sequence[str], out: Pa
     for scenario, name in outer:
         outer.set_postfix_str(f"{name} on {scenario.name}")
         try:
-            controller = create_controller(name)
+            controller = create_controller(name, tuning_path)
             with tqdm(total=control_steps(scenario), desc=f"{name}/{scenario.name}",
                       unit="step", leave=False, disable=not show_progress) as inner:
                 result = run_closed_loop(scenario, controller,
@@ -259,14 +263,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder")
     parser.add_argument("--strict", action="store_true",
                         help="exit 1 when an acceptance check fails")
+    parser.add_argument("--tuning", type=Path, default=None,
+                        help="tuning file (default controller/tuning.toml)")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bars")
     parser.add_argument("--debug", action="store_true", help="tracebacks on errors")
     args = parser.parse_args(argv)
+    if args.tuning is not None and not args.tuning.is_file():
+        print(f"error: --tuning {args.tuning}: no such file", file=sys.stderr)
+        return 1
     try:
         scenarios = [load_scenario(name) for name in args.scenarios]
         controllers = [c for c in args.controllers if not (args.no_ablations and c in ABLATIONS)]
         document = run_study(scenarios, controllers, args.out,
-                             show_progress=not args.no_progress, debug=args.debug)
+                             show_progress=not args.no_progress, debug=args.debug, tuning_path=args.tuning)
     except (HilError, OSError) as e:
         if args.debug:
             traceback.print_exc()
