@@ -2,7 +2,8 @@
 
 One column per scenario. Top: each controller's steady lateral offset on the scenario's
 final straight (cm) under each disturbance, a group of bars per disturbance (a cross on
-the axis where the run did not complete). Bottom: e_Y (cm) along the path (m of arc
+the axis where the run did not complete); for a scenario without a straight the runs
+settled on (the lane change), its e_Y RMSE (cm) instead. Bottom: e_Y (cm) along the path (m of arc
 length) of every controller under one disturbance (the featured one), the straights
 shaded.
 """
@@ -65,7 +66,12 @@ def write_figure(path: Path, grid: Any, rows: Sequence[Mapping[str, Any]], resul
                 x = i - 0.4 + (k + 0.5) * width
                 if result is not None and not result.completed:
                     failed.append(x)
-                value = None if result is None or final is None else result.offsets.get(final)
+                if result is None:
+                    value = None
+                elif final is None:  # no straight: the run's e_Y RMSE
+                    value = result.e_y_rmse if result.completed else None
+                else:
+                    value = result.offsets.get(final)
                 if value is not None:
                     xs.append(x)
                     heights.append(value * 100.0)
@@ -74,8 +80,9 @@ def write_figure(path: Path, grid: Any, rows: Sequence[Mapping[str, Any]], resul
                 ax.plot(failed, [0.0] * len(failed), "x", color=_colour(controller, k), markersize=7)
         ax.axhline(0.0, color="0.3", linewidth=0.6)
         ax.set_xticks(range(len(disturbances)), disturbances, rotation=40, ha="right", fontsize=7)
-        ax.set_ylabel(f"steady offset, {final or 'no straight'} (cm)")
-        ax.set_title(f"{scenario}: steady lateral offset (x: did not complete)", fontsize=9)
+        what = f"steady lateral offset, {final}" if final else "e_Y RMSE (no straight)"
+        ax.set_ylabel(f"{what} (cm)")
+        ax.set_title(f"{scenario}: {what} (x: did not complete)", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
         if j == 0:
             ax.legend(fontsize=7, ncol=2)
