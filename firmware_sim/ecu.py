@@ -43,7 +43,7 @@ from firmware_sim.clock import (HANDSHAKE_TICK, LockstepClock, MonotonicClock, R
 from firmware_sim.config import (BUS_LOST_AFTER_MS, BUS_REOPEN_INTERVAL_S, NS_PER_MS, NS_PER_S,
                                  EcuConfig)
 from firmware_sim.errors import ConfigError
-from firmware_sim.excitation import Excitation, ExcitationProgram, describe
+from firmware_sim.excitation import FAILED_PREFIX, Excitation, ExcitationProgram, describe
 from firmware_sim.guard import GuardLimits, guard_command
 from firmware_sim.modes import VALID_COMMAND_MODES, ModeEvents, transition
 from firmware_sim.ratelimit import RateLimitedLog
@@ -562,11 +562,12 @@ class Ecu:
                 now_s, self.mode is CtrlMode.ACTIVE, measurement.vx, lateral_error, steer, torque,
                 self._limits.steer_range(), self._limits.torque_range())
         except Exception as error:  # the control task never raises
-            self._excitation.stopped_reason = f"excitation failed: {error}"
+            self._excitation.stopped_reason = f"{FAILED_PREFIX}{error}"
             _LOG.error("excitation stopped for this engagement: %s", self._excitation.stopped_reason)
             return steer, torque
         if status.stopped_reason is not None and was_stopped is None:
-            _LOG.warning("excitation stopped for this engagement: %s", status.stopped_reason)
+            level = logging.ERROR if status.stopped_reason.startswith(FAILED_PREFIX) else logging.WARNING
+            _LOG.log(level, "excitation stopped for this engagement: %s", status.stopped_reason)
         return excited_steer, excited_torque
 
     def _predict(self, sample: VehicleSample, sample_age_ns: int | None) -> VehicleSample | None:

@@ -50,6 +50,34 @@ from firmware_sim.errors import ConfigError
 PROGRAM_KINDS = ("chirp", "prbs", "steps", "table")
 _MASK64 = (1 << 64) - 1
 
+#: Largest value of each numeric field of a program, checked at load the same in the C ECU
+#: (firmware/src/ecu_excite.c); the lower bounds are ``> 0`` or ``>= 0`` (`ExcitationProgram`).
+#: Every bound keeps the step's arithmetic finite: frequencies up to the control rate's
+#: Nyquist frequency (20 Hz at 25 ms), times up to an hour, torque within the command limit.
+FIELD_LIMITS: dict[str, float] = {
+    "steer_amplitude_rad": 0.3, "lateral_accel_mps2": 20.0, "wheelbase_m": 10.0,
+    "chirp_start_hz": 20.0, "chirp_end_hz": 20.0, "chirp_period_s": 3600.0, "hold_s": 3600.0,
+    "torque_hold_s": 3600.0, "torque_amplitude_nm": 3000.0, "delay_s": 3600.0,
+    "steer_rate_limit_rad_s": 10.0, "lateral_error_bound_m": 100.0,
+}
+#: |table time_s| and |table torque_nm| at most these (steer_rad: the steering limit 0.3 rad).
+TABLE_TIME_LIMIT_S = 86400.0
+TABLE_TORQUE_LIMIT_NM = 3000.0
+#: How a stop reason starts when the program itself failed (logged as an error).
+FAILED_PREFIX = "excitation failed: "
+#: Rows of a table program, in both ECUs (the C ECU holds the table in static storage).
+TABLE_MAX_ROWS = 20000
+#: A seed's magnitude must stay below this (the C ECU holds it in a signed 64-bit integer).
+SEED_LIMIT = (1 << 63) - 1
+
+
+def _finite(value: float) -> bool:
+    """Whether a number is finite; an int too large for a float is not."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
 
 @dataclass(frozen=True)
 class ExcitationProgram:
@@ -101,13 +129,18 @@ class ExcitationProgram:
         non_negative = ("lateral_accel_mps2", "torque_amplitude_nm", "delay_s")
         for name in positive + non_negative:
             value = getattr(self, name)
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) \
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not _finite(value) \
                     or value < 0 or (name in positive and value == 0):
                 rule = "> 0" if name in positive else ">= 0"
                 raise ConfigError(f"{where}: {name} must be a finite number {rule}, got {value!r}")
         if self.steer_amplitude_rad > 0.3:
             raise ConfigError(f"{where}: steer_amplitude_rad {self.steer_amplitude_rad} exceeds the "
                               "steering limit 0.3 rad")
+        for name, limit in FIELD_LIMITS.items():
+            if getattr(self, name) > limit:
+                raise ConfigError(f"{where}: {name} {float(getattr(self, name))!r} exceeds its limit {limit!r}")
+        if not (isinstance(self.seed, int) and abs(self.seed) < SEED_LIMIT):
+            raise ConfigError(f"{where}: seed {self.seed!r} must be an integer of magnitude below 2^63 - 1")
         if self.chirp_end_hz < self.chirp_start_hz:
             raise ConfigError(f"{where}: chirp_end_hz {self.chirp_end_hz} < chirp_start_hz "
                               f"{self.chirp_start_hz}")
@@ -128,6 +161,11 @@ class ExcitationProgram:
             raise ConfigError(f"{where}: table time_s must increase strictly")
         if max(abs(v) for v in self.table_steer_rad) > 0.3:
             raise ConfigError(f"{where}: table steer_rad exceeds the steering limit 0.3 rad")
+        if max(abs(v) for v in times) > TABLE_TIME_LIMIT_S:
+            raise ConfigError(f"{where}: table time_s exceeds its limit {TABLE_TIME_LIMIT_S!r} s in magnitude")
+        if self.table_torque_nm and max(abs(v) for v in self.table_torque_nm) > TABLE_TORQUE_LIMIT_NM:
+            raise ConfigError(f"{where}: table torque_nm exceeds its limit {TABLE_TORQUE_LIMIT_NM!r} N m "
+                              "in magnitude")
 
 
 #: The shipped programs by name (``--excite chirp``); amplitudes and bands in the
@@ -261,6 +299,12 @@ class Excitation:
         target_steer, torque_offset = 0.0, 0.0
         if self.stopped_reason is None and math.isfinite(vx):
             target_steer, torque_offset = excitation_offsets(self.program, now_s - self._started_s, vx)
+            if not (math.isfinite(target_steer) and math.isfinite(torque_offset)):
+                # ends the excitation for this engagement; the law's command this cycle
+                self.stopped_reason = (f"{FAILED_PREFIX}target not finite (steer {target_steer!r}, "
+                                       f"torque {torque_offset!r})")
+                return steer_cmd, torque_cmd, ExcitationStatus(self._steer_offset, 0.0, False,
+                                                               self.stopped_reason)
         self._steer_offset = rate_limited(self._steer_offset, target_steer, self._max_step)
         steer, torque = superimpose(steer_cmd, torque_cmd, self._steer_offset, torque_offset,
                                     steer_range, torque_range)
@@ -331,6 +375,9 @@ def _table_program(path: Path, text: str) -> ExcitationProgram:
             continue
         if len(row) != len(header):
             raise ConfigError(f"--excite {path}: line {number}: expected {len(header)} values, got {len(row)}")
+        if len(columns[0]) == TABLE_MAX_ROWS:
+            raise ConfigError(f"--excite {path}: line {number}: more than {TABLE_MAX_ROWS} rows (the table "
+                              "limit of both ECUs)")
         try:
             for column, cell in zip(columns, row):
                 column.append(float(cell))

@@ -125,6 +125,13 @@ def test_program_files_toml_and_csv(tmp_path):
     ("h.csv", "time_s,steer_rad\n0,0\n1,x\n", "line 3: not a number"),
     ("i.csv", "time_s,steer_rad\n0,0\n0,0.01\n", "time_s must increase strictly"),
     ("j.txt", "", "not a shipped program"),
+    ("k.toml", 'kind = "chirp"\nchirp_start_hz = 1e308\nchirp_end_hz = 1e308\ndelay_s = 0\n',
+     "chirp_start_hz 1e+308 exceeds its limit 20.0"),
+    ("l.toml", 'kind = "prbs"\nhold_s = 1e9\n', "hold_s 1000000000.0 exceeds its limit 3600.0"),
+    ("m.toml", 'kind = "prbs"\nseed = 9223372036854775807\n', "must be an integer of magnitude below 2^63 - 1"),
+    ("n.toml", 'kind = "prbs"\ndelay_s = 1' + '0' * 400 + '\n', "delay_s must be a finite number >= 0"),
+    ("o.csv", "time_s,steer_rad\n0,0\n1e300,0.01\n", "table time_s exceeds its limit 86400.0 s"),
+    ("p.csv", "time_s,steer_rad,torque_nm\n0,0,0\n1,0.01,-3500\n", "table torque_nm exceeds its limit"),
 ])
 def test_bad_program_files_are_named_errors(tmp_path, name, text, message):
     file = tmp_path / name
@@ -186,3 +193,23 @@ def test_a_failing_excitation_leaves_the_law_command_and_never_raises(monkeypatc
         assert "excitation failed: broken" in ecu._excitation.stopped_reason
     finally:
         ecu.close()
+
+
+def test_a_non_finite_target_at_run_time_ends_the_excitation(monkeypatch):
+    """A target that is not finite (a program the load checks let through by mistake) ends
+    the excitation for the engagement: the law's command this cycle, then a ramp out."""
+    import firmware_sim.excitation as excitation_module
+
+    excitation = Excitation(SHIPPED_PROGRAMS["chirp"], TS)
+    program = SHIPPED_PROGRAMS["chirp"]
+    for k in range(int((program.delay_s + 0.5) / TS)):   # running, with an offset applied
+        steer, _, status = excitation.step(k * TS, True, 10.0, 0.0, 0.01, 0.0, STEER_RANGE, TORQUE_RANGE)
+    assert status.running and status.steer_offset != 0.0
+    monkeypatch.setattr(excitation_module, "excitation_offsets", lambda *args: (math.nan, 0.0))
+    steer, torque, status = excitation.step(program.delay_s + 1.0, True, 10.0, 0.0, 0.01, 5.0,
+                                            STEER_RANGE, TORQUE_RANGE)
+    assert (steer, torque) == (0.01, 5.0)
+    assert status.stopped_reason.startswith("excitation failed: target not finite (steer nan")
+    later = [excitation.step(program.delay_s + 1.0 + k * TS, True, 10.0, 0.0, 0.01, 0.0, STEER_RANGE,
+                             TORQUE_RANGE)[0] for k in range(1, 40)]
+    assert all(math.isfinite(value) for value in later) and later[-1] == 0.01   # ramped out

@@ -118,6 +118,15 @@ def cli_error(which: str, program: str) -> tuple[int, str]:
     ("short.csv", "time_s,steer_rad\n0.0,0.01\n"),
     ("decreasing.csv", "time_s,steer_rad\n0.0,0.01\n1.0,0.0\n0.5,0.0\n"),
     ("wide.csv", "time_s,steer_rad\n0.0,0.01,3\n"),
+    # every field has a finite range, the same in both ECUs (issue 38, item 1)
+    ("huge_chirp.toml", 'kind = "chirp"\nchirp_start_hz = 1e308\nchirp_end_hz = 1e308\ndelay_s = 0\n'
+                        "lateral_accel_mps2 = 0\n"),
+    ("fast_chirp.toml", 'kind = "chirp"\nchirp_end_hz = 25.0\n'),
+    ("late.toml", 'kind = "prbs"\ndelay_s = 1e300\n'),
+    ("torque.toml", 'kind = "prbs"\ntorque_amplitude_nm = 5000.0\n'),
+    ("big_seed.toml", 'kind = "prbs"\nseed = 9223372036854775807\n'),
+    ("far_table.csv", "time_s,steer_rad\n0.0,0.01\n1e300,0.0\n"),
+    ("torque_table.csv", "time_s,steer_rad,torque_nm\n0.0,0.01,0\n1.0,0.0,4000\n"),
 ])
 def test_bad_program_is_the_python_ecus_error_line(native, name: str, text: str | None, tmp_path: Path) -> None:
     program = name if text is None and "." not in name else str(tmp_path / name)
@@ -131,13 +140,17 @@ def test_bad_program_is_the_python_ecus_error_line(native, name: str, text: str 
 
 def test_a_table_over_the_static_limit_is_refused_naming_file_and_limit(native, tmp_path: Path) -> None:
     """The C ECU keeps a table program in a static table (no heap after start-up): a file
-    with more rows is one error line naming the file and the limit (the Python ECU takes it)."""
+    with more rows is one error line naming the file and the limit, the same from both ECUs
+    (one limit in both, issue 38 item 8)."""
+    from firmware_sim.excitation import TABLE_MAX_ROWS
+
+    assert TABLE_MAX_ROWS == TABLE_MAX
     path = tmp_path / "long.csv"
     rows = "\n".join(f"{0.01 * k:.2f},0.0" for k in range(TABLE_MAX + 1))
     path.write_text("time_s,steer_rad\n" + rows + "\n")
-    status, line = cli_error("c", str(path))
-    assert status == 2
-    assert line == f"error: --excite {path}: line {TABLE_MAX + 2}: more than {TABLE_MAX} rows (the C ECU's static table)"
+    expected = f"error: --excite {path}: line {TABLE_MAX + 2}: more than {TABLE_MAX} rows (the table limit of both ECUs)"
+    assert cli_error("c", str(path)) == (2, expected)
+    assert cli_error("python", str(path)) == (2, expected)
 
 
 def test_excite_with_replay_is_refused(native) -> None:

@@ -20,6 +20,8 @@
 #define STEER_LIMIT 0.3 /* rad: a program's amplitude may not exceed the command limit */
 #define LINE_BYTES 4096
 #define NAME_BYTES 128
+#define TABLE_TIME_LIMIT_S 86400.0  /* |time_s| of a table row (excitation.py TABLE_TIME_LIMIT_S) */
+#define TABLE_TORQUE_LIMIT_NM 3000.0 /* |torque_nm| of a table row */
 
 enum kind { CHIRP, PRBS, STEPS, TABLE };
 static const char *const KIND_NAMES[] = {"chirp", "prbs", "steps", "table"};
@@ -53,7 +55,7 @@ static char description[700];
 /* One engagement's state (Excitation): start, applied offset, stop; e_Y's tracker. */
 static int started, stopped, path_id = -1, has_progress;
 static double started_s, steer_offset, progress;
-static char stopped_reason[120];
+static char stopped_reason[200];
 
 /* ------------------------------------------------------------------ Python's arithmetic */
 /* float.__floordiv__ as CPython computes it (float_floor_div). */
@@ -87,11 +89,17 @@ static void py_repr(char *buf, size_t len, double v) {
     snprintf(buf, len, v > 0 ? "inf" : "-inf");
     return;
   }
-  for (int digits = 1; digits <= 17; digits++) {
-    snprintf(buf, len, "%.*g", digits, v);
+  int digits = 1;
+  for (; digits < 17; digits++) { /* the fewest significant digits that read back */
+    snprintf(buf, len, "%.*e", digits - 1, v);
     if (strtod(buf, NULL) == v) break;
   }
-  if (!strpbrk(buf, ".e")) strncat(buf, ".0", len - strlen(buf) - 1);
+  snprintf(buf, len, "%.*e", digits - 1, v);
+  const char *e = strchr(buf, 'e');
+  int exponent = e ? atoi(e + 1) : 0;
+  if (exponent < -4 || exponent >= 16) return; /* float_repr_style: 1e+308, 1.5e-05 */
+  snprintf(buf, len, "%.*f", digits - 1 - exponent > 0 ? digits - 1 - exponent : 0, v);
+  if (!strchr(buf, '.')) strncat(buf, ".0", len - strlen(buf) - 1);
 }
 
 /* int(q) modulo 2^64 for a finite q >= 0 (Python's int is unbounded; the PRBS keeps the
@@ -201,9 +209,20 @@ void ecu_excite_step(double now_s, int active, double vx, double x, double y, do
     fprintf(stderr, "warning: excitation stopped for this engagement: %s\n", stopped_reason);
   }
   double target_steer = 0.0, torque_offset = 0.0;
-  if (!stopped && isfinite(vx) && offsets(now_s - started_s, vx, &target_steer, &torque_offset) != 0) {
-    /* as the Python ECU when the program raises: stopped, the law's command this cycle */
-    snprintf(stopped_reason, sizeof stopped_reason, "excitation failed: a step index beyond any integer");
+  int failed = !stopped && isfinite(vx) ? offsets(now_s - started_s, vx, &target_steer, &torque_offset) : 0;
+  if (failed == 0 && !(isfinite(target_steer) && isfinite(torque_offset))) failed = -2;
+  if (failed != 0) {
+    /* as the Python ECU when the program raises or its target is not finite: stopped, the
+     * law's command this cycle */
+    if (failed == -1) {
+      snprintf(stopped_reason, sizeof stopped_reason, "excitation failed: a step index beyond any integer");
+    } else {
+      char a[40], b[40];
+      py_repr(a, sizeof a, target_steer);
+      py_repr(b, sizeof b, torque_offset);
+      snprintf(stopped_reason, sizeof stopped_reason, "excitation failed: target not finite (steer %s, torque %s)",
+               a, b);
+    }
     stopped = 1;
     fprintf(stderr, "error: excitation stopped for this engagement: %s\n", stopped_reason);
     return;
@@ -242,6 +261,25 @@ static int check_program(char *err, size_t err_len) {
     snprintf(err, err_len, "%s: steer_amplitude_rad %s exceeds the steering limit 0.3 rad", where, shown);
     return -1;
   }
+  /* FIELD_LIMITS of excitation.py, in its order: every value bounded, so the step stays finite */
+  static const char *const LIMITED[] = {"steer_amplitude_rad", "lateral_accel_mps2", "wheelbase_m",
+                                        "chirp_start_hz", "chirp_end_hz", "chirp_period_s", "hold_s",
+                                        "torque_hold_s", "torque_amplitude_nm", "delay_s",
+                                        "steer_rate_limit_rad_s", "lateral_error_bound_m"};
+  static const double LIMITS[] = {0.3, 20.0, 10.0, 20.0, 20.0, 3600.0, 3600.0, 3600.0, 3000.0, 3600.0, 10.0, 100.0};
+  const double limited[] = {program.steer_amplitude_rad, program.lateral_accel_mps2, program.wheelbase_m,
+                            program.chirp_start_hz, program.chirp_end_hz, program.chirp_period_s, program.hold_s,
+                            program.torque_hold_s, program.torque_amplitude_nm, program.delay_s,
+                            program.steer_rate_limit_rad_s, program.lateral_error_bound_m};
+  for (int k = 0; k < 12; k++) {
+    if (limited[k] > LIMITS[k]) {
+      char limit[40];
+      py_repr(shown, sizeof shown, limited[k]);
+      py_repr(limit, sizeof limit, LIMITS[k]);
+      snprintf(err, err_len, "%s: %s %s exceeds its limit %s", where, LIMITED[k], shown, limit);
+      return -1;
+    }
+  }
   if (program.chirp_end_hz < program.chirp_start_hz) {
     char start[40];
     py_repr(shown, sizeof shown, program.chirp_end_hz);
@@ -267,9 +305,22 @@ static int check_program(char *err, size_t err_len) {
       return -1;
     }
   }
-  for (int i = 0; i < table_rows; i++) largest = fmax(largest, fabs(table_steer[i]));
+  double latest = 0.0, strongest = 0.0;
+  for (int i = 0; i < table_rows; i++) {
+    largest = fmax(largest, fabs(table_steer[i]));
+    latest = fmax(latest, fabs(table_time[i]));
+    if (table_has_torque) strongest = fmax(strongest, fabs(table_torque[i]));
+  }
   if (largest > STEER_LIMIT) {
     snprintf(err, err_len, "%s: table steer_rad exceeds the steering limit 0.3 rad", where);
+    return -1;
+  }
+  if (latest > TABLE_TIME_LIMIT_S) {
+    snprintf(err, err_len, "%s: table time_s exceeds its limit 86400.0 s in magnitude", where);
+    return -1;
+  }
+  if (strongest > TABLE_TORQUE_LIMIT_NM) {
+    snprintf(err, err_len, "%s: table torque_nm exceeds its limit 3000.0 N m in magnitude", where);
     return -1;
   }
   return 0;
@@ -340,7 +391,7 @@ static int load_table(const char *file, FILE *stream, char *err, size_t err_len)
       return -1;
     }
     if (table_rows == ECU_EXCITE_TABLE_MAX) {
-      snprintf(err, err_len, "--excite %s: line %d: more than %d rows (the C ECU's static table)", file, number,
+      snprintf(err, err_len, "--excite %s: line %d: more than %d rows (the table limit of both ECUs)", file, number,
                ECU_EXCITE_TABLE_MAX);
       return -1;
     }
@@ -444,8 +495,8 @@ static int load_toml(const char *file, FILE *stream, char *err, size_t err_len) 
       errno = 0;
       long long seed = strtoll(value, &end, 10);
       if (errno == ERANGE || *end != '\0' || seed == LLONG_MAX || seed == LLONG_MIN) {
-        snprintf(err, err_len, "--excite %s: field seed %s: the C ECU takes a seed of magnitude below 2^63 - 1", file,
-                 value);
+        snprintf(err, err_len, "excitation program '%s': seed %s must be an integer of magnitude below 2^63 - 1",
+                 name, value);
         return -1;
       }
       program_seed = (int64_t)seed;
