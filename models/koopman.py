@@ -249,6 +249,14 @@ class NormalisedKoopman:
         return encoder, A, B, offset, N
 
 
+def first_non_finite(array: np.ndarray) -> str:
+    """``VALUE at index (i, j)`` of an array's first entry that is not finite (for messages)."""
+    flat = np.asarray(array).reshape(-1)
+    position = int(np.flatnonzero(~np.isfinite(flat))[0])
+    index = np.unravel_index(position, np.shape(array))
+    return f"{flat[position]} at index {tuple(int(i) for i in index)}"
+
+
 class KoopmanModel:
     """Lifted model ``z+ = A z + B u + offset (+ sum_j u_j N_j z)``, ``x = C_P z``, physical units.
 
@@ -359,13 +367,16 @@ class KoopmanModel:
             )
         if self.N.shape != (self.n_u, self.n_z, self.n_z):
             raise KoopmanError(f"N must be (n_u, n_z, n_z)=({self.n_u}, {self.n_z}, {self.n_z}), got {self.N.shape}")
+        layers = [(f"encoder layer {i} {part}", arr) for i, layer in enumerate(self._layers)
+                  for part, arr in zip(("W", "b"), layer)]
         for name, arr in (("A", self.A), ("B", self.B), ("offset", self.offset), ("N", self.N),
                           ("A (knots)", self.A_knots), ("B (knots)", self.B_knots),
-                          ("offset (knots)", self.offset_knots), ("N (knots)", self.N_knots)):
+                          ("offset (knots)", self.offset_knots), ("N (knots)", self.N_knots),
+                          ("speed knots", self.speed_knots), *layers):
             if arr is None:
                 continue
             if not np.all(np.isfinite(arr)):
-                raise KoopmanError(f"{name} has non-finite entries")
+                raise KoopmanError(f"{name} has non-finite entries ({first_non_finite(arr)})")
 
     # ------------------------------------------------------------------ artefact I/O
     @classmethod
@@ -403,6 +414,10 @@ class KoopmanModel:
                 arrays = {k: weights[k] for k in weights.files}
         except (OSError, ValueError) as e:
             raise KoopmanError(f"{npz_path}: not a readable .npz: {e}") from e
+        for key, array in arrays.items():   # every array of the model finite, named
+            if array.dtype.kind in "fc" and not np.all(np.isfinite(array)):
+                raise KoopmanError(f"{npz_path}: array {key!r} has a non-finite entry "
+                                   f"({first_non_finite(array)})")
         for key in ("ts", "state_names", "input_names", "state_min", "state_max", "input_min", "input_max",
                     "n_encoder_layers"):
             if key not in meta:

@@ -196,6 +196,26 @@ def test_data_of_another_shape_is_refused(native, tmp_path: Path) -> None:
         native.NativeController("nmpc")
 
 
+@pytest.mark.parametrize("record, index", [("koopman.w0", (0, 0)), ("bicycle", (2,)), ("koopman.A", (1, 2, 3)),
+                                           ("koopman.b1", (4,))])
+def test_a_data_file_with_a_non_finite_value_is_refused(native, record: str, index: tuple[int, ...],
+                                                        tmp_path: Path) -> None:
+    """NaN or infinity anywhere in a model, bicycle or encoder record is a load failure
+    naming the file, the record and the value's place, as the Python ECU refuses the
+    artefact (issue 38, items 5 and 6)."""
+    ecu_data = _tool("ecu_data")
+    records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
+    for value in (math.nan, math.inf):
+        broken = records[record].copy()
+        broken[index] = value
+        file = tmp_path / f"{record}.bin"
+        ecu_data.write_data(dict(records, **{record: broken}), file)
+        with pytest.raises(ConfigError) as error:
+            native.NativeController("eso-dkmpc", file)
+        flat = int(np.ravel_multi_index(index, broken.shape))
+        assert f"{file}: record {record}: value {flat} is not finite ({value})" in str(error.value)
+
+
 def test_cli_native_refuses_a_model_of_another_shape(native) -> None:
     """--native --model with an artefact of another shape: both shapes named, exit 2."""
     path = ROOT / "hil" / "paths" / "dlc.csv"

@@ -288,6 +288,15 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
       status = -1;
       break;
     }
+    if (strncmp(rec_name, "tuning.", 7) != 0) { /* a tuning record's observer fields may be NaN */
+      size_t bad = 0;
+      while (bad < n && isfinite(rec_values[bad])) bad++;
+      if (bad < n) {
+        snprintf(err, err_len, "%s: record %s: value %zu is not finite (%g)", path, rec_name, bad, rec_values[bad]);
+        status = -1;
+        break;
+      }
+    }
     if (strcmp(rec_name, "koopman.form") == 0 && n == 1) file_form = (int)rec_values[0];
     if (is_model) {
       /* A model of another shape: read on, then name both shapes (below). */

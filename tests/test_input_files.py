@@ -1,0 +1,63 @@
+"""Input files of the ECUs and tools (issue 38): every array of a model finite, size bounds
+checked before reading, no input ever overwritten by an output of the same command."""
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from can_defs.frames import CtrlMode
+from firmware_sim.cli import model_controller_factory
+from firmware_sim.ecu import Ecu
+from models.koopman import KoopmanError, KoopmanModel
+
+ROOT = Path(__file__).resolve().parent.parent
+ARTIFACT = ROOT / "models" / "artifacts" / "dk_d5"
+
+
+def broken_artifact(tmp_path: Path, array: str, index: tuple[int, ...], value: float) -> Path:
+    """A copy of the default artefact with one entry of ``array`` set to ``value``."""
+    target = tmp_path / "broken"
+    shutil.copy(ARTIFACT.with_suffix(".json"), target.with_suffix(".json"))
+    with np.load(ARTIFACT.with_suffix(".npz")) as weights:
+        arrays = {key: weights[key].copy() for key in weights.files}
+    arrays[array][index] = value
+    np.savez(target.with_suffix(".npz"), **arrays)
+    return target
+
+
+@pytest.mark.parametrize("array, index", [("encoder_w0", (0, 0)), ("encoder_b2", (5,)), ("A_n", (0, 1, 2))])
+@pytest.mark.parametrize("value", [math.inf, math.nan])
+def test_every_array_of_a_koopman_artifact_must_be_finite(tmp_path: Path, array: str, index: tuple[int, ...],
+                                                          value: float) -> None:
+    model = broken_artifact(tmp_path, array, index, value)
+    with pytest.raises(KoopmanError) as error:
+        KoopmanModel.load(model)
+    assert str(error.value) == (f"{model}.npz: array {array!r} has a non-finite entry ({value} at index "
+                                f"{index})")
+
+
+def test_a_model_built_with_a_non_finite_encoder_is_refused() -> None:
+    names_x, names_u = ("vx", "vy", "yaw_rate"), ("torque", "steer")
+    weights = np.zeros((4, 3))
+    weights[1, 2] = math.inf
+    with pytest.raises(KoopmanError, match=r"encoder layer 0 W has non-finite entries \(inf at index \(1, 2\)\)"):
+        KoopmanModel(np.eye(7), np.zeros((7, 2)), None, [(weights, np.zeros(4))], 0.025, names_x, names_u)
+
+
+def test_the_ecu_latches_fault_for_a_model_with_an_infinite_encoder_weight(tmp_path: Path) -> None:
+    """The contract's rule for a model that fails to load: FAULT, latched, CMD_VALID = 0
+    (before, the ECU ran ACTIVE on a fallback of steer 0 every cycle)."""
+    model = broken_artifact(tmp_path, "encoder_w0", (0, 0), math.inf)
+    bus = can.Bus(interface="virtual", channel="infinite-encoder")
+    try:
+        ecu = Ecu(bus, "eso-dkmpc", {1: ROOT / "hil" / "paths" / "dlc.csv"},
+                  controller_factory=model_controller_factory("eso-dkmpc", model))
+        assert ecu.mode is CtrlMode.FAULT
+        assert ecu.load_error is not None and "array 'encoder_w0' has a non-finite entry" in ecu.load_error
+    finally:
+        bus.shutdown()
