@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, NoReturn
 import can
 
 from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumentError
+from firmware_sim.inputs import command_inputs
 
 if TYPE_CHECKING:
     from firmware_sim.excitation import ExcitationProgram
@@ -219,7 +220,7 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     try:
         paths = parse_paths(args.path)
         if args.timing_out is not None:
-            inputs = [*paths.values(), *([args.dbc] if args.dbc else [])]
+            inputs = command_inputs(paths.values(), dbc=args.dbc, model=args.model, excite=args.excite)
             check_output_file(args.timing_out, "--timing-out", args.replace, inputs)
         prepare_codec(args.dbc)
         excitation = load_excitation(args.excite)

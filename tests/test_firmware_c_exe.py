@@ -73,7 +73,7 @@ def test_replay_equals_python_controller(native, name: str, tmp_path: Path) -> N
       "--lockstep", "--cpu", "x"], "error: --cpu: expected a non-negative integer, got 'x'"),
     (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
       "--lockstep", "--timing-out", "hil/paths/dlc.csv"],
-     "error: --timing-out hil/paths/dlc.csv: file exists (give --replace to overwrite it)"),
+     "error: --timing-out hil/paths/dlc.csv: is one of the inputs of this run (hil/paths/dlc.csv)"),
     (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
       "--lockstep", "--timing-out", "no/such/folder/t.npz"],
      "error: --timing-out no/such/folder/t.npz: folder no/such/folder does not exist"),

@@ -559,6 +559,10 @@ static void describe(void) {
            band, a, b, torque, f, g);
 }
 
+int ecu_excite_is_file(const char *spec) {
+  return strcmp(spec, "chirp") && strcmp(spec, "prbs") && strcmp(spec, "steps") && strcmp(spec, "prbs-torque");
+}
+
 int ecu_excite_load(const char *spec, char *err, size_t err_len) {
   enabled = 0;
   table_rows = table_has_torque = 0;

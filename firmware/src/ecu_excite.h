@@ -22,6 +22,9 @@
  * messages of firmware_sim/excitation.py). */
 ECU_API int ecu_excite_load(const char *spec, char *err, size_t err_len);
 
+/* Whether `spec` names a program file (not one of the shipped programs). */
+ECU_API int ecu_excite_is_file(const char *spec);
+
 /* Whether a program is loaded; its one-line description (excitation.describe). */
 ECU_API int ecu_excite_enabled(void);
 ECU_API const char *ecu_excite_describe(void);

@@ -128,11 +128,27 @@ static int replay(FILE *samples, const char *name, int realtime) {
   return 0;
 }
 
-/* check_output_file of the Python CLI: refuse an output file the ECU could not write at
- * its end, before anything runs. NULL when fine, else the message. */
-static const char *check_output_file(const char *file, int replace, char *message, size_t len) {
+/* Whether two names are one file: the same name, or the same device and inode (a link). */
+static int same_file(const char *a, const char *b) {
+  struct stat first, second;
+  if (strcmp(a, b) == 0) return 1;
+  return stat(a, &first) == 0 && stat(b, &second) == 0 && first.st_dev == second.st_dev &&
+         first.st_ino == second.st_ino;
+}
+
+/* check_output_file of the Python CLI: refuse an output file that is one of the n_inputs
+ * `inputs` (NULL entries skipped) or that the ECU could not write at its end, before
+ * anything runs. NULL when fine, else the message. */
+static const char *check_output_file(const char *file, int replace, const char *const *inputs, int n_inputs,
+                                     char *message, size_t len) {
   struct stat info;
   char folder[512];
+  for (int k = 0; k < n_inputs; k++) {
+    if (inputs[k] && same_file(file, inputs[k])) {
+      snprintf(message, len, "--timing-out %s: is one of the inputs of this run (%s)", file, inputs[k]);
+      return message;
+    }
+  }
   const char *slash = strrchr(file, '/');
   snprintf(folder, sizeof folder, "%.*s", slash ? (int)(slash - file) : 1, slash ? file : ".");
   if (folder[0] == '\0') snprintf(folder, sizeof folder, "/");
@@ -415,7 +431,15 @@ int main(int argc, char **argv) {
     if (!interface || !channel) return fail("--interface and --channel are required on the bus");
     if (samples_file) return fail("--replay runs without a bus: give no --interface / --channel");
     if (lockstep == realtime) return fail("exactly one of --lockstep or --realtime is required");
-    if (timing_out && check_output_file(timing_out, replace, message, sizeof message)) return fail(message);
+    /* the run's inputs (firmware_sim.inputs.command_inputs): no output overwrites one */
+    const char *inputs[MAX_PATHS + 3];
+    int n_inputs = 0;
+    for (int k = 0; k < n_paths; k++) inputs[n_inputs++] = path_files[k];
+    inputs[n_inputs++] = data;
+    inputs[n_inputs++] = dbc;
+    inputs[n_inputs++] = excite && ecu_excite_is_file(excite) ? excite : NULL;
+    if (timing_out && check_output_file(timing_out, replace, inputs, n_inputs, message, sizeof message))
+      return fail(message);
     if (bitrate)
       fprintf(stderr, "note: --bitrate %d ignored: %s\n", bitrate, strcmp(interface, "socketcand") == 0
               ? "socketcand's daemon sets its bus's bit rate"

@@ -90,7 +90,7 @@ def main(args: argparse.Namespace) -> int:
             raise HilError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
     args.controller = controller_name(args.controller)
     scenario = load_scenario(args.scenario)
-    check_run_paths(scenario, args.log, args.out, args.replace)
+    check_run_paths(scenario, args.log, args.out, args.replace, model=args.model, excite=args.excite)
     options = RunOptions(
         controller=args.controller,
         bus=resolve_bus_config(args.interface, args.channel),
@@ -127,12 +127,14 @@ def main(args: argparse.Namespace) -> int:
 OUT_FILES = ("plant.csv", "ecu.csv", "summary.json", "ecu_output.txt")
 
 
-def check_run_paths(scenario: object, log: Path | None, out: Path | None, replace: bool) -> None:
+def check_run_paths(scenario: object, log: Path | None, out: Path | None, replace: bool, *,
+                    model: Path | None = None, excite: str | None = None) -> None:
     """Refuse unusable outputs before the run (issue 17, defects 5 and 6).
 
     Raises:
         hil.errors.OutputPathError: ``--log`` or ``--out`` is one of the run's inputs (the
-            scenario, its path file, the DBC), exists without ``--replace``, is of the
+            scenario, its path file, the DBC, the ECU's ``--model`` files and ``--excite``
+            program file), exists without ``--replace``, is of the
             wrong kind, or its folder is missing or not writable.
         can_defs.errors.DbcLoadError: the DBC does not load.
     """
@@ -140,10 +142,12 @@ def check_run_paths(scenario: object, log: Path | None, out: Path | None, replac
     from can_defs.dbc import DBC_PATH
     from hil.errors import HilError, OutputPathError
     from hil.logio import check_log_suffix, sidecar_path
+    from firmware_sim.inputs import command_inputs
     from hil.output_paths import check_not_input, check_output_file, check_output_folder
 
     prepare()  # a DBC that does not load stops the run here, not in its first frame
-    inputs = [Path(scenario.source), Path(scenario.path_file), DBC_PATH]  # type: ignore[attr-defined]
+    inputs = command_inputs([Path(scenario.source), Path(scenario.path_file)],  # type: ignore[attr-defined]
+                            dbc=DBC_PATH, model=model, excite=excite)
     if log is not None:
         check_not_input(log, "--log", inputs)  # the worst case first: an input overwritten
         try:
