@@ -21,7 +21,7 @@ train: setup
 	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
 	@mkdir -p build
 	@if [ -f $(KOOPMAN_ARTIFACT).json ]; then cp $(KOOPMAN_ARTIFACT).json build/dk_d5.previous.json; fi
-	$(PY) -m models.koopman_train --data $(TRAIN_DATA) --out $(KOOPMAN_ARTIFACT) $(KOOPMAN_FORM) \
+	$(PY) -m models.koopman_train --data $(TRAIN_DATA) --out $(KOOPMAN_ARTIFACT) --replace $(KOOPMAN_FORM) \
 		$$( [ -f build/dk_d5.previous.json ] && echo --compare-with build/dk_d5.previous.json ) $(TRAIN_ARGS)
 
 # Table I (6 learned forms x 5 seeds + DMDc, EDMDc, bicycle, single track on the wide data):

@@ -615,7 +615,11 @@ def build_parser() -> argparse.ArgumentParser:
     defaults = TrainingSettings()
     p = argparse.ArgumentParser(prog="python -m models.koopman_train", description=__doc__.split("\n")[0])
     p.add_argument("--data", default="data/nominal", help="directory of named-column CSV runs")
-    p.add_argument("--out", default="models/artifacts/dk_d5", help="artefact path without extension")
+    p.add_argument("--out", default=None,
+                   help="artefact path without extension (required; with --logs a folder); an existing "
+                        "output is refused without --replace")
+    p.add_argument("--replace", action="store_true",
+                   help="overwrite an existing --out artefact (or the outputs in the --out folder)")
     p.add_argument("--states", type=_names, default=DEFAULT_STATES, help="state columns, comma-separated")
     p.add_argument("--inputs", type=_names, default=DEFAULT_INPUTS, help="input columns, comma-separated")
     p.add_argument("--ts", type=float, default=0.025, help="sample time in s (data are resampled to it)")
@@ -691,6 +695,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             steer_bilinear=args.steer_bilinear, gain_anchor=args.gain_anchor, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )
+        check_outputs(args)
         if args.logs:  # issue 20: the data come from CAN logs; --out is a folder
             from models.log_identification import load_log_runs, write_log_products
             out_folder = _log_out_folder(args.out)
@@ -737,13 +742,40 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+#: Files ``--logs --out DIR`` writes into its folder.
+LOG_OUTPUTS = ("koopman.npz", "koopman.json", "bicycle.json", "report.json", "report.md")
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """``--out`` before any training (issue 38, item 11): given (no default points at a
+    committed artefact), never one of the inputs, and an existing artefact (or, with
+    ``--logs``, a folder holding its outputs) only with ``--replace``.
+
+    Raises:
+        KoopmanError: naming the option, the path and the problem.
+    """
+    from hil.errors import OutputPathError
+    from hil.output_paths import check_output_file, check_output_folder
+
+    if args.out is None:
+        raise KoopmanError("--out is required: the artefact path without extension (with --logs, a folder "
+                           "for koopman.npz/.json, bicycle.json, report.md)")
+    out = Path(args.out)
+    inputs = [*(args.logs or [Path(args.data)]),
+              *(path for path in (args.mapping, args.vehicle, args.dbc, args.compare_with) if path is not None)]
+    try:
+        if args.logs:
+            check_output_folder(out, "--out", LOG_OUTPUTS, replace=args.replace, inputs=inputs)
+        else:
+            for suffix in (".npz", ".json"):
+                check_output_file(out.with_suffix(suffix), "--out", replace=args.replace, inputs=inputs)
+    except OutputPathError as error:
+        raise KoopmanError(str(error)) from None
+
+
 def _log_out_folder(out: str | Path) -> Path:
-    """``--out`` of ``--logs``: a folder (created; its parent must exist), never the
-    committed artefact's default path."""
+    """``--out`` of ``--logs``: a folder (created; its parent must exist)."""
     folder = Path(out)
-    if folder.resolve() == Path("models/artifacts/dk_d5").resolve():
-        raise KoopmanError("--logs needs --out DIR (a folder for koopman.npz/.json, bicycle.json, "
-                           "report.md); the default would overwrite the committed artefact")
     if not folder.parent.is_dir():
         raise KoopmanError(f"--out {folder}: folder {folder.parent} does not exist")
     folder.mkdir(exist_ok=True)

@@ -246,11 +246,12 @@ def measured_vehicle_file(out: Path, measured: dict[str, float]) -> Path:
 
 def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path,
              options: Sequence[str] = ()) -> None:
-    """``python -m models.koopman_train --logs LOG --out DIR --vehicle FILE [OPTIONS]`` in
-    this process (``options``: more training options, e.g. ``--steps-per-epoch 5``)."""
+    """``python -m models.koopman_train --logs LOG --out DIR --replace --vehicle FILE [OPTIONS]``
+    in this process (the study owns DIR) (``options``: more training options, e.g. ``--steps-per-epoch 5``)."""
     from models import koopman_train  # torch: only here
 
-    argv = ["--logs", str(log), "--out", str(model_dir), "--no-progress", "--vehicle", str(vehicle_file)]
+    argv = ["--logs", str(log), "--out", str(model_dir), "--replace", "--no-progress", "--vehicle",
+            str(vehicle_file)]
     if epochs is not None:
         argv += ["--epochs", str(epochs)]
     argv += list(options)

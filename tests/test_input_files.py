@@ -61,3 +61,35 @@ def test_the_ecu_latches_fault_for_a_model_with_an_infinite_encoder_weight(tmp_p
         assert ecu.load_error is not None and "array 'encoder_w0' has a non-finite entry" in ecu.load_error
     finally:
         bus.shutdown()
+
+
+def test_koopman_train_never_overwrites_an_output_without_replace(tmp_path: Path, capsys) -> None:
+    """``--out`` is required (no default at the committed artefact), an existing artefact
+    or a ``--logs`` folder holding its outputs needs ``--replace``, and ``--out`` is never
+    an input: each is one ``error:`` line, exit 2, before any training (issue 38, item 11)."""
+    from models import koopman_train
+
+    data = tmp_path / "data"
+    data.mkdir()
+    existing = tmp_path / "model"
+    existing.with_suffix(".npz").write_bytes(b"artefact")
+    folder = tmp_path / "from_logs"
+    folder.mkdir()
+    (folder / "koopman.npz").write_bytes(b"artefact")
+    log = tmp_path / "drive.log"
+    log.write_text("")
+    cases = [
+        (["--data", str(data)], "error: --out is required"),
+        (["--data", str(data), "--out", str(existing)],
+         f"error: --out {existing}.npz: file exists (give --replace to overwrite it)"),
+        (["--logs", str(log), "--out", str(folder)],
+         f"error: --out {folder}: holds another run's outputs (koopman.npz); give --replace to replace them"),
+        (["--data", str(data), "--out", str(tmp_path / "prior"), "--compare-with", str(tmp_path / "prior.json")],
+         f"error: --out {tmp_path / 'prior.json'}: is one of the inputs of this run ({tmp_path / 'prior.json'})"),
+    ]
+    for argv, message in cases:
+        assert koopman_train.main([*argv, "--no-progress"]) == 2, argv
+        assert capsys.readouterr().err.strip().startswith(message), argv
+    assert existing.with_suffix(".npz").read_bytes() == b"artefact"
+    assert (folder / "koopman.npz").read_bytes() == b"artefact"
+    assert koopman_train.build_parser().get_default("out") is None
