@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from controller.errors import PathError
+from models.input_files import PATH_FILE_MAX_BYTES, bounded_lines
 from models.measurement import wrap_angle
 
 #: Largest spacing allowed between consecutive path points (m).
@@ -108,32 +109,32 @@ def _parse_path_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     lines: list[int] = []
     header: tuple[str, ...] | None = None
     try:
-        with path.open(newline="") as handle:
-            reader = csv.reader(handle)
-            for row in reader:
-                line = reader.line_num
-                if not row or not any(cell.strip() for cell in row):
-                    continue
-                if header is None:
-                    header = tuple(cell.strip() for cell in row)
-                    if header != CSV_HEADER:
-                        raise PathError(f"{path}: line {line}: header must be 'x,y,yaw', "
-                                        f"got {','.join(header)!r}")
-                    continue
-                if len(values) == MAX_PATH_POINTS:
-                    raise PathError(f"{path}: line {line}: more than {MAX_PATH_POINTS:,} "
-                                    "points (the contract's limit)")
-                if len(row) != 3:
-                    raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
-                point = []
-                for j, cell in enumerate(row):
-                    try:
-                        point.append(float(cell))
-                    except ValueError as e:
-                        raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
-                                        f"not a number: {cell!r}") from e
-                values.append(tuple(point))
-                lines.append(line)
+        # every line bounded as it is read (models/input_files.py), as in the C ECU
+        reader = csv.reader(bounded_lines(path, PATH_FILE_MAX_BYTES, PathError))
+        for row in reader:
+            line = reader.line_num
+            if not row or not any(cell.strip() for cell in row):
+                continue
+            if header is None:
+                header = tuple(cell.strip() for cell in row)
+                if header != CSV_HEADER:
+                    raise PathError(f"{path}: line {line}: header must be 'x,y,yaw', "
+                                    f"got {','.join(header)!r}")
+                continue
+            if len(values) == MAX_PATH_POINTS:
+                raise PathError(f"{path}: line {line}: more than {MAX_PATH_POINTS:,} "
+                                "points (the contract's limit)")
+            if len(row) != 3:
+                raise PathError(f"{path}: line {line} has {len(row)} columns, expected 3")
+            point = []
+            for j, cell in enumerate(row):
+                try:
+                    point.append(float(cell))
+                except ValueError as e:
+                    raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
+                                    f"not a number: {cell!r}") from e
+            values.append(tuple(point))
+            lines.append(line)
     except FileNotFoundError as e:
         raise PathError(f"{path}: path file not found") from e
     except (OSError, UnicodeDecodeError, csv.Error) as e:

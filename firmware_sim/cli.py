@@ -38,6 +38,7 @@ import can
 
 from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumentError
 from firmware_sim.inputs import command_inputs
+from models.input_files import MODEL_FILE_MAX_BYTES, InputFileError, read_bounded
 
 if TYPE_CHECKING:
     from firmware_sim.excitation import ExcitationProgram
@@ -314,7 +315,9 @@ def model_controller_factory(controller: str, model: Path | None) -> Callable[[s
             raise ConfigError(f"--model {model}: {file} not found (a {kind} model file for "
                               f"{controller})")
     try:
-        meta = json.loads(meta_file.read_text())
+        meta = json.loads(read_bounded(meta_file, MODEL_FILE_MAX_BYTES))
+    except InputFileError as error:
+        raise ConfigError(f"--model {model}: {error}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ConfigError(f"--model {model}: {meta_file} is not readable JSON: {error}") from error
     if not isinstance(meta, dict):

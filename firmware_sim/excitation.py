@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_sim.errors import ConfigError
+from models.input_files import EXCITE_FILE_MAX_BYTES, InputFileError, bounded_lines
 
 PROGRAM_KINDS = ("chirp", "prbs", "steps", "table")
 _MASK64 = (1 << 64) - 1
@@ -327,9 +328,11 @@ def load_program(spec: str) -> ExcitationProgram:
     if path.suffix.lower() not in (".toml", ".csv"):
         raise ConfigError(f"--excite {spec!r}: not a shipped program ({', '.join(SHIPPED_PROGRAMS)}) "
                           "nor a .toml / .csv program file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
+    try:  # every line bounded as it is read, as in the C ECU (models/input_files.py)
+        text = "".join(bounded_lines(path, EXCITE_FILE_MAX_BYTES))
+    except InputFileError as error:
+        raise ConfigError(f"--excite {error}") from None
+    except OSError as error:
         raise ConfigError(f"--excite {path}: cannot read: {getattr(error, 'strerror', None) or error}") from error
     if path.suffix.lower() == ".csv":
         return _table_program(path, text)

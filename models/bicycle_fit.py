@@ -32,6 +32,7 @@ import numpy as np
 
 from models.bicycle import LinearBicycle, NominalModelParams, nominal_model_params
 from models.errors import ModelError
+from models.input_files import MODEL_FILE_MAX_BYTES, read_bounded
 from models.koopman_metrics import Trajectory
 from models.vehicle_params import load_vehicle_params
 
@@ -207,7 +208,7 @@ def load_bicycle_params(path: str | Path) -> NominalModelParams:
     """
     path = Path(path)
     try:
-        content = json.loads(path.read_text())
+        content = json.loads(read_bounded(path, MODEL_FILE_MAX_BYTES, BicycleFitError))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise BicycleFitError(f"{path}: not a readable JSON bicycle file: {error}") from error
     if not isinstance(content, dict) or content.get("kind") != BICYCLE_FILE_KIND:

@@ -51,7 +51,9 @@ encoder with no layers gives a purely linear model ``z = x``.
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -59,6 +61,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from models.errors import ModelError
+from models.input_files import MODEL_FILE_MAX_BYTES, read_bounded
 
 ARTIFACT_DIR = Path(__file__).resolve().parent / "artifacts"
 #: Default trained artefact (d = 5 learned features); the ``.json`` sits beside it.
@@ -405,14 +408,14 @@ class KoopmanModel:
         for p in (npz_path, json_path):
             if not p.is_file():
                 raise KoopmanError(f"Koopman artefact file not found: {p}")
-        try:
-            meta = json.loads(json_path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+        try:  # each file bounded before it is parsed (models/input_files.py)
+            meta = json.loads(read_bounded(json_path, MODEL_FILE_MAX_BYTES, KoopmanError))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             raise KoopmanError(f"{json_path}: not readable JSON: {e}") from e
         try:
-            with np.load(npz_path) as weights:
+            with np.load(io.BytesIO(read_bounded(npz_path, MODEL_FILE_MAX_BYTES, KoopmanError))) as weights:
                 arrays = {k: weights[k] for k in weights.files}
-        except (OSError, ValueError) as e:
+        except (OSError, ValueError, zipfile.BadZipFile) as e:
             raise KoopmanError(f"{npz_path}: not a readable .npz: {e}") from e
         for key, array in arrays.items():   # every array of the model finite, named
             if array.dtype.kind in "fc" and not np.all(np.isfinite(array)):

@@ -747,19 +747,25 @@ LOG_OUTPUTS = ("koopman.npz", "koopman.json", "bicycle.json", "report.json", "re
 
 
 def check_outputs(args: argparse.Namespace) -> None:
-    """``--out`` before any training (issue 38, item 11): given (no default points at a
+    """Each ``--logs`` file a regular file of at most ``LOG_FILE_MAX_BYTES``; and ``--out``
+    before any training (issue 38, item 11): given (no default points at a
     committed artefact), never one of the inputs, and an existing artefact (or, with
     ``--logs``, a folder holding its outputs) only with ``--replace``.
 
     Raises:
-        KoopmanError: naming the option, the path and the problem.
+        KoopmanError: naming the option (or the log), the path and the problem.
     """
     from hil.errors import OutputPathError
+    from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
+
     from hil.output_paths import check_output_file, check_output_folder
 
     if args.out is None:
         raise KoopmanError("--out is required: the artefact path without extension (with --logs, a folder "
                            "for koopman.npz/.json, bicycle.json, report.md)")
+    for log in args.logs or ():   # each log bounded before any reader takes it whole
+        if Path(log).exists():    # (a missing one is the log reader's error)
+            check_file_size(log, LOG_FILE_MAX_BYTES, KoopmanError)
     out = Path(args.out)
     inputs = [*(args.logs or [Path(args.data)]),
               *(path for path in (args.mapping, args.vehicle, args.dbc, args.compare_with) if path is not None)]

@@ -95,3 +95,73 @@ def test_hil_run_never_writes_its_log_over_the_ecus_inputs(option: str, tmp_path
     with pytest.raises(OutputPathError, match=r"is one of the inputs of this run"):
         check_run_paths(load_scenario("dlc_smoke"), source, None, True, **extra)
     assert source.read_bytes() == before
+
+
+#: Probe files of the line rules (models/input_files.py, firmware/src/ecu_lines.c): both
+#: ECUs refuse each with the same message (before, the C ECU split long lines and cut them
+#: at a NUL, and took files the Python ECU refused).
+PADDING = " " * 4200
+LINE_PROBES = {
+    "long_line": (b"x,y,yaw\n0,0,0\n0.1,0," + PADDING.encode() + b"0,1,2\n", "line 3: longer than 4096 bytes"),
+    "long_header": (b"x,y,yaw" + PADDING.encode() + b"\n0,0,0\n", "line 1: longer than 4096 bytes"),
+    "nul": (b"x,y,yaw\n0,0,0\n0.1,0\x00junk,0\n0.2,0,0\n", "line 3: holds a NUL byte"),
+    "nul_header": (b"x,y\x00,yaw\n0,0,0\n0.1,0,0\n", "line 1: holds a NUL byte"),
+}
+
+
+def path_probe(case: str, tmp_path: Path) -> tuple[Path, str]:
+    """A probe path file and the end of the message both ECUs give for it."""
+    if case == "dev_zero":
+        return Path("/dev/zero"), "/dev/zero: line 1: holds a NUL byte"
+    file = tmp_path / f"{case}.csv"
+    if case == "huge":   # 16 MiB + in lines of 4000 bytes: refused at the line that crosses it
+        row = ("0.0,0.0,0.0" + " " * 3988 + "\n").encode()
+        file.write_bytes(b"x,y,yaw\n" + row * 4300)
+        return file, f"{file}: larger than 16777216 bytes (the limit of this file)"
+    content, message = LINE_PROBES[case]
+    file.write_bytes(content)
+    return file, f"{file}: {message}"
+
+
+@pytest.mark.parametrize("case", [*LINE_PROBES, "dev_zero", "huge"])
+def test_path_files_over_the_line_and_size_limits_get_one_verdict(native, case: str, tmp_path: Path) -> None:
+    from controller.errors import PathError
+    from controller.reference import ReferencePath
+    from firmware_sim.errors import ConfigError
+
+    file, message = path_probe(case, tmp_path)
+    with pytest.raises(PathError) as python_error:
+        ReferencePath.from_csv(file)
+    core = native.NativeController("lmpc")
+    with pytest.raises(ConfigError) as c_error:
+        core.load_path_file(file)
+    assert str(python_error.value) == message
+    assert str(c_error.value) == message
+
+
+def test_the_c_ecu_does_not_hang_on_a_path_from_dev_zero(native) -> None:
+    """``--path 1=/dev/zero``: refused at its first line (before, start-up never ended)."""
+    result = start("c", "--controller", "lmpc", "--lockstep", "--path", "1=/dev/zero", timeout=20)
+    assert "/dev/zero: line 1: holds a NUL byte" in result.stderr
+
+
+@pytest.mark.parametrize("case", ["long_line.csv", "nul.toml", "zero.csv", "huge.csv"])
+def test_excitation_programs_over_the_line_and_size_limits_get_one_verdict(native, case: str,
+                                                                           tmp_path: Path) -> None:
+    file = tmp_path / case
+    if case == "long_line.csv":
+        file.write_text("time_s,steer_rad\n0.0,0.0\n1.0," + PADDING + "0.01\n")
+        message = f"error: --excite {file}: line 3: longer than 4096 bytes"
+    elif case == "nul.toml":
+        file.write_bytes(b'kind = "prbs"\nhold_s = 0.5\x00\n')
+        message = f"error: --excite {file}: line 2: holds a NUL byte"
+    elif case == "zero.csv":
+        file.symlink_to("/dev/zero")
+        message = f"error: --excite {file}: line 1: holds a NUL byte"
+    else:
+        file.write_text("time_s,steer_rad\n" + "".join(f"{k}.0,0.0" + " " * 3990 + "\n" for k in range(1100)))
+        message = f"error: --excite {file}: larger than 4194304 bytes (the limit of this file)"
+    args = ["--controller", "lmpc", "--lockstep", "--path", f"1={PATH}", "--excite", str(file)]
+    for which in ("c", "python"):
+        result = start(which, *args, timeout=30)
+        assert (result.returncode, last_line(result)) == (2, message), which

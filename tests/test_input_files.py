@@ -93,3 +93,41 @@ def test_koopman_train_never_overwrites_an_output_without_replace(tmp_path: Path
     assert existing.with_suffix(".npz").read_bytes() == b"artefact"
     assert (folder / "koopman.npz").read_bytes() == b"artefact"
     assert koopman_train.build_parser().get_default("out") is None
+
+
+def test_every_input_file_has_a_size_bound_checked_before_reading(tmp_path: Path, capsys) -> None:
+    """``/dev/zero`` or a file over its bound as a DBC, a model, a bicycle or a training log:
+    one message naming the file and the bound, memory bounded (issue 38, items 8 and 10)."""
+    from can_defs.dbc import load_database
+    from can_defs.errors import DbcLoadError
+    from firmware_sim import cli
+    from models import koopman_train
+    from models.bicycle_fit import BicycleFitError, load_bicycle_params
+    from models.input_files import (DBC_FILE_MAX_BYTES, LOG_FILE_MAX_BYTES, MODEL_FILE_MAX_BYTES,
+                                    read_bounded)
+
+    zero = Path("/dev/zero")
+    with pytest.raises(DbcLoadError, match=f"cannot load DBC /dev/zero: larger than {DBC_FILE_MAX_BYTES} bytes"):
+        load_database(zero)
+    status = cli.main(["--interface", "virtual", "--channel", "bounds", "--controller", "lmpc", "--path",
+                       f"1={ROOT / 'hil' / 'paths' / 'dlc.csv'}", "--lockstep", "--dbc", str(zero)])
+    assert status == 2
+    assert capsys.readouterr().err.strip().endswith(f"/dev/zero: larger than {DBC_FILE_MAX_BYTES} bytes "
+                                                    "(the limit of this file)")
+    with pytest.raises(BicycleFitError, match=f"/dev/zero: larger than {MODEL_FILE_MAX_BYTES} bytes"):
+        load_bicycle_params(zero)
+    big = tmp_path / "big"   # a sparse file over the bound: only limit + 1 bytes are read
+    with open(big.with_suffix(".json"), "wb") as handle:
+        handle.truncate(MODEL_FILE_MAX_BYTES + 10)
+    big.with_suffix(".npz").write_bytes(b"")
+    with pytest.raises(KoopmanError, match=f"big.json: larger than {MODEL_FILE_MAX_BYTES} bytes"):
+        KoopmanModel.load(big)
+    with pytest.raises(Exception, match="larger than 10 bytes"):
+        read_bounded(big.with_suffix(".json"), 10)
+    log = tmp_path / "huge.log"
+    with open(log, "wb") as handle:
+        handle.truncate(LOG_FILE_MAX_BYTES + 1)
+    for source, message in ((log, f"error: {log}: larger than {LOG_FILE_MAX_BYTES} bytes"),
+                            (zero, "error: /dev/zero: not a regular file")):
+        assert koopman_train.main(["--logs", str(source), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+        assert capsys.readouterr().err.strip().startswith(message)

@@ -14,11 +14,12 @@
 #include <string.h>
 
 #include "ecu_excite.h"
+#include "ecu_lines.h"
 
 #define PI 3.141592653589793
 #define CONTROL_PERIOD_S 0.025
 #define STEER_LIMIT 0.3 /* rad: a program's amplitude may not exceed the command limit */
-#define LINE_BYTES 4096
+#define LINE_BYTES (ECU_LINE_MAX + 2)
 #define NAME_BYTES 128
 #define TABLE_TIME_LIMIT_S 86400.0  /* |time_s| of a table row (excitation.py TABLE_TIME_LIMIT_S) */
 #define TABLE_TORQUE_LIMIT_NM 3000.0 /* |torque_nm| of a table row */
@@ -350,13 +351,13 @@ static void stem_of(const char *file, char *stem, size_t len) {
   if (dot && dot != stem) *dot = '\0';
 }
 
-static int load_table(const char *file, FILE *stream, char *err, size_t err_len) {
+static int load_table(const char *file, ecu_lines_t *lines, char *err, size_t err_len) {
   static char line[LINE_BYTES];
-  int number = 0, columns = 0;
+  int number = 0, columns = 0, got;
   table_rows = 0;
-  while (fgets(line, sizeof line, stream)) {
+  while ((got = ecu_read_line(lines, line, err, err_len)) != 0) {
+    if (got < 0) return -1;
     number++;
-    line[strcspn(line, "\r\n")] = '\0';
     char *cells[4];
     int count = 0;
     for (char *cursor = line; count < 4;) {
@@ -413,7 +414,7 @@ static int load_table(const char *file, FILE *stream, char *err, size_t err_len)
 
 /* The TOML reader: `key = value` lines (a number, true / false, or a "string"), comments.
  * Tables and arrays are not ExcitationProgram fields; they are refused by name. */
-static int load_toml(const char *file, FILE *stream, char *err, size_t err_len) {
+static int load_toml(const char *file, ecu_lines_t *lines, char *err, size_t err_len) {
   static const char *const FIELDS[] = {"name", "kind", "steer_amplitude_rad", "lateral_accel_mps2", "wheelbase_m",
                                        "chirp_start_hz", "chirp_end_hz", "chirp_period_s", "hold_s", "seed",
                                        "torque_amplitude_nm", "torque_hold_s", "delay_s", "steer_rate_limit_rad_s",
@@ -421,14 +422,14 @@ static int load_toml(const char *file, FILE *stream, char *err, size_t err_len) 
   enum { N_FIELDS = sizeof FIELDS / sizeof FIELDS[0] };
   static char line[LINE_BYTES];
   char kind[NAME_BYTES] = "", name[NAME_BYTES];
-  int number = 0, has_kind = 0;
+  int number = 0, has_kind = 0, got;
   int64_t program_seed = 0;
   double numbers[N_FIELDS];
   int given[N_FIELDS] = {0};
   stem_of(file, name, sizeof name);
-  while (fgets(line, sizeof line, stream)) {
+  while ((got = ecu_read_line(lines, line, err, err_len)) != 0) {
+    if (got < 0) return -1;
     number++;
-    line[strcspn(line, "\r\n")] = '\0';
     char *text = trim(line);
     if (!*text || *text == '#') continue;
     char *equals = strchr(text, '=');
@@ -593,9 +594,11 @@ int ecu_excite_load(const char *spec, char *err, size_t err_len) {
       snprintf(err, err_len, "--excite %s: cannot read: %s", spec, strerror(errno));
       return -1;
     }
-    char name[NAME_BYTES];
+    char name[NAME_BYTES], option[NAME_BYTES + 300];
     stem_of(spec, name, sizeof name);
-    int status = csv ? load_table(spec, stream, err, err_len) : load_toml(spec, stream, err, err_len);
+    snprintf(option, sizeof option, "--excite %s", spec);
+    ecu_lines_t lines = {.name = option, .stream = stream, .max_bytes = ECU_EXCITE_FILE_MAX};
+    int status = csv ? load_table(spec, &lines, err, err_len) : load_toml(spec, &lines, err, err_len);
     fclose(stream);
     if (status != 0) return -1;
     if (csv) program = defaults(name, TABLE);

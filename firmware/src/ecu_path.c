@@ -14,6 +14,7 @@
 
 #include "ecu_excite.h"
 #include "ecu_internal.h"
+#include "ecu_lines.h"
 
 #define PI 3.141592653589793
 #define TWO_PI 6.283185307179586
@@ -23,7 +24,7 @@
 #define MAX_SEGMENT_TURN 0.5        /* rad */
 #define POSITION_MIN (-8388.608)    /* m: the range of POS_X / POS_Y */
 #define POSITION_MAX 8388.607
-#define LINE_BYTES 4096
+#define LINE_BYTES (ECU_LINE_MAX + 2)
 #define WINDOW_AHEAD 6.0  /* m: PathTracker's search window around the last progress */
 #define WINDOW_BEHIND 2.0 /* m */
 
@@ -157,6 +158,7 @@ static void path_arrays(int n) {
 /* Read, check and convert one file into the free end of the pool; its point count in *n. */
 static int read_path_file(const char *file, int *n_out, char *err, size_t err_len) {
   static char line[LINE_BYTES];
+  int got;
   int capacity = ECU_MAX_PATH_POINTS - pool_used;
   px = pool_x + pool_used;
   py = pool_y + pool_used;
@@ -169,11 +171,15 @@ static int read_path_file(const char *file, int *n_out, char *err, size_t err_le
     snprintf(err, err_len, "%s: path file not found", file);
     return -1;
   }
-  while (status == 0 && fgets(line, sizeof line, stream)) {
+  ecu_lines_t lines = {.name = file, .stream = stream, .max_bytes = ECU_PATH_FILE_MAX};
+  while (status == 0 && (got = ecu_read_line(&lines, line, err, err_len)) != 0) {
     char *cells[3], *cursor = line, joined[LINE_BYTES];
     int count = 1, blank = 1;
+    if (got < 0) { /* a NUL byte, a line or a file too long (the Python ECU's verdict) */
+      status = -1;
+      break;
+    }
     line_number++;
-    line[strcspn(line, "\r\n")] = '\0';
     for (const char *c = line; *c; c++) count += *c == ',';
     for (const char *c = line; *c; c++) blank = blank && (isspace((unsigned char)*c) || *c == ',');
     if (blank) continue;
