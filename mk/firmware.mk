@@ -108,7 +108,7 @@ firmware-vcan: firmware apt-deps
 ## the C tests and fuzz (step, E2E, decode, executable) on a -fsanitize=address,undefined build
 firmware-asan: firmware
 	$(MAKE) --no-print-directory FW_DIR=build/firmware-asan FW_EXTRA_CFLAGS="$(FW_SAN_FLAGS)" \
-		build/firmware-asan/libecu.so build/firmware-asan/ecu
+		build/firmware-asan/libecu.so build/firmware-asan/ecu build/firmware-asan/ecu_data.bin
 	ECU_LIB=build/firmware-asan/libecu.so ECU_EXE=build/firmware-asan/ecu LD_PRELOAD="$(FW_SAN_PRELOAD)" \
 		ASAN_OPTIONS=detect_leaks=0 $(PY) -m pytest -q -p no:cacheprovider tests/test_firmware_c_core.py \
 		tests/test_firmware_c_rx.py tests/test_firmware_c_exe.py tests/test_firmware_c_bus.py \

@@ -57,11 +57,12 @@ def test_replay_equals_python_controller(native, name: str, tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--controller", "nmpc", "--path", "1=hil/paths/dlc.csv"], "error: unknown controller nmpc"),
+    (["--controller", "nmpc", "--path", "1=hil/paths/dlc.csv"],
+     "error: --controller 'nmpc': the C ECU has eso-dkmpc, dkmpc, lmpc"),
     (["--controller", "lmpc", "--path", "1=hil/paths/missing.csv"], "error: hil/paths/missing.csv: path file not found"),
     (["--controller", "lmpc", "--path", "x=hil/paths/dlc.csv"], "error: --path 'x=hil/paths/dlc.csv': expected ID"),
     (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--data", "nowhere.bin"],
-     "error: nowhere.bin: cannot open the ECU data file"),
+     "error: --data nowhere.bin: cannot read the ECU data file: No such file or directory"),
     (["--controller", "lmpc", "--path", "1=hil/paths/dlc.csv"], "error: give --interface / --channel / --lockstep"),
     (["--interface", "socketcand", "--channel", "vcan0", "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv",
       "--realtime", "--lockstep"], "error: exactly one of --lockstep or --realtime is required"),

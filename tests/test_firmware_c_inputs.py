@@ -165,3 +165,42 @@ def test_excitation_programs_over_the_line_and_size_limits_get_one_verdict(nativ
     for which in ("c", "python"):
         result = start(which, *args, timeout=30)
         assert (result.returncode, last_line(result)) == (2, message), which
+
+
+def test_the_c_command_line_refuses_what_it_cannot_use_before_the_bus(native, tmp_path: Path) -> None:
+    """An unknown controller, a folder as a path file and a data file that cannot be read
+    exit 2 before the bus is opened (port 1 would be exit 1), as the Python ECU; before,
+    each latched FAULT on the bus (issue 38, item 13)."""
+    folder = tmp_path / "paths"
+    folder.mkdir()
+    common = ["--lockstep", "--path", f"1={PATH}"]
+    cases = [
+        (["--controller", "foo", *common], "error: --controller 'foo': the C ECU has eso-dkmpc, dkmpc, lmpc"),
+        (["--controller", "lmpc", "--lockstep", "--path", f"1={folder}"],
+         f"error: --path '1={folder}': cannot read {folder}: it is a folder"),
+        (["--controller", "lmpc", *common, "--data", str(tmp_path / "missing.bin")],
+         f"error: --data {tmp_path / 'missing.bin'}: cannot read the ECU data file: No such file or directory"),
+        (["--controller", "lmpc", *common, "--data", str(folder)],
+         f"error: --data {folder}: cannot read the ECU data file: it is a folder"),
+    ]
+    for args, message in cases:
+        result = start("c", *args)
+        assert (result.returncode, last_line(result)) == (2, message), result.stderr
+    python = start("python", "--controller", "lmpc", "--lockstep", "--path", f"1={folder}")
+    assert (python.returncode, last_line(python)) == (2, f"error: --path '1={folder}': cannot read {folder}: "
+                                                         "it is a folder")
+    upper = start("c", "--controller", "LMPC", *common)   # any case, as the Python ECU
+    assert upper.returncode == 1 and "cannot" in last_line(upper)   # loaded; only the bus is missing
+
+
+def test_help_and_the_default_data_file_beside_the_executable(native, tmp_path: Path) -> None:
+    help_run = subprocess.run([str(ECU), "--help"], capture_output=True, text=True, timeout=30, check=False)
+    assert help_run.returncode == 0 and help_run.stdout.startswith("usage: ecu --version")
+    samples = tmp_path / "samples.csv"
+    samples.write_text("vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed\n"
+                       "10,0,0,0,0,0,0,0,10\n10,0,0,0.25,0,0,0,0,10\n")
+    # started from another folder: the data file is found beside the executable
+    replay = subprocess.run([str(ECU), "--controller", "lmpc", "--path", f"1={PATH}", "--replay", str(samples)],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False)
+    assert replay.returncode == 0, replay.stderr
+    assert len(replay.stdout.strip().splitlines()) == 3

@@ -34,6 +34,7 @@
  */
 #define _POSIX_C_SOURCE 200809L /* access, stat */
 
+#include <ctype.h>
 #include <errno.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -303,7 +304,12 @@ int main(int argc, char **argv) {
   char err[600], message[800];
   for (int i = 1; i < argc; i++) {
     const char *arg = argv[i], *value = i + 1 < argc ? argv[i + 1] : NULL;
-    if (strcmp(arg, "--version") == 0) {
+    if (strcmp(arg, "--help") == 0 || strcmp(arg, "-h") == 0) {
+      fputs(USAGE, stdout);
+      printf("\nThe default data file is ecu_data.bin beside this executable. Bad arguments: one error line, "
+             "exit 2; a bus that cannot be opened: exit 1. docs/firmware.md has the options.\n");
+      return 0;
+    } else if (strcmp(arg, "--version") == 0) {
       printf("ecu (ESO-DKMPC firmware), build shapes: %s\n%s", ecu_build_shapes(), ecu_version());
       return 0;
     } else if (strcmp(arg, "--realtime") == 0) {
@@ -411,11 +417,45 @@ int main(int argc, char **argv) {
     fputs(USAGE, stderr);
     return fail("--controller and at least one --path are required");
   }
+  /* As the Python ECU: what cannot be used at all stops start-up before the bus opens. */
+  static char controller_name[32];
+  snprintf(controller_name, sizeof controller_name, "%s", controller);
+  for (char *c = controller_name; *c; c++) *c = (char)tolower((unsigned char)*c);
+  if (strcmp(controller_name, "eso-dkmpc") && strcmp(controller_name, "dkmpc") && strcmp(controller_name, "lmpc")) {
+    snprintf(message, sizeof message, "--controller '%s': the C ECU has eso-dkmpc, dkmpc, lmpc", controller);
+    return fail(message);
+  }
+  controller = controller_name;
+  static char default_data[600];
+  if (!data_given && !model) { /* the data file make firmware writes beside the executable */
+    char folder[500];
+    if (os_executable_folder(folder, sizeof folder) != 0) return fail("cannot find this executable's folder "
+                                                                      "for its data file: give --data FILE");
+    snprintf(default_data, sizeof default_data, "%s/ecu_data.bin", folder);
+    data = default_data;
+  }
+  for (int k = 0; k < n_paths; k++) {
+    struct stat info;
+    if (stat(path_files[k], &info) == 0 && S_ISDIR(info.st_mode)) {
+      snprintf(message, sizeof message, "--path '%d=%s': cannot read %s: it is a folder", path_ids[k], path_files[k],
+               path_files[k]);
+      return fail(message);
+    }
+  }
   if (model) {
     if (data_given) return fail("give --data or --model (a data file), not both");
     if (check_model(model, message, sizeof message)) return fail(message);
     data = model;
   }
+  struct stat data_info;
+  int data_is_folder = stat(data, &data_info) == 0 && S_ISDIR(data_info.st_mode);
+  FILE *data_probe = data_is_folder ? NULL : fopen(data, "rb");
+  if (!data_probe) {
+    snprintf(message, sizeof message, "%s %s: cannot read the ECU data file: %s%s", model ? "--model" : "--data", data,
+             data_is_folder ? "it is a folder" : strerror(errno), data_given || model ? "" : " (make firmware writes it)");
+    return fail(message);
+  }
+  fclose(data_probe);
   if (dbc && check_dbc(dbc, message, sizeof message)) return fail(message);
   if (excite && !(interface || channel || lockstep))
     return fail("--excite runs on the bus (the excitation is added while ACTIVE), not with --replay");

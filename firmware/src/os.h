@@ -24,6 +24,9 @@ void os_install_stop_handler(volatile sig_atomic_t *stop);
  * -1 with err for a priority outside the OS's FIFO range or a negative cpu. */
 int os_realtime_policy(int cpu, int fifo_priority, char *note, size_t note_len, char *err, size_t err_len);
 
+/* The folder of this executable (no trailing slash) in buf; 0, or -1 when unknown. */
+int os_executable_folder(char *buf, size_t len);
+
 /* One CAN frame as the firmware sees it: ID, up to 8 bytes, and whether it is a classic
  * data frame with an 11-bit ID (the only kind the contract uses; others are ignored). */
 typedef struct {

@@ -55,6 +55,16 @@ void os_install_stop_handler(volatile sig_atomic_t *stop) {
   sigaction(SIGHUP, &action, NULL);
 }
 
+int os_executable_folder(char *buf, size_t len) {
+  ssize_t n = readlink("/proc/self/exe", buf, len - 1);
+  if (n <= 0 || (size_t)n >= len - 1) return -1;
+  buf[n] = '\0';
+  char *slash = strrchr(buf, '/');
+  if (!slash) return -1;
+  *slash = '\0';
+  return 0;
+}
+
 int os_realtime_policy(int cpu, int fifo_priority, char *note, size_t note_len, char *err, size_t err_len) {
   size_t used = 0;
   note[0] = '\0';
