@@ -85,6 +85,17 @@ model = ["default", "models/artifacts/dk_paper_nominal.npz"]
     ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\necu = ["rust"]', ["axes.ecu", "'rust'"]),
     ('[axes]\ncontroller = ["nmpc"]\nscenario = ["dlc_smoke"]\necu = ["c"]',
      ["no cell left", "the C ECU has no nmpc"]),
+    # issue 38: the whole grid is valid before the first cell, or one error
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nlag_factor = [0.0]', ["axes.lag_factor", "(0.0, 100.0]"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nspeed = ["p"]\n'
+     '[speed_profiles.p]\ntime_s = [0.0, nan]\ntarget_speed_kmh = [30.0, 40.0]', ["speed_profiles.p", "time_s"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nspeed = ["p"]\n'
+     '[speed_profiles.p]\ntime_s = [0.0, 1.0]\ntarget_speed_kmh = [30.0, -40.0]', ["speed_profiles.p", "[0.0, 200.0] km/h"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nspeed = ["p"]\n'
+     '[speed_profiles.p]\ntime_s = [0.0, 2.0, 1.0]\ntarget_speed_kmh = [30.0, 40.0, 40.0]',
+     ["speed_profiles.p", "strictly increasing"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nspeed = ["p"]\n'
+     '[speed_profiles.p]\ntime_s = [-1.0, 1.0]\ntarget_speed_kmh = [30.0, 40.0]', ["speed_profiles.p", "[0, 3600.0] s"]),
 ])
 def test_bad_input_is_an_error_naming_the_key_and_the_file(tmp_path, body, words):
     file = _grid(tmp_path, body)
@@ -95,6 +106,40 @@ def test_bad_input_is_an_error_naming_the_key_and_the_file(tmp_path, body, words
     assert str(file) in message
     for word in words:
         assert word in message
+
+
+def test_a_grid_that_is_not_utf8_or_names_a_model_outside_the_repository_is_one_error(tmp_path):
+    file = tmp_path / "latin.toml"
+    file.write_bytes('name = "caf\u00e9"\n[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\n'.encode("latin-1"))
+    with pytest.raises(GridError, match=f"{file}: not UTF-8 text"):
+        load_grid(file)
+    outside = Path(tempfile.mkdtemp(prefix="model-outside-"))   # not under the repository
+    try:
+        for suffix in (".npz", ".json"):
+            shutil.copy(ROOT / "models" / "artifacts" / f"dk_paper_nominal{suffix}", outside / f"m{suffix}")
+        grid = _grid(tmp_path, f'[axes]\ncontroller = ["dkmpc"]\nscenario = ["dlc_smoke"]\n'
+                               f'model = ["{outside / "m.npz"}"]\n')
+        with pytest.raises(GridError, match="is outside the repository"):
+            load_grid(grid)
+    finally:
+        shutil.rmtree(outside)
+
+
+def test_a_campaign_whose_cells_all_fail_to_run_exits_1(tmp_path, monkeypatch, capsys):
+    from studies.campaign import __main__ as campaign_main
+    from studies.campaign import cell
+
+    def failing(job):
+        return {"key": job.key, "e_y_rmse": float("nan"), "e_y_max": float("nan"),
+                "heading_rmse": float("nan"), "completed": 0, "end_reason": "error",
+                "step_p50_us": float("nan"), "step_p99_us": float("nan"), "overruns": 0,
+                "error": "ScenarioError: broken"}
+
+    monkeypatch.setattr(cell, "run_cell", failing)
+    status = campaign_main.main([str(_grid(tmp_path, GRID)), "--out", str(tmp_path / "out"), "--serial",
+                                 "--no-progress"])
+    assert status == 1
+    assert "error: every cell failed to run (the first: ScenarioError: broken)" in capsys.readouterr().err
 
 
 def test_cache_keys_are_stable_and_tell_cells_and_code_apart(tmp_path):

@@ -2,8 +2,9 @@
 [--serial] [--no-progress] [--debug]``: run a campaign grid (see docs/campaign.md).
 
 GRID is a file or the name of a shipped grid (``studies/campaign/grids/NAME.toml``). Exit
-status: 0 when the campaign ran (whatever each cell's outcome), 1 for bad input or when Ray
-cannot start, 2 for bad arguments, 130 when interrupted (finished cells are kept).
+status: 0 when the campaign ran (whatever each cell's outcome, as long as one cell ran), 1
+for bad input, when Ray cannot start or when every cell failed to run (end reason
+``error``), 2 for bad arguments, 130 when interrupted (finished cells are kept).
 """
 from __future__ import annotations
 
@@ -93,6 +94,11 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         print("interrupted: the finished cells are kept; run the same command to resume",
               file=sys.stderr)
         return 130
+    errors = [row for row in result.rows if row.get("end_reason") == "error"]
+    if result.rows and len(errors) == len(result.rows):
+        print(f"error: every cell failed to run (the first: {errors[0].get('error') or 'no message'})",
+              file=sys.stderr)
+        return 1
     return 0
 
 

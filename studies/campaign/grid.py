@@ -69,8 +69,15 @@ from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError
+from hil.scenario import _DURATION_RANGE_S, _SPEED_RANGE_KMH
+from models.input_files import read_bounded
 
 ROOT = Path(__file__).resolve().parent.parent.parent
+#: Bytes of a grid file (read no further).
+GRID_FILE_MAX_BYTES = 1024 * 1024
+#: A [speed_profiles.NAME] table's bounds: a scenario's [speed_profile] rules.
+PROFILE_TIME_MAX_S = _DURATION_RANGE_S[1]
+PROFILE_SPEED_RANGE_KMH = _SPEED_RANGE_KMH
 GRID_DIR = Path(__file__).resolve().parent / "grids"
 #: Every axis, in the order of a cell's fields and of cells.csv.
 AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
@@ -169,9 +176,11 @@ def load_grid(file: str | Path) -> Grid:
     if not file.is_file() and (GRID_DIR / f"{file}.toml").is_file():
         file = GRID_DIR / f"{file}.toml"
     try:
-        raw = tomllib.loads(file.read_text(encoding="utf-8"))
+        raw = tomllib.loads(read_bounded(file, GRID_FILE_MAX_BYTES, GridError).decode("utf-8"))
     except OSError as e:
         raise GridError(f"{file}: cannot read grid: {e.strerror}") from e
+    except UnicodeDecodeError as e:
+        raise GridError(f"{file}: not UTF-8 text (byte {e.start}: {e.reason})") from None
     except tomllib.TOMLDecodeError as e:
         raise GridError(f"{file}: invalid TOML: {e}") from e
     unknown = sorted(set(raw) - _TOP_KEYS)
@@ -293,6 +302,8 @@ def _axis_value(file: Path, name: str, value: Any) -> Any:
     ranges = {"mu": (0.05, 1.5), "speed": (1.0, 200.0), "mass_offset_kg": (-1000.0, 2000.0),
               "lag_factor": (0.0, 100.0)}
     low, high = ranges[name]
+    if name == "lag_factor" and number and value == 0.0:   # a steering that never moves
+        raise bad(f"must be a number in ({low}, {high}]")
     if not number or not math.isfinite(value) or not low <= value <= high:
         raise bad(f"must be a number in [{low}, {high}]")
     return float(value)
@@ -334,6 +345,9 @@ def _scenario_file(file: Path, name: str) -> Path:
 def _model_file(file: Path, model: str) -> Path:
     for candidate in (file.parent / model, ROOT / model):
         if candidate.suffix == ".npz" and candidate.is_file():
+            if not candidate.resolve().is_relative_to(ROOT):   # the cells name it from the checkout
+                raise GridError(f"{file}: axes.model value {model!r}: {candidate.resolve()} is outside the "
+                                f"repository {ROOT}; copy the artefact (.npz and .json) into it")
             return candidate.resolve()
     raise GridError(f"{file}: axes.model value {model!r}: not {DEFAULT_MODEL!r} and not a "
                     "Koopman artefact (.npz with its .json)")
@@ -357,6 +371,15 @@ def _speed_profiles(file: Path, raw: Any) -> dict[str, tuple[tuple[float, ...], 
                 or len(times) != len(speeds)
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in times + speeds)):
             raise GridError(f"{where}: time_s and target_speed_kmh must be arrays of numbers of one length")
+        # a scenario's [speed_profile] rules (hil/scenario.py), checked before the first cell
+        if not all(math.isfinite(t) and 0.0 <= t <= PROFILE_TIME_MAX_S for t in times):
+            raise GridError(f"{where}: time_s = {times!r}: every time must be a number in [0, {PROFILE_TIME_MAX_S}] s")
+        if any(later <= earlier for earlier, later in zip(times, times[1:])):
+            raise GridError(f"{where}: time_s = {times!r}: must be strictly increasing")
+        low, high = PROFILE_SPEED_RANGE_KMH
+        if not all(math.isfinite(v) and low <= v <= high for v in speeds):
+            raise GridError(f"{where}: target_speed_kmh = {speeds!r}: every speed must be a number in "
+                            f"[{low}, {high}] km/h")
         out[name] = (tuple(float(t) for t in times), tuple(float(v) for v in speeds))
     return out
 
