@@ -23,6 +23,8 @@ reopened every second. Lines that could repeat every cycle go through `RateLimit
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import math
 import select
@@ -443,16 +445,27 @@ class Ecu:
 
     def _step_controller(self, sample: VehicleSample) -> tuple[Command | None, StepDebug | None]:
         assert self._controller is not None
+        output = io.StringIO()   # what the solver prints (OSQP writes through sys.stdout / stderr)
         try:
-            command, debug = self._controller.step(sample)
+            with contextlib.redirect_stdout(output), contextlib.redirect_stderr(output):
+                command, debug = self._controller.step(sample)
         except Exception as error:
             level = logging.DEBUG if self._controller_failing else logging.ERROR
             _LOG.log(level, "controller step raised %s: %s; fallback command",
                      type(error).__name__, error, exc_info=_LOG.isEnabledFor(logging.DEBUG))
             self._controller_failing = True
             return None, None
+        finally:
+            self._log_solver_output(output.getvalue())
         self._controller_failing = False
         return command, debug
+
+    def _log_solver_output(self, text: str) -> None:
+        """Lines the controller or its solver printed in a step: through the rate-limited
+        log (one line a second, counting the rest), never straight to stderr every cycle."""
+        for line in text.splitlines():
+            if line.strip():
+                self._log.log("solver-output", logging.WARNING, "solver output: %s", line.strip())
 
     def _control_task(self, now_ns: int, release_jitter_s: float) -> None:
         """One control cycle: events -> mode -> request -> guard -> TX (never raises)."""

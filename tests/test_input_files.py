@@ -131,3 +131,47 @@ def test_every_input_file_has_a_size_bound_checked_before_reading(tmp_path: Path
                             (zero, "error: /dev/zero: not a regular file")):
         assert koopman_train.main(["--logs", str(source), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
         assert capsys.readouterr().err.strip().startswith(message)
+
+
+def test_solver_output_goes_through_the_rate_limited_log(capsys, caplog) -> None:
+    """A solver that prints two stderr lines every step (OSQP on a huge but finite model):
+    over 4 s of control, at most one log line a second and nothing straight on stderr
+    (issue 38, item 14)."""
+    import logging
+    import sys
+    import uuid
+
+    from controller.base import Command, SolverStatus, StepDebug
+    from hil.ecu_harness import PeerNodes, ScriptedController, pump
+
+    class Noisy(ScriptedController):
+        def step(self, sample):
+            print("ERROR in LDL_factor: Error in KKT matrix LDL factorization", file=sys.stderr)
+            print("ERROR in osqp_update_data_mat: KKT matrix factorization", file=sys.stderr)
+            return Command(0.0, 0.0), StepDebug(SolverStatus.NUMERICAL_ERROR, 0, 0.0)
+
+    channel = f"noisy-{uuid.uuid4()}"
+    ecu_bus, peer_bus = can.Bus(interface="virtual", channel=channel), can.Bus(interface="virtual", channel=channel)
+    try:
+        ecu = Ecu(ecu_bus, "scripted", {1: Path("p.csv")}, lockstep=True, controller_factory=lambda name: Noisy(),
+                  path_loader=lambda path: "path")
+        peers = PeerNodes(peer_bus)
+        peers.send_handshake()
+        pump(ecu, ecu_bus)
+        with caplog.at_level(logging.WARNING, logger="firmware_sim.ecu"):
+            for t in range(0, 4000, 5):
+                if t % 10 == 0:
+                    peers.send_plant(vx=10.0, x=0.01 * t, y=0.0)
+                if t % 25 == 0:
+                    peers.send_planner(engage=True, target_speed=10.0, path_id=1)
+                peers.send_sync(t)
+                pump(ecu, ecu_bus)
+                peers.received()
+        assert ecu.mode is CtrlMode.ACTIVE
+        lines = [r.getMessage() for r in caplog.records if "solver output" in r.getMessage()]
+        print(len(lines), lines[:2])
+        assert 1 <= len(lines) <= 6   # 160 steps x 2 lines, at most one a second of wall clock
+        assert "LDL_factor" not in capsys.readouterr().err
+    finally:
+        ecu_bus.shutdown()
+        peer_bus.shutdown()
