@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, NoReturn
 import can
 
 from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumentError
+from firmware_sim.bus_quiet import quiet_socketcand
 from firmware_sim.inputs import command_inputs
 from models.input_files import MODEL_FILE_MAX_BYTES, InputFileError, read_bounded
 
@@ -137,6 +138,7 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None) ->
     kwargs: dict[str, object] = {}
     if bitrate is not None:
         kwargs["bitrate"] = bitrate
+    quiet_socketcand()   # one connection attempt, no log flood: the ECU retries every second
     try:
         return can.Bus(channel=channel, interface=interface, **kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError, TypeError) as error:

@@ -175,3 +175,75 @@ def test_solver_output_goes_through_the_rate_limited_log(capsys, caplog) -> None
     finally:
         ecu_bus.shutdown()
         peer_bus.shutdown()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_no_socketcand_server_at_start_up_is_one_error_not_a_flood(tmp_path: Path) -> None:
+    """python-can's socketcand interface retries its connection for 10 s without a pause
+    and logs every try (294,000 lines); the ECU makes one try: exit 1 at once, one line."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import time
+
+    port = _free_port()
+    environment = {**os.environ, "CAN_CONFIG": json.dumps({"host": "127.0.0.1", "port": port})}
+    started = time.monotonic()
+    result = subprocess.run([sys.executable, "-m", "firmware_sim", "--interface", "socketcand", "--channel",
+                             "vcan0", "--controller", "lmpc", "--path", f"1={ROOT / 'hil' / 'paths' / 'dlc.csv'}",
+                             "--lockstep"], cwd=ROOT, env=environment, capture_output=True, text=True,
+                            timeout=60, check=False)
+    elapsed = time.monotonic() - started
+    print(f"{elapsed:.1f} s", result.stderr)
+    assert result.returncode == 1
+    assert result.stderr.count("\n") <= 2 and "Failed to connect to server" not in result.stderr
+    assert f"no socketcand server at 127.0.0.1:{port}" in result.stderr
+    assert elapsed < 8.0   # python-can alone: 10 s of spinning
+
+
+def test_a_socketcand_server_that_stays_down_is_retried_once_a_second_quietly(monkeypatch, caplog) -> None:
+    """The server goes away during a run: the lost bus is logged at most once a second,
+    the reopening tries are a second apart and python-can writes nothing (before, about
+    32,000 lines a second at 60 % CPU)."""
+    import json
+    import logging
+    import threading
+    import time
+
+    from firmware_sim import cli
+    from test_ecu_cli import FakeSocketcand
+
+    server = FakeSocketcand()
+    monkeypatch.setenv("CAN_CONFIG", json.dumps({"host": "127.0.0.1", "port": server.port}))
+    accepting = threading.Thread(target=server.accept, args=(10.0,))
+    accepting.start()
+    bus = cli.open_bus("socketcand", "vcan0", None)
+    accepting.join()
+    ecu = Ecu(bus, "lmpc", {}, controller_factory=lambda name: None,
+              reopen_bus=lambda: cli.open_bus("socketcand", "vcan0", None))
+    stop = threading.Event()
+    with caplog.at_level(logging.INFO):
+        runner = threading.Thread(target=ecu.run, args=(stop,))
+        runner.start()
+        server.close()          # the server is gone and stays gone
+        cpu_before = time.process_time()
+        time.sleep(3.0)
+        cpu = time.process_time() - cpu_before
+        stop.set()
+        runner.join(10.0)
+    ecu.close()
+    python_can = [r for r in caplog.records if r.name.startswith("can.")]
+    ecu_lines = [r for r in caplog.records if r.name.startswith("firmware_sim")]
+    print(f"CPU {cpu:.2f} s in 3 s;", len(python_can), "python-can lines;", [r.getMessage() for r in ecu_lines])
+    assert ecu.bus_lost and not runner.is_alive()
+    assert len(python_can) <= 3
+    assert 1 <= len(ecu_lines) <= 5
+    assert cpu < 1.5
