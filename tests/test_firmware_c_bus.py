@@ -95,6 +95,28 @@ def test_a_path_that_does_not_load_latches_fault(native, tmp_path: Path) -> None
     assert all(int(c.ctrl_mode) == 5 and not c.cmd_valid and c.drive_torque_cmd == 0.0 for c in commands)
 
 
+@pytest.mark.parametrize("probe, message", [
+    ("x,y,yaw\n0,0,0\n0.1,0," + " " * 4200 + "0,1,2\n", "line 3: longer than 4096 bytes"),
+    ("x,y,yaw\n0,0,0\n0.1,0\x00junk,0\n0.2,0,0\n", "line 3: holds a NUL byte"),
+])
+def test_probe_path_files_latch_the_same_fault_in_both_ecus(native, probe: str, message: str,
+                                                            tmp_path: Path) -> None:
+    """Conformance on the bus (issue 38, item 9): a path file with a line over the limit or
+    a NUL byte, which the C ECU once split or cut and took: both ECUs latch FAULT with the
+    same message and send the same frames."""
+    bad = tmp_path / "probe.csv"
+    bad.write_bytes(probe.encode())
+    runs = {}
+    for which in ("python", "c"):
+        raw, _, status, output = run_on_hub(which, "dlc_smoke", "lmpc", tmp_path / f"{which}.log", bad,
+                                            executable=ECU, duration_s=0.5)
+        assert status == 0, output[-2000:]
+        assert f"FAULT latched: PATH_ID 1 file {bad}: {bad}: {message}" in output, output[-2000:]
+        runs[which] = commands_and_diags(raw)
+    assert runs["python"] == runs["c"] and len(runs["c"][0]) > 10
+    assert all(int(decode(FrameId.STEER_TORQUE_CMD, d).frame.ctrl_mode) == 5 for _, d in runs["c"][0])
+
+
 #: Conformance cases (contract rev. 2 faults), each from 1.5 s of dlc_smoke: name -> the
 #: ``[faults]`` table or a jump of virtual time. The first ones run in make test.
 CONFORMANCE_CASES = {
