@@ -73,6 +73,8 @@ _KMH = 1.0 / 3.6  # km/h -> m/s
 # (a speed in m/s written as km/h, a mass in tonnes, mu as a percentage).
 _MU_RANGE = (0.05, 1.5)
 _MASS_RANGE_KG = (300.0, 5000.0)
+#: Bytes of a scenario file (read no further).
+SCENARIO_FILE_MAX_BYTES = 1024 * 1024
 _SPEED_RANGE_KMH = (0.0, 200.0)
 _DURATION_RANGE_S = (0.025, 3600.0)
 
@@ -161,10 +163,14 @@ class Scenario:
                 out-of-range value, or an invalid path file.
         """
         file = Path(file)
+        from models.input_files import read_bounded
+
         try:
-            raw = tomllib.loads(file.read_text(encoding="utf-8"))
+            raw = tomllib.loads(read_bounded(file, SCENARIO_FILE_MAX_BYTES, ScenarioError).decode("utf-8"))
         except OSError as e:
             raise ScenarioError(f"{file}: cannot read scenario: {e.strerror}") from e
+        except UnicodeDecodeError as e:
+            raise ScenarioError(f"{file}: not UTF-8 text (byte {e.start}: {e.reason})") from None
         except tomllib.TOMLDecodeError as e:
             raise ScenarioError(f"{file}: invalid TOML: {e}") from e
         return _parse(raw, file)

@@ -247,3 +247,15 @@ def test_a_socketcand_server_that_stays_down_is_retried_once_a_second_quietly(mo
     assert len(python_can) <= 3
     assert 1 <= len(ecu_lines) <= 5
     assert cpu < 1.5
+
+
+def test_a_scenario_file_is_bounded_and_utf8(tmp_path: Path) -> None:
+    from hil.errors import ScenarioError
+    from hil.scenario import SCENARIO_FILE_MAX_BYTES, load_scenario
+
+    with pytest.raises(ScenarioError, match=f"/dev/zero: larger than {SCENARIO_FILE_MAX_BYTES} bytes"):
+        load_scenario(Path("/dev/zero"))
+    latin = tmp_path / "latin.toml"
+    latin.write_bytes('name = "caf\u00e9"\n'.encode("latin-1"))
+    with pytest.raises(ScenarioError, match=f"{latin}: not UTF-8 text"):
+        load_scenario(latin)
