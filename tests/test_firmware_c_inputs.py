@@ -204,3 +204,13 @@ def test_help_and_the_default_data_file_beside_the_executable(native, tmp_path: 
                             cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False)
     assert replay.returncode == 0, replay.stderr
     assert len(replay.stdout.strip().splitlines()) == 3
+
+
+def test_a_dbc_from_dev_zero_is_one_line_from_both_ecus(native) -> None:
+    """``--dbc /dev/zero``: the C ECU hashed it for ever, the Python ECU read it whole (a
+    MemoryError); both read at most the DBC's bound and give one line, exit 2."""
+    message = "error: cannot load DBC /dev/zero: larger than 4194304 bytes (the limit of this file)"
+    for which in ("c", "python"):
+        result = start(which, "--controller", "lmpc", "--lockstep", "--path", f"1={PATH}", "--dbc", "/dev/zero",
+                       timeout=60)
+        assert (result.returncode, last_line(result)) == (2, message), which

@@ -58,6 +58,7 @@
 #define MAX_PATHS 256
 #define PERIOD_NS 25000000 /* Ts = 25 ms */
 #define N_SAMPLE_FIELDS 9
+#define DBC_FILE_MAX 4194304L /* bytes of a --dbc file, as the Python ECU's */
 
 static const char *const SAMPLE_HEADER = "vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed";
 static const char *const USAGE =
@@ -175,7 +176,12 @@ static const char *check_output_file(const char *file, int replace, const char *
  * ".dbc" line of ecu_version()). NULL when it is, else the message. */
 static const char *check_dbc(const char *file, char *message, size_t len) {
   char given[65], built[65] = "", built_name[200] = "";
-  if (ecu_sha256_file(file, given) != 0) {
+  int status = ecu_sha256_file(file, given, DBC_FILE_MAX);
+  if (status == -2) { /* the Python ECU's message (models/input_files.py DBC_FILE_MAX_BYTES) */
+    snprintf(message, len, "cannot load DBC %s: larger than %ld bytes (the limit of this file)", file, DBC_FILE_MAX);
+    return message;
+  }
+  if (status != 0) {
     snprintf(message, len, "--dbc %s: cannot read: %s", file, strerror(errno));
     return message;
   }

@@ -50,7 +50,7 @@ static void compress(uint32_t h[8], const unsigned char block[64]) {
   h[0] += a, h[1] += b, h[2] += c, h[3] += d, h[4] += e, h[5] += f, h[6] += g, h[7] += k;
 }
 
-int ecu_sha256_file(const char *path, char hex[65]) {
+int ecu_sha256_file(const char *path, char hex[65], long max_bytes) {
   static unsigned char block[128]; /* the last block and, when the length does not fit, one more */
   uint32_t h[8] = {0x6a09e667, 0xbb67ae85, 0x3c6ef372, 0xa54ff53a, 0x510e527f, 0x9b05688c, 0x1f83d9ab, 0x5be0cd19};
   uint64_t length = 0;
@@ -60,11 +60,16 @@ int ecu_sha256_file(const char *path, char hex[65]) {
   while ((n = fread(block, 1, 64, file)) == 64) {
     compress(h, block);
     length += 64;
+    if (length > (uint64_t)max_bytes) { /* read no further (a pipe, /dev/zero) */
+      fclose(file);
+      return -2;
+    }
   }
   int failed = ferror(file);
   fclose(file);
   if (failed) return -1;
   length += n;
+  if (length > (uint64_t)max_bytes) return -2;
   /* Padding: 0x80, zeros up to 56 mod 64, the length in bits as 64-bit big-endian. */
   block[n++] = 0x80;
   size_t end = n <= 56 ? 64 : 128;

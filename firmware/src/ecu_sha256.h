@@ -7,8 +7,9 @@
 
 #include <stddef.h>
 
-/* The file's SHA-256 as 64 lower-case hex digits and a NUL in hex (65 bytes).
- * 0, or -1 when the file cannot be read (errno set). */
-int ecu_sha256_file(const char *path, char hex[65]);
+/* The file's SHA-256 as 64 lower-case hex digits and a NUL in hex (65 bytes), reading at
+ * most about max_bytes. 0, -1 when the file cannot be read (errno set), -2 when it is
+ * larger than max_bytes. */
+int ecu_sha256_file(const char *path, char hex[65], long max_bytes);
 
 #endif
