@@ -375,9 +375,30 @@ lag_factor = [2.0]
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return _free_ports(1)[0]
+
+
+def _free_ports(count: int) -> list[int]:
+    """``count`` distinct ports free on 127.0.0.1 now (all bound at once, then released)."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
+def _ray_failure(log: Path, ray_dir: str, why: str) -> str:
+    """``why`` with Ray's own words: the tail of ``ray start``'s output and of the newest
+    files of its session's log folder."""
+    parts = [why, "--- ray start output:", log.read_text(errors="replace")[-3000:]]
+    logs = sorted(Path(ray_dir).glob("session_*/logs/*"), key=lambda f: f.stat().st_mtime)[-4:]
+    for file in logs:
+        if file.is_file():
+            parts += [f"--- {file.name}:", file.read_text(errors="replace")[-1500:]]
+    return "\n".join(parts)
 
 
 def _stop_session(process: subprocess.Popen) -> None:
@@ -402,7 +423,11 @@ def test_a_grid_on_a_ray_cluster_started_as_processes(tmp_path):
     # Loopback only: the node registers as 127.0.0.1; token auth (Ray's default) on both sides.
     env = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0",
            "RAY_AUTH_MODE": "token"}
-    port = _free_port()
+    # A free port for every Ray component that listens (the dashboard agent's listen port
+    # and the others are fixed by default, so another Ray or any service on them breaks
+    # the start), and for the workers.
+    (port, object_manager, node_manager, agent_listen, agent_grpc, runtime_env, metrics,
+     *workers) = _free_ports(7 + 16)
     grid = _grid(tmp_path, """
 name = "cluster"
 [axes]
@@ -414,17 +439,27 @@ scenario = ["dlc_smoke"]
     # `ray start --block` in a session of its own, stopped by a signal to that session at
     # the end: `ray stop` would stop every Ray of this machine's user (a campaign running
     # beside the tests included), not only this test's cluster.
-    head = subprocess.Popen([str(ray_cli), "start", "--head", "--block", "--node-ip-address=127.0.0.1",
-                             f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
-                             "--disable-usage-stats", f"--temp-dir={ray_dir}"],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    ray_log = tmp_path / "ray_start.log"
+    with ray_log.open("wb") as output:   # Ray's own words, for the failure message
+        head = subprocess.Popen([str(ray_cli), "start", "--head", "--block", "--node-ip-address=127.0.0.1",
+                                 f"--port={port}", f"--object-manager-port={object_manager}",
+                                 f"--node-manager-port={node_manager}",
+                                 f"--dashboard-agent-listen-port={agent_listen}",
+                                 f"--dashboard-agent-grpc-port={agent_grpc}",
+                                 f"--runtime-env-agent-port={runtime_env}", f"--metrics-export-port={metrics}",
+                                 f"--worker-port-list={','.join(map(str, workers))}",
+                                 "--num-cpus=2", "--include-dashboard=false",
+                                 "--disable-usage-stats", f"--temp-dir={ray_dir}"],
+                                env=env, stdout=output, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        deadline = time.monotonic() + 180
+        # a loaded 2-core machine can take minutes to bring up the head's processes
+        deadline = time.monotonic() + 300
         while subprocess.run([str(ray_cli), "status", f"--address=127.0.0.1:{port}"], env=env,
-                             capture_output=True, timeout=60).returncode != 0:
-            assert head.poll() is None, "ray start --head exited"
-            assert time.monotonic() < deadline, "the Ray head did not come up within 180 s"
+                             capture_output=True, timeout=120).returncode != 0:
+            assert head.poll() is None, _ray_failure(ray_log, ray_dir,
+                                                     f"ray start --head exited with status {head.returncode}")
+            assert time.monotonic() < deadline, _ray_failure(ray_log, ray_dir,
+                                                             "the Ray head did not come up within 300 s")
             time.sleep(1.0)
         run = subprocess.run([sys.executable, "-m", "studies.campaign", str(grid), "--out",
                               str(tmp_path / "out"), "--address", f"127.0.0.1:{port}",
