@@ -190,6 +190,9 @@ def read_log(path: str | Path) -> LogContents:
     suffix = check_log_suffix(path)
     if not path.is_file():
         raise LogReadError(f"{path}: no such log file")
+    from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
+
+    check_file_size(path, LOG_FILE_MAX_BYTES, LogReadError)   # before any reader takes it whole
     contents = LogContents(path=path, messages=[])
     if suffix == ".log":
         _read_candump(path, contents)

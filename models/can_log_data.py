@@ -52,6 +52,7 @@ from can_defs.e2e import E2EMonitor
 from can_defs.errors import CanDefsError
 from can_defs.frames import HANDSHAKE_TICK, FrameId
 from models.errors import ModelError
+from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
 from models.koopman_metrics import Trajectory
 
 #: Suffixes read as CAN logs (each also as ``<suffix>.gz``).
@@ -224,6 +225,7 @@ def read_frames(path: str | Path) -> tuple[list[RawFrame], str | None]:
     path = Path(path)
     if not path.is_file():
         raise LogDataError(f"{path}: log file not found")
+    check_file_size(path, LOG_FILE_MAX_BYTES, LogDataError)   # before any reader takes it whole
     suffix = _base_suffix(path)
     if suffix not in LOG_SUFFIXES:
         raise LogDataError(f"{path}: unsupported log format {suffix or '(none)'}; readable: "

@@ -259,3 +259,19 @@ def test_a_scenario_file_is_bounded_and_utf8(tmp_path: Path) -> None:
     latin.write_bytes('name = "caf\u00e9"\n'.encode("latin-1"))
     with pytest.raises(ScenarioError, match=f"{latin}: not UTF-8 text"):
         load_scenario(latin)
+
+
+def test_logs_over_the_bound_are_refused_before_reading(tmp_path: Path) -> None:
+    """A recorded CAN log (``hil replay`` / ``decode``, ``koopman_train --logs``) larger
+    than ``LOG_FILE_MAX_BYTES``: one error naming the file and the bound, nothing read."""
+    from hil.logio import LogReadError, read_log
+    from models.can_log_data import LogDataError, read_frames
+    from models.input_files import LOG_FILE_MAX_BYTES
+
+    log = tmp_path / "huge.log"
+    with open(log, "wb") as handle:
+        handle.truncate(LOG_FILE_MAX_BYTES + 1)
+    with pytest.raises(LogReadError, match=f"larger than {LOG_FILE_MAX_BYTES} bytes"):
+        read_log(log)
+    with pytest.raises(LogDataError, match=f"larger than {LOG_FILE_MAX_BYTES} bytes"):
+        read_frames(log)
