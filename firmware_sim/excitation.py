@@ -38,6 +38,7 @@ deviation from the path exceeds ``lateral_error_bound_m`` (default 1.5 m).
 """
 from __future__ import annotations
 
+import bisect
 import csv
 import math
 import tomllib
@@ -201,10 +202,10 @@ def steer_amplitude(program: ExcitationProgram, vx: float) -> float:
 def _table_value(times: tuple[float, ...], values: tuple[float, ...], t: float) -> float:
     if not values or t < times[0] or t > times[-1]:
         return 0.0
-    for k in range(1, len(times)):
-        if t <= times[k]:
-            share = (t - times[k - 1]) / (times[k] - times[k - 1])
-            return values[k - 1] + share * (values[k] - values[k - 1])
+    k = bisect.bisect_left(times, t, 1)   # the first row from 1 on with t <= its time
+    if k < len(times):
+        share = (t - times[k - 1]) / (times[k] - times[k - 1])
+        return values[k - 1] + share * (values[k] - values[k - 1])
     return values[-1]
 
 

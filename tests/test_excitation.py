@@ -213,3 +213,21 @@ def test_a_non_finite_target_at_run_time_ends_the_excitation(monkeypatch):
     later = [excitation.step(program.delay_s + 1.0 + k * TS, True, 10.0, 0.0, 0.01, 0.0, STEER_RANGE,
                              TORQUE_RANGE)[0] for k in range(1, 40)]
     assert all(math.isfinite(value) for value in later) and later[-1] == 0.01   # ramped out
+
+
+def test_a_table_at_its_row_limit_costs_the_control_task_little():
+    """A 20,000-row table (the limit of both ECUs) is searched by bisection: 1,000 lookups
+    near its end take far less than one 25 ms control period (a linear search took about
+    1.5 ms each; issue 38, item 8)."""
+    import time
+
+    from firmware_sim.excitation import TABLE_MAX_ROWS
+
+    times = tuple(0.025 * k for k in range(TABLE_MAX_ROWS))
+    program = ExcitationProgram("long", "table", table_time_s=times,
+                                table_steer_rad=tuple(0.01 if k % 2 else -0.01 for k in range(TABLE_MAX_ROWS)))
+    started = time.perf_counter()
+    for _ in range(1000):
+        steer, _ = excitation_offsets(program, program.delay_s + times[-2] + 0.0125, 10.0)
+    assert time.perf_counter() - started < 0.5
+    assert steer == pytest.approx(0.0)   # halfway between -0.01 and +0.01
