@@ -43,6 +43,7 @@ import csv
 import math
 import tomllib
 from dataclasses import dataclass, fields
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -329,14 +330,15 @@ def load_program(spec: str) -> ExcitationProgram:
     if path.suffix.lower() not in (".toml", ".csv"):
         raise ConfigError(f"--excite {spec!r}: not a shipped program ({', '.join(SHIPPED_PROGRAMS)}) "
                           "nor a .toml / .csv program file")
-    try:  # every line bounded as it is read, as in the C ECU (models/input_files.py)
-        text = "".join(bounded_lines(path, EXCITE_FILE_MAX_BYTES))
+    lines = bounded_lines(path, EXCITE_FILE_MAX_BYTES)
+    try:  # every line bounded as it is read; a table parsed line by line, as in the C ECU
+        if path.suffix.lower() == ".csv":
+            return _table_program(path, lines)
+        text = "".join(lines)
     except InputFileError as error:
         raise ConfigError(f"--excite {error}") from None
     except OSError as error:
         raise ConfigError(f"--excite {path}: cannot read: {getattr(error, 'strerror', None) or error}") from error
-    if path.suffix.lower() == ".csv":
-        return _table_program(path, text)
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
@@ -367,14 +369,22 @@ def _toml_program(path: Path, raw: dict[str, Any]) -> ExcitationProgram:
         raise ConfigError(f"--excite {path}: {error}") from error
 
 
-def _table_program(path: Path, text: str) -> ExcitationProgram:
-    rows = list(csv.reader(text.splitlines()))
-    header = [cell.strip() for cell in rows[0]] if rows else []
-    if header not in (["time_s", "steer_rad"], ["time_s", "steer_rad", "torque_nm"]):
-        raise ConfigError(f"--excite {path}: line 1: header must be time_s,steer_rad[,torque_nm], "
-                          f"got {','.join(header)!r}")
+def _table_program(path: Path, lines: Iterable[str]) -> ExcitationProgram:
+    """The table of a CSV program, parsed as its lines are read (one line, one row)."""
+    rows = csv.reader(line.rstrip("\r\n") for line in lines)
+    try:
+        header = [cell.strip() for cell in next(rows, [])]
+        if header not in (["time_s", "steer_rad"], ["time_s", "steer_rad", "torque_nm"]):
+            raise ConfigError(f"--excite {path}: line 1: header must be time_s,steer_rad[,torque_nm], "
+                              f"got {','.join(header)!r}")
+        return _table_rows(path, header, enumerate(rows, start=2))
+    except csv.Error as error:
+        raise ConfigError(f"--excite {path}: line {rows.line_num}: not a CSV row: {error}") from None
+
+
+def _table_rows(path: Path, header: list[str], numbered: Iterable[tuple[int, list[str]]]) -> ExcitationProgram:
     columns: list[list[float]] = [[] for _ in header]
-    for number, row in enumerate(rows[1:], start=2):
+    for number, row in numbered:
         if not row or not any(cell.strip() for cell in row):
             continue
         if len(row) != len(header):

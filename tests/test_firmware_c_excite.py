@@ -127,6 +127,9 @@ def cli_error(which: str, program: str) -> tuple[int, str]:
     ("big_seed.toml", 'kind = "prbs"\nseed = 9223372036854775807\n'),
     ("far_table.csv", "time_s,steer_rad\n0.0,0.01\n1e300,0.0\n"),
     ("torque_table.csv", "time_s,steer_rad,torque_nm\n0.0,0.01,0\n1.0,0.0,4000\n"),
+    # a table is parsed as its lines are read in both ECUs: the first bad line decides
+    ("wide_then_nul.csv", "time_s,steer_rad\n0.0,0.01,3\n1.0\x00,0\n"),
+    ("header_then_nul.csv", "t,steer\n0.0,0.01\n1.0\x00,0\n"),
 ])
 def test_bad_program_is_the_python_ecus_error_line(native, name: str, text: str | None, tmp_path: Path) -> None:
     program = name if text is None and "." not in name else str(tmp_path / name)
