@@ -139,6 +139,7 @@ def test_solver_output_goes_through_the_rate_limited_log(capsys, caplog) -> None
     (issue 38, item 14)."""
     import logging
     import sys
+    import time
     import uuid
 
     from controller.base import Command, SolverStatus, StepDebug
@@ -158,6 +159,7 @@ def test_solver_output_goes_through_the_rate_limited_log(capsys, caplog) -> None
         peers = PeerNodes(peer_bus)
         peers.send_handshake()
         pump(ecu, ecu_bus)
+        started = time.monotonic()
         with caplog.at_level(logging.WARNING, logger="firmware_sim.ecu"):
             for t in range(0, 4000, 5):
                 if t % 10 == 0:
@@ -170,7 +172,9 @@ def test_solver_output_goes_through_the_rate_limited_log(capsys, caplog) -> None
         assert ecu.mode is CtrlMode.ACTIVE
         lines = [r.getMessage() for r in caplog.records if "solver output" in r.getMessage()]
         print(len(lines), lines[:2])
-        assert 1 <= len(lines) <= 6   # 160 steps x 2 lines, at most one a second of wall clock
+        wall_s = time.monotonic() - started
+        # 160 steps x 2 lines printed; logged at most once a second of wall clock
+        assert 1 <= len(lines) <= 1 + wall_s
         assert "LDL_factor" not in capsys.readouterr().err
     finally:
         ecu_bus.shutdown()
