@@ -210,7 +210,7 @@ def test_no_socketcand_server_at_start_up_is_one_error_not_a_flood(tmp_path: Pat
     assert result.returncode == 1
     assert result.stderr.count("\n") <= 2 and "Failed to connect to server" not in result.stderr
     assert f"no socketcand server at 127.0.0.1:{port}" in result.stderr
-    assert elapsed < 8.0   # python-can alone: 10 s of spinning
+    assert elapsed < 9.5   # python-can alone spins 10 s before it gives up
 
 
 def test_a_socketcand_server_that_stays_down_is_retried_once_a_second_quietly(monkeypatch, caplog) -> None:
