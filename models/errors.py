@@ -24,3 +24,9 @@ class VehicleDivergedError(ModelError):
 
 class DatasetError(ModelError):
     """A data set file is malformed; the message names the file and, where known, the column."""
+
+
+class OutputPathError(ModelError):
+    """An output file or folder cannot be used (``models.output_paths``): it is one of the
+    command's inputs, exists without the replace option, or its folder is missing or not
+    writable."""

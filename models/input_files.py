@@ -14,14 +14,14 @@ import stat
 from collections.abc import Iterator
 from pathlib import Path
 
+from can_defs.dbc import DBC_FILE_MAX_BYTES  # noqa: F401 (one bound, owned by the DBC loader)
+
 #: Bytes of one line of a text input file, with its end (ecu_lines.h ``ECU_LINE_MAX``).
 MAX_LINE_BYTES = 4096
 #: Bytes of a path file (100,000 points of up to 160 bytes; ``ECU_PATH_FILE_MAX``).
 PATH_FILE_MAX_BYTES = 16 * 1024 * 1024
 #: Bytes of an excitation program file (``ECU_EXCITE_FILE_MAX``).
 EXCITE_FILE_MAX_BYTES = 4 * 1024 * 1024
-#: Bytes of a DBC file (the contract's is 12 kB).
-DBC_FILE_MAX_BYTES = 4 * 1024 * 1024
 #: Bytes of a model file: a Koopman artefact's .npz or .json, a fitted bicycle's JSON.
 MODEL_FILE_MAX_BYTES = 64 * 1024 * 1024
 #: Bytes of a training log or named-column CSV given to ``koopman_train --logs`` (a 612 s

@@ -755,10 +755,9 @@ def check_outputs(args: argparse.Namespace) -> None:
     Raises:
         KoopmanError: naming the option (or the log), the path and the problem.
     """
-    from hil.errors import OutputPathError
+    from models.errors import OutputPathError
     from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
-
-    from hil.output_paths import check_output_file, check_output_folder
+    from models.output_paths import check_output_file, check_output_folder
 
     if args.out is None:
         raise KoopmanError("--out is required: the artefact path without extension (with --logs, a folder "

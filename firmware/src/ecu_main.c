@@ -177,7 +177,7 @@ static const char *check_output_file(const char *file, int replace, const char *
 static const char *check_dbc(const char *file, char *message, size_t len) {
   char given[65], built[65] = "", built_name[200] = "";
   int status = ecu_sha256_file(file, given, DBC_FILE_MAX);
-  if (status == -2) { /* the Python ECU's message (models/input_files.py DBC_FILE_MAX_BYTES) */
+  if (status == -2) { /* the Python ECU's message (can_defs/dbc.py DBC_FILE_MAX_BYTES) */
     snprintf(message, len, "cannot load DBC %s: larger than %ld bytes (the limit of this file)", file, DBC_FILE_MAX);
     return message;
   }
