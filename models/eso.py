@@ -89,12 +89,14 @@ class InnovationSaturation:
             raise EsoShapeError(f"innovation limit must be finite and >= 0, got {self.limit!r}")
         if not self.rows:
             raise EsoShapeError("innovation saturation needs at least one row")
+        # The rows as an index array once, not a new list on every control step.
+        object.__setattr__(self, "_index", np.array(self.rows, dtype=np.intp))
 
     def __call__(self, z_tilde: np.ndarray) -> np.ndarray:
         """(n_z,) -> (n_z,)."""
         if self.limit == 0.0:
             return z_tilde
-        scale = float(np.max(np.abs(z_tilde[list(self.rows)]))) / self.limit
+        scale = float(np.max(np.abs(z_tilde[self._index]))) / self.limit
         return z_tilde / scale if scale > 1.0 else z_tilde  # NaN: not > 1, propagates
 
 
