@@ -33,6 +33,7 @@ from studies.closed_loop import ClosedLoopResult, ClosedLoopTrace, control_steps
 from hil.errors import HilError
 from studies.machine import machine_description
 from studies.report import display_name, plot_scenario, tracking_table
+from controller.registry import GEOMETRIC_NAMES
 from hil.scenario import Scenario, load_scenario
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
@@ -42,7 +43,7 @@ CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
 ABLATIONS = ("lmpc-eso", "dmdc-eso")
 #: The geometric baseline (issue 35 item 5), a row after the ablations: what the MPCs buy
 #: over a controller with no model (docs/controllers.md, "Stanley").
-GEOMETRIC = ("stanley",)
+GEOMETRIC = GEOMETRIC_NAMES
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 #: Acceptance bound on |e_Y| over every run (m).
 MAX_LATERAL_ERROR_M = 2.0
