@@ -12,11 +12,12 @@ constant disturbance (:data:`TUNING_DISTURBANCES`). Sizes and paths differ from 
 disturbance study reports (``make disturbances``): the study's two sizes per disturbance and
 its lane change and straight-curve-straight path never enter here.
 
-Objective, runs and failure penalty: the sweep's (``studies.tuning_sweep.objective``, the
-mean e_Y RMSE over the 16 runs, a run that does not complete counts 10 m). The setting with
-the smallest objective is written into ``controller/tuning.toml`` (its observer fields only,
-each table's other fields untouched) unless ``--no-write``; ``results/observer_tuning.md``
-and ``.json`` list every evaluation.
+Objective, runs and failure penalty: the sweep's
+(``studies.tuning_sweep_executor.objective``, the mean e_Y RMSE over the 16 runs, a run
+that does not complete counts 10 m). The setting with the smallest objective is written
+into ``controller/tuning.toml`` (its observer fields only, each table's other fields
+untouched) unless ``--no-write``; ``results/observer_tuning.md`` and ``.json`` list every
+evaluation.
 
 Usage: ``python -m studies.observer_tuning [--controllers ...] [--workers N] [--out DIR]
 [--no-write] [--no-progress]``.
@@ -40,8 +41,9 @@ from hil.errors import HilError
 from hil.scenario import Scenario
 from studies.closed_loop import run_closed_loop
 from studies.tuning_set import tuning_scenarios
-from studies.tuning_sweep import (Evaluation, Setting, SweepExecutor, SweepGrid, best,
-                                  tuning_table_attribute, update_tuning_text)
+from studies.tuning_file import update_tuning_text
+from studies.tuning_sweep_executor import Evaluation, SweepExecutor, best
+from studies.tuning_sweep_grids import Setting, SweepGrid, setting_text, tuning_table_attribute
 
 #: The controllers with an observer (their tables have the observer fields).
 OBSERVED_CONTROLLERS = ("eso-dkmpc", "lmpc-eso", "dmdc-eso")
@@ -112,10 +114,6 @@ def tune(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any,
     return out
 
 
-def _setting_text(setting: Setting) -> str:
-    return ", ".join(f"{field} {value:g}" for field, value in setting)
-
-
 def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[str, Setting],
                     scenarios: Sequence[Scenario], *, command: str, seconds: float) -> str:
     """The report: per controller the previous and the chosen observer setting with their
@@ -143,15 +141,15 @@ def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[s
         before = next((e for e in evaluations if dict(e.setting) == dict(previous[name])), None)
         lines += [f"## {name}", "", "| setting | objective (m) | nominal 8 | disturbed 8 |", "|---|---|---|---|"]
         if before is not None:
-            lines.append(f"| before: {_setting_text(before.setting)} | {before.objective_m:.4f} | "
+            lines.append(f"| before: {setting_text(before.setting)} | {before.objective_m:.4f} | "
                          f"{half(before, nominal)} | {half(before, disturbed)} |")
         else:
-            lines.append(f"| before: {_setting_text(previous[name])} (not on the grid) | | | |")
-        lines.append(f"| **chosen: {_setting_text(chosen.setting)}** | {chosen.objective_m:.4f} | "
+            lines.append(f"| before: {setting_text(previous[name])} (not on the grid) | | | |")
+        lines.append(f"| **chosen: {setting_text(chosen.setting)}** | {chosen.objective_m:.4f} | "
                      f"{half(chosen, nominal)} | {half(chosen, disturbed)} |")
         ranked = sorted(evaluations, key=lambda e: e.objective_m)[:5]
         lines += ["", "Best five:", "", "| setting | objective (m) | nominal 8 | disturbed 8 |", "|---|---|---|---|"]
-        lines += [f"| {_setting_text(e.setting)} | {e.objective_m:.4f} | {half(e, nominal)} | {half(e, disturbed)} |"
+        lines += [f"| {setting_text(e.setting)} | {e.objective_m:.4f} | {half(e, nominal)} | {half(e, disturbed)} |"
                   for e in ranked]
         lines.append("")
     return "\n".join(lines)
@@ -195,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
                                                   encoding="utf-8")
     chosen = {name: best(evaluations).setting for name, evaluations in results.items()}
     for name, setting in chosen.items():
-        print(f"{name}: {_setting_text(setting)} (objective {best(results[name]).objective_m:.4f} m)")
+        print(f"{name}: {setting_text(setting)} (objective {best(results[name]).objective_m:.4f} m)")
     if not args.no_write:
         text = args.tuning.read_text(encoding="utf-8")
         temporary = args.tuning.with_name(args.tuning.name + ".tmp")

@@ -18,7 +18,8 @@ import tomllib
 from pathlib import Path
 
 from controller.tuning import DEFAULT_TUNING_PATH, SCHEDULED_WEIGHTS
-from studies.tuning_sweep import Setting, update_tuning_text
+from studies.tuning_file import update_tuning_text
+from studies.tuning_sweep_grids import Setting
 
 #: The comment each edited table carries.
 COMMENT = "set equal to the weights above by studies.unscheduled_tuning: no speed schedule"

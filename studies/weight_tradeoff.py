@@ -4,7 +4,7 @@ sweep's weight grid, to show what a fixed weighting trades between grip and the 
 An analysis of the two evaluation scenarios, never a tuning: nothing here is chosen or
 written into ``controller/tuning.toml`` (``make tune`` chooses on the tuning set alone).
 Each controller runs both double lane changes (``dlc_high_mu``, ``dlc_low_mu``) at each of
-the 36 MPC-weight settings of ``studies.tuning_sweep.WEIGHT_GRID``; its other fields
+the 36 MPC-weight settings of ``studies.tuning_sweep_grids.WEIGHT_GRID``; its other fields
 (horizons, constraints, observer poles and decay) stay the tuning file's. The grid's
 settings use their weights at every speed; the tuned weights, scheduled over speed
 (``MpcTuning.weights_at``), are one more point, marked (a grid point when the tuned
@@ -20,8 +20,8 @@ What it reports, per controller:
   behaviour on the low-mu road rather than at one weighting each.
 
 Writes ``results/weight_tradeoff.{md,json,png}``. The runs are tasks of the campaigns'
-executors (``studies.tuning_sweep.SweepExecutor``): a local Ray with ``--workers`` CPUs,
-``--address`` for a cluster, ``--workers 1`` in this process.
+executors (``studies.tuning_sweep_executor.SweepExecutor``): a local Ray with ``--workers``
+CPUs, ``--address`` for a cluster, ``--workers 1`` in this process.
 
 CLI: ``python -m studies.weight_tradeoff [--controllers ...] [--workers N] [--address ADDR]
 [--out DIR] [--no-progress]``.
@@ -44,8 +44,9 @@ from hil.errors import HilError
 from hil.scenario import load_scenario
 from studies.closed_loop import run_closed_loop
 from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS
-from studies.tuning_sweep import (FAILURE_PENALTY_M, WEIGHT_FIELDS, WEIGHT_GRID, Evaluation,
-                                  Setting, SweepExecutor, current_setting, reuse_key)
+from studies.tuning_sweep_executor import FAILURE_PENALTY_M, Evaluation, SweepExecutor, reuse_key
+from studies.tuning_sweep_grids import WEIGHT_FIELDS, WEIGHT_GRID, Setting
+from studies.tuning_sweep_procedure import current_setting
 
 #: The evaluation scenarios of Tables II (high mu) and III (low mu), in that order.
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
@@ -257,8 +258,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    # Ray workers import the task function from studies.tuning_sweep by name; run the
-    # imported module's main so the classes compared here are the same ones.
+    # Ray workers import the task function from studies.tuning_sweep_executor by name; run
+    # the imported module's main so the classes compared here are the same ones.
     from studies.weight_tradeoff import main as _main
 
     sys.exit(_main())

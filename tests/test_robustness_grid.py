@@ -19,6 +19,7 @@ from hil.path_files import (MAX_POINT_SPACING_M, SLALOM, SLALOM_PATH_FILE, forma
 from models.vehicle import VehicleCommand
 from models.vehicle_params import load_vehicle_params
 from studies import robustness_grid as grid
+from studies import robustness_runs
 from studies.robustness_grid import Cell, RunRecord
 from tests.test_closed_loop_doubles import ScriptedController
 
@@ -250,7 +251,7 @@ def test_inputs_that_change_while_the_grid_runs_drop_its_runs(tmp_path: Path,
         artefact["digest"] = "after"
         return double_factory("straight")
 
-    monkeypatch.setattr(grid, "input_digests", Digests())
+    monkeypatch.setattr(robustness_runs, "input_digests", Digests())  # where run_grid reads it
     cells = [Cell("dlc", 1.0, 70.0, 0.0, 1.0)]
     with pytest.raises(grid.StudyError, match=r"inputs changed while the grid ran \(models/artifacts/x.npz\)"):
         grid.run_grid(cells, ["straight"], cache_dir=tmp_path, workers=1, show_progress=False,
