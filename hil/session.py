@@ -385,7 +385,7 @@ def run_hil(scenario: Scenario, options: RunOptions,
         raise SessionError(f"unknown ECU '{options.ecu}' (one of {', '.join(ECU_IMPLEMENTATIONS)})")
     injector = None
     if options.faults is not None:
-        from hil.faults import FaultInjector
+        from hil.fault_injector import FaultInjector
 
         injector = FaultInjector(options.faults)
     plant = PlantNode(scenario, vehicle=injector.vehicle(scenario) if injector else None)

@@ -11,7 +11,9 @@ the run-time packages: it imports ``can_defs``, ``models``, ``controller``,
 - `paper_tables`: ``make tables`` (paper Tables II / III, Figs 8 / 9).
 - `run_all`: ``make run`` (the two double lane changes with the four controllers over CAN).
 - `tuning_set`: the tuning set (``make tuning-set``); `tuning_sweep`: ``make tune``.
-- `fault_campaign`: ``make faults``.
+- `fault_campaign`: ``make faults``, ``make faults-c`` (its cases `fault_cases`, runs
+  `fault_runs`, harnesses `fault_python_ecu`, `fault_c_ecu`, `fault_relay`, judge
+  `fault_verdicts`, report `fault_report`).
 - `fig7`: ``make fig7``; `table1`: ``make table1``; `handling`: ``make handling``.
 - `bench`: ``make bench``, the one compute-time benchmark (every controller's step on the
   same recorded samples, the ECU's overhead); `machine`: the machine in results headers.

@@ -126,7 +126,9 @@ def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_
     time; ``realtime``: every node on the wall clock (``hil.time_master.RealTimeMaster``);
     ``duration_s``: shorter than the scenario; ``extra``: more ECU options. Returns (the monitor's raw frames (tick ms,
     ID, payload), tracking, exit status, the ECU's output)."""
-    from hil.faults import FaultInjector, FaultSpec, TimeShiftingBus
+    from hil.fault_buses import TimeShiftingBus
+    from hil.fault_injector import FaultInjector
+    from hil.faults import FaultSpec
     from hil.planner_node import PlannerNode
     from hil.plant_node import PlantNode
     from hil.recorder import EcuFrameMonitor

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from hil.errors import ScenarioError
-from hil.faults import FaultInjector, FaultSpec, OffsetSteeringVehicle
+from hil.fault_injector import FaultInjector
+from hil.fault_vehicle import OffsetSteeringVehicle
+from hil.faults import FaultSpec
 from hil.path_files import DLC_PATH_FILE
 from hil.plant_node import PlantNode
 from hil.scenario import Scenario

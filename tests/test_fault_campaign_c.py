@@ -10,14 +10,16 @@ from pathlib import Path
 
 import pytest
 
-from studies import fault_campaign
-from studies.fault_campaign import FaultCase, Verdict, run_case
+from studies import fault_c_ecu, fault_campaign, fault_cases, fault_report
+from studies.fault_cases import FaultCase
+from studies.fault_runs import run_case
+from studies.fault_verdicts import Verdict
 from test_firmware_c_core import native  # noqa: F401 (the fixture: the firmware built)
 
 
 def short(name: str, start_s: float = 0.5) -> FaultCase:
     """A campaign case moved to ``start_s`` with LMPC (dlc_smoke runs of about a second)."""
-    case = next(c for c in fault_campaign.all_cases() if c.name == name)
+    case = next(c for c in fault_cases.all_cases() if c.name == name)
     table = {**case.table, "bus": [{**b, "start_s": start_s} for b in case.table.get("bus", [])]}
     fault = None if case.ecu_fault is None else {**case.ecu_fault, "start_s": start_s}
     return dataclasses.replace(case, table=table, ecu_fault=fault, controllers=("lmpc",))
@@ -63,17 +65,17 @@ def test_the_c_ecus_lost_bus_is_judged_by_the_same_rules(native) -> None:
 def test_cases_the_c_ecu_cannot_take_are_reported_with_the_reason(name: str, why: str) -> None:
     """Not run (no process started: nothing to build) and not dropped: a verdict that says
     why, outside the pass / fail counts."""
-    case = next(c for c in fault_campaign.all_cases() if c.name == name)
+    case = next(c for c in fault_cases.all_cases() if c.name == name)
     verdict = run_case(case, "eso-dkmpc", ecu="c")
     assert verdict.outcome == "n/a" and why in verdict.not_applicable and not verdict.passed()
-    text = fault_campaign.markdown([verdict], 1.0, "make faults-c", "c")
+    text = fault_report.markdown([verdict], 1.0, "make faults-c", "c")
     assert "## Not applicable to this ECU" in text and f"| {name} | eso-dkmpc | " in text
     assert "- runs: 0 (+ 1 not applicable)" in text
 
 
 def test_every_other_case_is_run_against_the_c_ecu() -> None:
-    runnable = [c.name for c in fault_campaign.all_cases() if fault_campaign.c_not_applicable(c) is None]
-    assert len(runnable) == len(fault_campaign.all_cases()) - 2
+    runnable = [c.name for c in fault_cases.all_cases() if fault_c_ecu.c_not_applicable(c) is None]
+    assert len(runnable) == len(fault_cases.all_cases()) - 2
     assert {"extended-ID look-alikes", "virtual time jump", "lost bus"} <= set(runnable)
 
 
@@ -87,7 +89,7 @@ def test_results_compare_each_verdict_with_the_python_campaigns(tmp_path: Path) 
     (tmp_path / "faults.json").write_text(json.dumps(rows))
     c = [dataclasses.replace(python[0], ecu="c"),
          dataclasses.replace(python[1], ecu="c", max_abs_ey_m=1.5, outcome="FAILED")]
-    written = fault_campaign.write_results(c, tmp_path, 60.0, "make faults-c", "c")
+    written = fault_report.write_results(c, tmp_path, 60.0, "make faults-c", "c")
     assert [p.name for p in written] == ["faults_c.md", "faults_c.json", "faults_c_vehicle.png"]
     text = written[0].read_text()
     assert "## Against the Python ECU's campaign (results/faults.json)" in text

@@ -1,8 +1,8 @@
-"""Fault injection (hil/faults.py), the campaign's judge (studies/fault_campaign.py) and the
-``python -m hil faults`` flags: every bus fault does exactly what it says to the frames,
-deterministically for a seed; bad specs name the field; the independent command check
-catches a bad command; a short lockstep run with the plant silent shows DEGRADED within
-the contract's bound and no invalid command."""
+"""Fault injection (hil/faults.py, hil/fault_*.py), the campaign's judge
+(studies/fault_verdicts.py) and the ``python -m hil faults`` flags: every bus fault does
+exactly what it says to the frames, deterministically for a seed; bad specs name the
+field; the independent command check catches a bad command; a short lockstep run with the
+plant silent shows DEGRADED within the contract's bound and no invalid command."""
 from __future__ import annotations
 
 import argparse
@@ -17,8 +17,12 @@ from can_defs.codec import decode, encode
 from can_defs.frames import (CtrlMode, FrameId, HilSync, PlannerReq, SteerTorqueCmd, VehDyn,
                              VehPoseXY, VehPoseYaw)
 from hil.commands.faults import faults_table, parse_pairs
-from studies.fault_campaign import (DEGRADED, FaultCase, check_commands, mode_sequence, run_case)
-from hil.faults import FaultInjector, FaultSpec, FaultSpecError, OffsetSteeringVehicle
+from studies.fault_cases import DEGRADED, FaultCase
+from studies.fault_runs import run_case
+from studies.fault_verdicts import check_commands, mode_sequence
+from hil.fault_injector import FaultInjector
+from hil.fault_vehicle import OffsetSteeringVehicle
+from hil.faults import FaultSpec, FaultSpecError
 from hil.scenario import load_scenario
 
 
@@ -286,8 +290,8 @@ def test_cli_one_run_prints_the_verdict(capsys):
 # --- contract revision 2: look-alikes, replays, implausible values, jumps, a lost bus -------
 
 from can_defs.frames import HANDSHAKE_TICK  # noqa: E402
-from hil.faults import BusDownError, LosableBus, TimeShiftingBus  # noqa: E402
-from studies import fault_campaign  # noqa: E402
+from hil.fault_buses import BusDownError, LosableBus, TimeShiftingBus  # noqa: E402
+from studies import fault_cases, fault_report, fault_verdicts  # noqa: E402
 
 RX_PLANT_AND_PLANNER = [0x100, 0x101, 0x102, 0x110]
 
@@ -388,13 +392,13 @@ def test_losable_bus_fails_every_call_once_lost_and_counts_them():
 
 def short(name: str, start_s: float = 0.5, **ecu_fault) -> FaultCase:
     """A case of the campaign as defined there, moved to ``start_s`` (short smoke runs)."""
-    case = next(c for c in fault_campaign.all_cases() if c.name == name)
+    case = next(c for c in fault_cases.all_cases() if c.name == name)
     table = {**case.table, "bus": [{**b, "start_s": start_s} for b in case.table.get("bus", [])]}
     fault = None if case.ecu_fault is None else {**case.ecu_fault, "start_s": start_s, **ecu_fault}
     return dataclasses.replace(case, table=table, ecu_fault=fault, controllers=("lmpc",))
 
 
-def smoke(case: FaultCase, duration_s: float = 1.0) -> fault_campaign.Verdict:
+def smoke(case: FaultCase, duration_s: float = 1.0) -> fault_verdicts.Verdict:
     verdict = run_case(case, "lmpc", "dlc_smoke", duration_s=duration_s)
     print(f"\n{case.name}: {verdict.mode_sequence}; "
           f"{[(e['expect'], e.get('shown', e['at_ms']), e['met']) for e in verdict.expects]}")
@@ -402,7 +406,7 @@ def smoke(case: FaultCase, duration_s: float = 1.0) -> fault_campaign.Verdict:
     return verdict
 
 
-def missed(verdict: fault_campaign.Verdict) -> list[str]:
+def missed(verdict: fault_verdicts.Verdict) -> list[str]:
     return [e["expect"] for e in verdict.expects if not e["met"]]
 
 
@@ -480,12 +484,12 @@ def test_campaign_checks_its_output_folder_before_running(tmp_path, capsys):
     assert "holds another run's outputs (faults.json)" in err and "--replace" in err
     assert main(["faults", "--campaign", "--out", str(tmp_path), "--only", "nonsense"]) == 1
     assert "unknown case(s) ['nonsense']" in capsys.readouterr().err
-    fault_campaign.check_paths(tmp_path, replace=True)     # told to replace: accepted
+    fault_report.check_paths(tmp_path, replace=True)       # told to replace: accepted
     assert not (tmp_path / "no").exists()                   # nothing created on refusal
 
 
 def test_vehicle_figure_has_a_title_units_and_a_legend_per_line(tmp_path):
-    verdicts = [fault_campaign.Verdict("mass +200 kg", "vehicle", c, "", max_abs_ey_m=0.1,
+    verdicts = [fault_verdicts.Verdict("mass +200 kg", "vehicle", c, "", max_abs_ey_m=0.1,
                                        time_s=[0.0, 0.025], e_y=[0.0, 0.01])
                 for c in ("eso-dkmpc", "dkmpc")]
     import matplotlib.pyplot as plt
@@ -497,7 +501,7 @@ def test_vehicle_figure_has_a_title_units_and_a_legend_per_line(tmp_path):
         return created[-1]
     plt.subplots = spy
     try:
-        fault_campaign.figure(verdicts, tmp_path / "f.png")
+        fault_report.figure(verdicts, tmp_path / "f.png")
     finally:
         plt.subplots = original
     fig, axes = created[0]
@@ -527,7 +531,8 @@ def test_campaign_runs_go_to_this_process_unless_workers_or_an_address_is_given(
 @pytest.mark.slow
 def test_campaign_on_a_local_ray_gives_the_verdicts_of_a_serial_one():
     pytest.importorskip("ray")
-    from studies.fault_campaign import all_cases, run_campaign
+    from studies.fault_cases import all_cases
+    from studies.fault_runs import run_campaign
 
     cases = [c for c in all_cases() if c.name in ("drop 5 %", "mass +200 kg")]
     serial = run_campaign(cases, duration_s=2.0)

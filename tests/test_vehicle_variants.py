@@ -157,7 +157,8 @@ def test_an_unknown_variant_in_a_scenario_names_file_field_and_value(tmp_path):
 
 
 def test_the_hil_plant_node_and_the_fault_injector_build_the_variant(tmp_path):
-    from hil.faults import FaultInjector, FaultSpec, VehicleFaults
+    from hil.fault_injector import FaultInjector
+    from hil.faults import FaultSpec, VehicleFaults
     from hil.plant_node import PlantNode
 
     scenario = load_scenario(_scenario_file(tmp_path, 'variant = "light"'))

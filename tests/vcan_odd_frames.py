@@ -9,7 +9,7 @@ same ID number, and each tick adds one odd HIL_SYNC carrying the handshake TICK
 virtual clock). Kinds:
 
 - ``fd`` / ``fd_brs``: a CAN FD frame (without / with bit-rate switch) carrying the real
-  frame with the next alive counter and a valid CRC (`hil.faults.lookalike`): taken for
+  frame with the next alive counter and a valid CRC (`hil.fault_frames.lookalike`): taken for
   the contract frame, it would make the real next frame a repeat (stale, FAULTS bit 1).
 - ``remote``: a remote frame (RTR) asking for 8 bytes.
 - ``error``: an error frame whose ID bits (the error class) are the contract ID's number,
@@ -32,7 +32,7 @@ import can
 
 from can_defs.codec import encode
 from can_defs.frames import FRAME_LENGTH, HANDSHAKE_TICK, TICK_STEP_MS, FrameId, HilSync
-from hil.faults import lookalike
+from hil.fault_frames import lookalike
 
 #: The ECU's receive IDs (the probe listens to these).
 RECEIVE_IDS = (int(FrameId.HIL_SYNC), int(FrameId.VEH_DYN), int(FrameId.VEH_POSE_XY),

@@ -10,10 +10,11 @@ One run: the scenario's ``[faults]`` table (hil/faults.py) plus faults from flag
 ``ids=0x100/0x101``, ``true`` / ``false``); repeatable. It prints the run's verdict
 (mode sequence, detection, max |e_Y|, invalid commands, crashes) as JSON.
 
-``--campaign``: every fault of studies/fault_campaign.py (what ``make faults`` runs), writing
-``results/faults.md``, ``faults.json`` and ``faults_vehicle.png``. The output folder is
-checked before any run: its parent must exist, and results of an earlier campaign in it
-are an error unless ``--replace`` is given (``make faults`` gives it).
+``--campaign``: every case of studies/fault_cases.py (what ``make faults`` runs,
+studies/fault_campaign.py), writing ``results/faults.md``, ``faults.json`` and
+``faults_vehicle.png``. The output folder is checked before any run: its parent must
+exist, and results of an earlier campaign in it are an error unless ``--replace`` is given
+(``make faults`` gives it).
 """
 from __future__ import annotations
 
@@ -127,6 +128,8 @@ def main(args: argparse.Namespace) -> int:
     import json
 
     from studies import fault_campaign
+    from studies.fault_cases import FaultCase
+    from studies.fault_runs import run_case
     from hil.scenario import load_scenario
 
     if args.campaign:
@@ -134,9 +137,9 @@ def main(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     table = faults_table(args, dict(scenario.faults))
     group = "bus" if table.get("bus") else "vehicle"
-    case = fault_campaign.FaultCase("cli", group, table, (args.controller,))
-    verdict = fault_campaign.run_case(case, args.controller, args.scenario, args.duration,
-                                      source=f"{scenario.source} + flags")
+    case = FaultCase("cli", group, table, (args.controller,))
+    verdict = run_case(case, args.controller, args.scenario, args.duration,
+                       source=f"{scenario.source} + flags")
     row = dataclasses.asdict(verdict)
     row.pop("e_y")
     row.pop("time_s")

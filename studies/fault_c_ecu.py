@@ -1,0 +1,155 @@
+"""The fault campaign's harness for the C ECU executable (``--ecu c``, ``make faults-c``):
+which cases cannot reach a separate ECU process (`c_not_applicable`, reported as not
+applicable with the reason), and the ECU-level cases (`run_c_ecu_case`) against the
+process on a loopback socketcand hub of its own. The lost bus drops the process's
+connection at a relay (``studies.fault_relay.DroppingRelay``) and watches its output and
+CPU time (`_lose_c_bus`). A crash of the C ECU is the run raising (the process exited or
+stopped ACKing); it has no Python exceptions to count.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from studies.fault_cases import SCENARIO, FaultCase
+from studies.fault_relay import DroppingRelay
+from studies.fault_verdicts import LostBusProbe, Verdict, evaluate, jump_tasks_expect
+
+#: Look-alike frame kinds the C ECU's loopback socketcand hub cannot carry as themselves.
+HUB_LOST_KINDS = ("fd", "remote", "error")
+
+
+def c_not_applicable(case: FaultCase) -> str | None:
+    """Why ``case`` cannot run against the C ECU (a separate process), or None when it can."""
+    kinds = sorted({f.get("frame_kind") for f in case.table.get("bus", ())
+                    if f.get("kind") == "lookalike"} & set(HUB_LOST_KINDS))
+    if kinds:
+        return (f"{' / '.join(kinds)} frames cannot reach a separate ECU process here: socketcand's "
+                "raw-mode protocol, which the loopback hub speaks, has no FD, remote or error flag "
+                "(python-can sends FD and error frames as classic data frames, which would be "
+                "contract frames, and refuses a remote frame without data); the C ECU's receive "
+                "path drops them by kind (tests/test_firmware_c_rx.py, the fuzz through libecu.so)")
+    return None
+
+
+def _process_cpu_s(pid: int) -> float:
+    """User + system CPU time (s) of process ``pid`` so far (/proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _lose_c_bus(ecu: Any, relay: DroppingRelay, outage_s: float) -> LostBusProbe:
+    """`_lose_bus` (``studies.fault_python_ecu``) for the C ECU process: its bus taken away
+    at the relay for ``outage_s`` of wall clock, watched through its output (when it says
+    the bus is lost, its log lines, when it says it reopened) and its process CPU time; its
+    reopening tries are the connections the relay refused."""
+    probe = LostBusProbe(recv_calls=None)
+    output = Path(ecu.output_path)
+    offset = len(output.read_bytes())
+
+    def said() -> str:
+        return output.read_bytes()[offset:].decode(errors="replace")
+
+    started = time.monotonic()
+    relay.lose()
+    cpu_from = wall_from = None
+    while time.monotonic() - started < outage_s:
+        if cpu_from is None and "bus lost" in said():
+            wall_from = time.monotonic()
+            cpu_from = _process_cpu_s(ecu.process.pid)
+            probe.noticed_ms = 1000 * (wall_from - started)
+        time.sleep(0.005)
+    if cpu_from is not None:
+        probe.lost_wall_s = time.monotonic() - wall_from
+        probe.cpu_fraction = (_process_cpu_s(ecu.process.pid) - cpu_from) / probe.lost_wall_s
+    lines = said().splitlines()
+    probe.log_lines = len(lines)
+    probe.lost_lines = sum("bus lost" in line or "still lost" in line for line in lines)
+    probe.reopen_tries = relay.refused
+    relay.back()
+    back_at = time.monotonic()
+    while time.monotonic() - back_at < 3.0 and "bus reopened" not in said():
+        time.sleep(0.005)
+    if "bus reopened" in said():
+        probe.reopened_ms = 1000 * (time.monotonic() - back_at)
+    return probe
+
+
+def run_c_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
+                   duration_s: float | None = None) -> Verdict:
+    """A fault of the time base or of the ECU's own bus against the C ECU: the executable on
+    a loopback socketcand hub of its own (as ``hil.session.run_hil`` starts it for ``--ecu
+    c``); the time master's bus wrapped in `TimeShiftingBus` (time jump), or the ECU's
+    connection through a `DroppingRelay` (lost bus); judged as `run_ecu_case` judges the
+    Python ECU's run, the lost bus by the same rules from the process's output and CPU time."""
+    from hil.bus import BusConfig, open_bus
+    from hil.fault_buses import TimeShiftingBus
+    from hil.planner_node import PlannerNode
+    from hil.plant_node import PlantNode
+    from hil.recorder import EcuFrameMonitor
+    from hil.scenario import load_scenario
+    from hil.session import (HUB_CHANNEL, EcuProcess, HilRunResult, SessionError, c_ecu_command,
+                             control_instant_metrics, default_options, reference_path)
+    from hil.time_master import LockstepMaster, TimeMasterError
+    from hil.timing.hub import LOOPBACK, READY_DELAY_S, LoopbackCanHub
+
+    fault = case.ecu_fault
+    assert fault is not None and fault["kind"] in ("time_jump", "lost_bus")
+    scenario = load_scenario(scenario_name)
+    if duration_s is not None:
+        scenario = dataclasses.replace(scenario, duration_s=duration_s)
+    onset_ms = round(fault["start_s"] * 1000)
+    options = default_options(controller, ecu="c")
+    hub = LoopbackCanHub(port=0).start()
+    relay = DroppingRelay(hub.port) if fault["kind"] == "lost_bus" else None
+    ecu: Any = None
+    master_bus: Any = None
+    probe, error, result = None, None, None
+    started = time.monotonic()
+    try:
+        master_bus = open_bus(BusConfig("socketcand", HUB_CHANNEL), host=LOOPBACK, port=hub.port, tcp_tune=True)
+        if fault["kind"] == "time_jump":
+            master_bus = TimeShiftingBus(master_bus, onset_ms, fault["ahead_ms"])
+        ecu = EcuProcess(scenario, options, c_ecu_command(scenario, options, relay.port if relay else hub.port))
+        time.sleep(2 * READY_DELAY_S)   # the hub delivers to a new client after READY_DELAY_S
+        plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
+        master = LockstepMaster(master_bus, [plant, planner, monitor], ack_timeout_s=options.ack_timeout_s,
+                                handshake_timeout_s=options.handshake_timeout_s,
+                                peer_alive=ecu.alive_problem)
+        master.handshake()
+        for tick_ms in range(0, round(scenario.duration_s * 1000), 5):
+            if relay is not None and tick_ms == onset_ms:
+                probe = _lose_c_bus(ecu, relay, fault["outage_s"])
+                time.sleep(2 * READY_DELAY_S)   # the reopened connection is a new client of the hub
+            master.tick(tick_ms)
+        plant_trace = plant.trace()
+        result = HilRunResult(
+            scenario=scenario.name, controller=controller, bus=f"socketcand:{HUB_CHANNEL} (loopback hub)",
+            mode="lockstep", plant_trace=plant_trace, ecu_trace=monitor.trace(),
+            tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
+            stats=master.stats, wall_time_s=time.monotonic() - started,
+            extra={"ecu_frames_raw": monitor.raw, "ecu": "c"})
+    except (TimeMasterError, SessionError) as e:   # the ECU stalled or died: a result of the case
+        error = e
+    finally:
+        try:
+            if ecu is not None:
+                ecu.stop()
+        finally:
+            if master_bus is not None:
+                master_bus.shutdown()
+            if relay is not None:
+                relay.close()
+            hub.close()
+    frames_hit = master_bus.record.actions if fault["kind"] == "time_jump" and master_bus is not None else 1
+    verdict = evaluate(case, controller, result, error, 0, 0, f"{case.name}: {case.note}",
+                       reference_path(scenario), onset_ms=onset_ms, frames_hit=frames_hit)
+    verdict.ecu = "c"
+    if result is not None and fault["kind"] == "time_jump":
+        verdict.expects.append(jump_tasks_expect(result.extra["ecu_frames_raw"], onset_ms))
+    elif probe is not None:
+        verdict.expects.extend(probe.expects())
+    return verdict
