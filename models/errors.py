@@ -30,3 +30,10 @@ class OutputPathError(ModelError):
     """An output file or folder cannot be used (``models.output_paths``): it is one of the
     command's inputs, exists without the replace option, or its folder is missing or not
     writable."""
+
+
+class KoopmanError(ModelError):
+    """A Koopman artefact or model definition is unusable (names the file / field).
+
+    Raised by ``models/koopman.py`` and its parts (``koopman_artifact``, ``koopman_dictionary``),
+    and importable from ``models.koopman``."""

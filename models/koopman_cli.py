@@ -1,0 +1,236 @@
+"""The command line of the deep Koopman training, ``python -m models.koopman_train``.
+
+Its arguments (``build_parser``), the checks of its inputs and outputs before any training
+(``check_outputs``: ``--out`` given, never an input, an existing artefact only with
+``--replace``; each ``--logs`` file bounded), the ``--logs`` output folder, the comparison
+with a reference artefact's test errors (``--compare-with``) and the command itself
+(``main``). torch-free: the training (``models/koopman_train.py``) is imported when the
+command runs; ``models.koopman_train`` re-exports ``main`` and ``build_parser``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from models.koopman import DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, KoopmanError
+from models.koopman_data import dataset_hash, load_trajectories
+from models.koopman_metrics import OPEN_LOOP_STEPS
+from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings
+from models.local_lateral_fit import friction_of_runs
+
+#: The description ``--help`` shows (the first line of ``models/koopman_train.py``'s docstring).
+DESCRIPTION = "Training of the deep Koopman model in torch (build time only; the ECU never imports this)."
+
+
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if not names:
+        raise argparse.ArgumentTypeError("expected a comma-separated list of column names")
+    return names
+
+
+def build_parser() -> argparse.ArgumentParser:
+    defaults = TrainingSettings()
+    p = argparse.ArgumentParser(prog="python -m models.koopman_train", description=DESCRIPTION)
+    p.add_argument("--data", default="data/nominal", help="directory of named-column CSV runs")
+    p.add_argument("--out", default=None,
+                   help="artefact path without extension (required; with --logs a folder); an existing "
+                        "output is refused without --replace")
+    p.add_argument("--replace", action="store_true",
+                   help="overwrite an existing --out artefact (or the outputs in the --out folder)")
+    p.add_argument("--states", type=_names, default=DEFAULT_STATES, help="state columns, comma-separated")
+    p.add_argument("--inputs", type=_names, default=DEFAULT_INPUTS, help="input columns, comma-separated")
+    p.add_argument("--ts", type=float, default=0.025, help="sample time in s (data are resampled to it)")
+    p.add_argument("--features", type=int, default=defaults.n_features, help="d, number of learned features")
+    p.add_argument("--seq-len", type=int, default=defaults.seq_len, help="p, sequence length of eq. 9")
+    p.add_argument("--epochs", type=int, default=defaults.max_epochs)
+    p.add_argument("--steps-per-epoch", type=int, default=defaults.steps_per_epoch)
+    p.add_argument("--batch-size", type=int, default=defaults.batch_size)
+    p.add_argument("--hidden", type=lambda s: tuple(int(v) for v in s.split(",")), default=defaults.hidden,
+                   help="hidden layer widths, comma-separated")
+    p.add_argument("--lifted-weight", type=float, default=defaults.lifted_weight)
+    p.add_argument("--form", choices=MODEL_FORMS, default=defaults.form,
+                   help="model form: the paper's linear eq. 5 or bilinear (input matrix depends on z)")
+    p.add_argument("--dictionary", type=lambda t: tuple(n for n in t.split(",") if n),
+                   default=defaults.dictionary,
+                   help=f"fixed lifting functions, comma-separated, '' for none (known: {','.join(DICTIONARY)})")
+    p.add_argument("--speed-knots", type=lambda t: tuple(float(v) for v in t.split(",")),
+                   default=defaults.speed_knots, help="speed knots in m/s of the scheduled form, comma-separated")
+    p.add_argument("--small-signal-accel", type=float, default=defaults.small_signal_accel, metavar="A0",
+                   help="weigh windows by 1 / (1 + (peak |vx r| / A0)^2), A0 in m/s^2; 0 (default) for off")
+    p.add_argument("--unscheduled-states", type=lambda t: tuple(n for n in t.split(",") if n),
+                   default=defaults.unscheduled_states, metavar="NAMES",
+                   help="states whose dynamics row is one for all speed knots (scheduled form), comma-separated")
+    p.add_argument("--mirror-symmetric", action="store_true",
+                   help="build the left / right mirror symmetry into the model (scheduled form)")
+    p.add_argument("--even-features", type=int, default=defaults.even_features,
+                   help="with --mirror-symmetric: how many of the d features are even (the rest odd)")
+    p.add_argument("--servo-lag", action="store_true",
+                   help="with --mirror-symmetric: the wheel-angle row is a lag of unit DC gain from the steer command")
+    p.add_argument("--lateral-per-step", action="store_true",
+                   help="with --mirror-symmetric: schedule the lateral rows on each step's speed in training")
+    p.add_argument("--steer-bilinear", action="store_true",
+                   help="with --mirror-symmetric: add a steer-bilinear term, so the steer response depends "
+                        "on the state at a given speed")
+    p.add_argument("--gain-anchor", type=float, default=defaults.gain_anchor, metavar="W",
+                   help="weight of the gain anchor: the small-signal steer response held to local fits of the "
+                        "training runs' gentle samples (scheduled form); 0 (default) for off")
+    p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
+    p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
+    p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
+    p.add_argument("--seed", type=int, default=defaults.seed)
+    p.add_argument("--threads", type=int, default=defaults.threads, help="torch CPU threads (part of the result)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=defaults.device)
+    p.add_argument("--compare-with", type=Path, default=None,
+                   help="artefact JSON whose test errors this run must reproduce within 10%% (exit 3 if not)")
+    p.add_argument("--logs", type=Path, nargs="+", default=None, metavar="LOG",
+                   help="train from CAN logs of the contract's bus (or named-column CSVs with "
+                        "--mapping); --out is then a folder (docs/identification.md)")
+    p.add_argument("--log-inputs", choices=("command", "measured"), default="command",
+                   help="--logs: inputs from STEER_TORQUE_CMD (CMD_VALID = 1) or the measured "
+                        "STEER_ANGLE / DRIVE_TORQUE")
+    p.add_argument("--mapping", type=Path, default=None, help="--logs: TOML mapping of named-column CSVs")
+    p.add_argument("--vehicle", type=Path, default=None,
+                   help="--logs: vehicle file of the bicycle's mass and geometry (default models/vehicle.toml)")
+    p.add_argument("--dbc", type=Path, default=None, help="--logs: DBC to decode with (default the contract's)")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from models.koopman_train import train, write_artifact  # torch: only when the command runs
+
+    args = build_parser().parse_args(argv)
+    defaults = TrainingSettings()
+    try:
+        settings = TrainingSettings(
+            n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
+            max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,
+            form=args.form, dictionary=args.dictionary, patience=args.patience,
+            speed_knots=args.speed_knots, small_signal_accel=args.small_signal_accel,
+            unscheduled_states=args.unscheduled_states,
+            mirror_symmetric=args.mirror_symmetric, even_features=args.even_features,
+            servo_lag=args.servo_lag, lateral_per_step=args.lateral_per_step,
+            steer_bilinear=args.steer_bilinear, gain_anchor=args.gain_anchor, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
+            seed=args.seed, threads=args.threads, device=args.device,
+        )
+        check_outputs(args)
+        if args.logs:  # issue 20: the data come from CAN logs; --out is a folder
+            from models.log_identification import load_log_runs, write_log_products
+            out_folder = _log_out_folder(args.out)
+            runs, meta, warnings, ts = load_log_runs(args.logs, args.ts, args.log_inputs, args.mapping, args.dbc)
+            result = train(runs, ts, settings, progress=not args.no_progress, metadata=meta)
+            npz_path, json_path = write_artifact(result, out_folder / "koopman")
+            for path in write_log_products(out_folder, result.model, runs, result.test_runs, ts,
+                                           args.vehicle, meta, warnings):
+                print(f"wrote {path}")
+        else:
+            data_dir = Path(args.data)
+            if not data_dir.is_dir():
+                raise KoopmanError(f"data directory not found: {data_dir}")
+            if tuple(args.states)[:3] != DICTIONARY_STATES and args.dictionary == defaults.dictionary:
+                # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
+                print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
+                settings = dataclasses.replace(settings, dictionary=())
+            runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
+            meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
+            result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta,
+                           friction=friction_of_runs(data_dir))
+            npz_path, json_path = write_artifact(result, args.out)
+    except Exception as e:  # noqa: BLE001 - CLI boundary: one line unless --debug
+        if args.debug or not _is_input_error(e):
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    meta = result.model.metadata
+    print(f"wrote {npz_path} and {json_path} in {result.seconds:.0f} s "
+          f"(best epoch {result.best_epoch}, spectral radius of A {meta['spectral_radius_A']:.4f})")
+    for name, figures in meta["test_errors"].items():
+        print(f"  test {name:>10}: one-step max/avg/rmse {figures['one_step_max']:.4f} / "
+              f"{figures['one_step_avg']:.4f} / {figures['one_step_rmse']:.4f}, "
+              f"{OPEN_LOOP_STEPS}-step rmse {figures['open_loop_rmse']:.4f}")
+    if args.compare_with is not None:
+        reference = json.loads(Path(args.compare_with).read_text())
+        if reference.get("settings") != meta.get("settings"):
+            # Another form or other settings: its figures are not a reference for this one.
+            changed = sorted(k for k in set(reference.get("settings", {})) | set(meta["settings"])
+                             if reference.get("settings", {}).get(k) != meta["settings"].get(k))
+            print(f"not compared with {args.compare_with}: its training settings differ ({', '.join(changed)})")
+            return 0
+        return 0 if compare_test_errors(meta["test_errors"], args.compare_with) else 3
+    return 0
+
+
+#: Files ``--logs --out DIR`` writes into its folder.
+LOG_OUTPUTS = ("koopman.npz", "koopman.json", "bicycle.json", "report.json", "report.md")
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Each ``--logs`` file a regular file of at most ``LOG_FILE_MAX_BYTES``; and ``--out``
+    before any training (issue 38, item 11): given (no default points at a
+    committed artefact), never one of the inputs, and an existing artefact (or, with
+    ``--logs``, a folder holding its outputs) only with ``--replace``.
+
+    Raises:
+        KoopmanError: naming the option (or the log), the path and the problem.
+    """
+    from models.errors import OutputPathError
+    from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
+    from models.output_paths import check_output_file, check_output_folder
+
+    if args.out is None:
+        raise KoopmanError("--out is required: the artefact path without extension (with --logs, a folder "
+                           "for koopman.npz/.json, bicycle.json, report.md)")
+    for log in args.logs or ():   # each log bounded before any reader takes it whole
+        if Path(log).exists():    # (a missing one is the log reader's error)
+            check_file_size(log, LOG_FILE_MAX_BYTES, KoopmanError)
+    out = Path(args.out)
+    inputs = [*(args.logs or [Path(args.data)]),
+              *(path for path in (args.mapping, args.vehicle, args.dbc, args.compare_with) if path is not None)]
+    try:
+        if args.logs:
+            check_output_folder(out, "--out", LOG_OUTPUTS, replace=args.replace, inputs=inputs)
+        else:
+            for suffix in (".npz", ".json"):
+                check_output_file(out.with_suffix(suffix), "--out", replace=args.replace, inputs=inputs)
+    except OutputPathError as error:
+        raise KoopmanError(str(error)) from None
+
+
+def _log_out_folder(out: str | Path) -> Path:
+    """``--out`` of ``--logs``: a folder (created; its parent must exist)."""
+    folder = Path(out)
+    if not folder.parent.is_dir():
+        raise KoopmanError(f"--out {folder}: folder {folder.parent} does not exist")
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+def compare_test_errors(test_errors: dict, reference_json: Path, tolerance: float = 0.10) -> bool:
+    """Print the relative change of every test figure against a reference artefact JSON.
+
+    Returns True when all are within ``tolerance`` (relative).
+    """
+    reference = json.loads(Path(reference_json).read_text())["test_errors"]
+    worst = 0.0
+    for name, figures in test_errors.items():
+        for key, value in figures.items():
+            ref = reference[name][key]
+            change = abs(value - ref) / max(abs(ref), 1e-12)
+            worst = max(worst, change)
+            print(f"  {name:>10} {key:<21} {value:.5f} vs {ref:.5f} ({100 * change:+.1f} %)")
+    ok = worst <= tolerance
+    print(f"largest relative change vs {reference_json}: {100 * worst:.1f} % "
+          f"({'within' if ok else 'OUTSIDE'} {100 * tolerance:.0f} %)")
+    return ok
+
+
+def _is_input_error(e: Exception) -> bool:
+    from models.errors import ModelError
+
+    return isinstance(e, (ModelError, OSError, ValueError))

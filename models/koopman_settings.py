@@ -1,0 +1,136 @@
+"""Hyper-parameters of one deep Koopman training run, and their record in the artefact.
+
+``TrainingSettings`` (validated on construction) and ``settings_json``, the form the
+artefact's JSON keeps them in, which studies compare to reuse a trained model; the default
+state and input columns of a training. torch-free: the command line
+(``models/koopman_cli.py``) takes its defaults from here without torch. The training itself
+is ``models/koopman_train.py``.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from models.koopman import DEFAULT_SPEED_KNOTS, DICTIONARY, MODEL_FORMS, KoopmanError
+
+#: The measured front wheel angle (the steering actuator's state) joins the vehicle states:
+#: with it the lift sees the tyres' slip angles and the actuator lag (docs/koopman.md).
+DEFAULT_STATES = ("vx", "vy", "yaw_rate", "steer_measured")
+DEFAULT_INPUTS = ("torque", "steer")
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    """Hyper-parameters of one training run (all stored in the artefact's JSON).
+
+    ``seq_len`` is p of eq. 9: p states per sequence, p - 1 predicted steps (31: the MPC's
+    horizon of 30). One epoch = ``steps_per_epoch`` Adam steps on batches drawn with
+    replacement. ``form``: "linear" (the paper's eq. 5) or "bilinear"; ``dictionary``:
+    fixed lifting functions (names of ``models.koopman.DICTIONARY``), () for none.
+
+    Two options of the step-steer study (``studies.step_steer_spread``), off by default:
+    ``small_signal_accel`` a0 > 0 weighs each window's prediction error by
+    1 / (1 + (a / a0)^2), a the window's peak |vx r| (m/s^2), so windows in the tyres' linear
+    range count more than those at the limit; ``unscheduled_states`` names states whose row
+    of (A, B, c) is one for all speed knots (the wheel angle: the servo does not depend on
+    speed). Both are left out of the artefact's settings record while off, so artefacts
+    trained before them still match their settings.
+
+    ``mirror_symmetric`` (scheduled form only) builds the left / right mirror symmetry into
+    the model (``models/koopman_train_symmetric.py``): ``even_features`` of the d features
+    are even, the rest odd; ``servo_lag`` makes the wheel-angle row a lag of unit DC gain
+    from the steer command; ``lateral_per_step`` schedules the lateral rows on each step's
+    measured speed in training; ``steer_bilinear`` adds a steer-bilinear term
+    (u_steer - u0) N(v) (z - z0) whose N maps even to odd coordinates and back, so the
+    response to a steer change depends on the state at a given speed. Recorded only when
+    ``mirror_symmetric`` is on (``steer_bilinear`` only when on).
+
+    ``gain_anchor`` w > 0 (scheduled form without dictionary; recorded only when on) adds
+    w times the gain anchor's loss (``models/koopman_train_anchor.py``): the model's
+    small-signal steer response held to local fits of the training runs' gentle samples.
+    """
+
+    n_features: int = 5
+    hidden: tuple[int, ...] = (96, 96, 96)
+    seq_len: int = 31
+    batch_size: int = 128
+    learning_rate: float = 2e-3
+    lr_decay: float = 0.94
+    max_epochs: int = 120
+    steps_per_epoch: int = 100
+    patience: int = 10
+    min_delta: float = 0.005
+    form: str = "scheduled"
+    dictionary: tuple[str, ...] = ()
+    speed_knots: tuple[float, ...] = DEFAULT_SPEED_KNOTS
+    recon_weight: float = 1.0
+    lifted_weight: float = 1.0
+    small_signal_accel: float = 0.0
+    unscheduled_states: tuple[str, ...] = ()
+    mirror_symmetric: bool = False
+    even_features: int = 2
+    servo_lag: bool = False
+    lateral_per_step: bool = False
+    steer_bilinear: bool = False
+    gain_anchor: float = 0.0
+    val_fraction: float = 0.15
+    test_fraction: float = 0.15
+    val_windows: int = 4096
+    seed: int = 0
+    threads: int = 1
+    warm_start: bool = True
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        checks = {
+            "n_features": self.n_features >= 1,
+            "hidden": len(self.hidden) >= 1 and all(h >= 1 for h in self.hidden),
+            "seq_len": self.seq_len >= 2,
+            "batch_size": self.batch_size >= 1,
+            "learning_rate": self.learning_rate > 0,
+            "lr_decay": 0 < self.lr_decay <= 1,
+            "max_epochs": self.max_epochs >= 1,
+            "steps_per_epoch": self.steps_per_epoch >= 1,
+            "patience": self.patience >= 1,
+            "min_delta": 0 <= self.min_delta < 1,
+            "form": self.form in MODEL_FORMS,
+            "speed_knots": len(self.speed_knots) >= 2 and all(b > a for a, b in zip(self.speed_knots, self.speed_knots[1:])),
+            "dictionary": all(name in DICTIONARY for name in self.dictionary),
+            "threads": self.threads >= 1,
+            "recon_weight": self.recon_weight >= 0,
+            "lifted_weight": self.lifted_weight >= 0,
+            "small_signal_accel": self.small_signal_accel >= 0,
+            "unscheduled_states": self.form == "scheduled" or not self.unscheduled_states,
+            "mirror_symmetric": self.form == "scheduled" or not self.mirror_symmetric,
+            "even_features": 0 <= self.even_features <= self.n_features,
+            "servo_lag": self.mirror_symmetric or not self.servo_lag,
+            "lateral_per_step": self.mirror_symmetric or not self.lateral_per_step,
+            "steer_bilinear": self.mirror_symmetric or not self.steer_bilinear,
+            "gain_anchor": self.gain_anchor >= 0 and (self.gain_anchor == 0 or (self.form == "scheduled"
+                                                                                and not self.dictionary)),
+            "val_fraction": 0 < self.val_fraction < 0.5,
+            "test_fraction": 0 < self.test_fraction < 0.5,
+            "device": self.device in ("auto", "cpu", "cuda"),
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise KoopmanError(f"training setting {name}={getattr(self, name)!r} is invalid")
+
+
+def settings_json(settings: TrainingSettings) -> dict:
+    out = asdict(settings)
+    out["hidden"] = list(settings.hidden)
+    out["dictionary"] = list(settings.dictionary)
+    out["speed_knots"] = list(settings.speed_knots)
+    out["unscheduled_states"] = list(settings.unscheduled_states)
+    # Options added after artefacts were committed: recorded only when on (see the class).
+    for name in ("small_signal_accel", "unscheduled_states"):
+        if not out[name]:
+            del out[name]
+    if not settings.mirror_symmetric:
+        for name in ("mirror_symmetric", "even_features", "servo_lag", "lateral_per_step"):
+            del out[name]
+    if not settings.steer_bilinear:
+        del out["steer_bilinear"]
+    if not settings.gain_anchor:
+        del out["gain_anchor"]
+    return out
