@@ -13,3 +13,12 @@ tune-observer: setup
 		--command "$(call provenance_command,tune-observer,TUNE_OBSERVER_ARGS)" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) $(PROVENANCE_DMDC) \
 		$(PROVENANCE_TUNING_SET) --modules studies.observer_tuning models.disturbance
+
+# The observer's design choices against variants that each change one (docs/eso.md): about
+# 1 min on 2 cores (30 closed-loop runs without CAN).
+.PHONY: observer-variants
+## ESO-DKMPC against one-change variants of its observer (and DKMPC) -> results/observer_variants.md (~1 min)
+observer-variants: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_variants --out results
+	$(PROVENANCE_STAMP) results/observer_variants.md --command "make observer-variants" \
+		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.observer_variants
