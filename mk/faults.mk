@@ -22,7 +22,6 @@ faults: setup
 	$(PROVENANCE_STAMP) results/faults.md results/faults.json results/faults_vehicle.png \
 		--command "$(call provenance_command,faults,FAULTS_ARGS)" \
 		--inputs $(PROVENANCE_HIL) --modules hil.commands.faults studies.fault_campaign
-	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 ## the fault campaign against the C ECU executable -> results/faults_c.*, compared with faults.*
 faults-c: setup firmware

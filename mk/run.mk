@@ -20,7 +20,6 @@ run: setup
 		fig9_low_mu.png metrics.json) \
 		--command "$(call provenance_command,run,RUN_ARGS)$(if $(filter-out virtual,$(CAN_INTERFACE)), CAN_INTERFACE=$(CAN_INTERFACE) CAN_CHANNEL=$(CAN_CHANNEL))$(if $(filter-out python,$(ECU)), ECU=$(ECU))" \
 		--inputs $(PROVENANCE_HIL) --modules studies.run_all
-	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # `make run` on a real SocketCAN vcan0 inside user-mode Linux, for machines whose kernel has
 # no CAN (see docs/vcan.md). Slow (UML system calls); for checking, not timing:

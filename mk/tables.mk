@@ -8,7 +8,6 @@ tables: setup
 	$(PROVENANCE_STAMP) $(addprefix results/,table2_high_mu.md table3_low_mu.md fig8_high_mu.png fig9_low_mu.png \
 		study_checks.md study_metrics.json) --command "make tables" \
 		--inputs $(PROVENANCE_CLOSED_LOOP) $(PROVENANCE_DMDC) --modules studies.paper_tables
-	@$(MAKE) --no-print-directory readme  # README.md includes these results
 
 # Issue 35 item 6: the same tables with every MPC's weights unscheduled (the low-speed set
 # equal to the other, the weighting make tune's steps 1-3 chose for every speed), beside

@@ -250,9 +250,20 @@ def stamp(paths: Path | str | Sequence[Path | str], command: str, inputs: Sequen
             "sources": {key: value[:16] for key, value in digests.items()},
         }
     stamps = load_manifest(root)
+    if all(_same_but_commit(stamps.get(name), entry) for name, entry in new.items()):
+        return {name: stamps[name] for name in new}  # nothing new: the manifest stays as it is
     stamps.update(new)
     save_manifest(stamps, root)
     return new
+
+
+def _same_but_commit(old: dict | None, new: dict) -> bool:
+    """True when ``old`` records the same command, inputs and output bytes as ``new``: a
+    rerun that wrote the same file from the same sources leaves its stamp (and with it the
+    checkout) untouched, whatever commit it ran at."""
+    if old is None:
+        return False
+    return {k: v for k, v in old.items() if k != "commit"} == {k: v for k, v in new.items() if k != "commit"}
 
 
 def check(root: Path = ROOT) -> list[StaleEntry]:

@@ -11,8 +11,11 @@ Writes (``--out``, default ``results/``):
 - ``run_table2_high_mu.md``, ``run_table3_low_mu.md``: e_Y / heading error Max / Avg /
   RMSE per controller over CAN (studies/report.py's layout, the paper's values beside);
 - ``run_fig8_high_mu.png``, ``run_fig9_low_mu.png``: speed, steer, trajectory, e_Y;
-- ``run_metrics.json``: every run's summary;
-- ``--logs`` (default ``results/logs/``): every frame of every run, candump ``.log``.
+- ``run_metrics.json``: every run's summary, without what depends on the machine, so
+  that rerunning ``make run`` on any machine writes the same bytes;
+- ``--logs`` (default ``results/logs/``, not under version control): every frame of every
+  run, candump ``.log``, and ``run_timing.json``: the machine-dependent part of each run's
+  summary (wall time, the ECU's task and solver times, overruns).
 
 Exit status 0 when every run completed, 1 otherwise, 2 for bad arguments.
 """
@@ -33,6 +36,11 @@ from hil.bus import resolve_bus_config
 from hil.errors import HilError
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
+#: Summary keys whose values depend on the machine and its load, not on the run's inputs:
+#: they go to ``run_timing.json`` beside the frame logs, so ``run_metrics.json`` stays the
+#: same from one machine to the next and ``make run`` leaves the checkout clean.
+MACHINE_KEYS = ("wall_time_s", "compute_time", "solver_time_mean_s", "solve_time_us_median",
+                "solve_time_us_max", "ecu_overruns", "realtime_overruns")
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 #: Output names per scenario: (table, figure, title).
 OUTPUTS = {
@@ -102,6 +110,15 @@ def run_summary(result: Any) -> dict[str, Any]:
                    compute_time=ComputeTimeStats.of(cycle_s).as_dict() if cycle_s.size else None,
                    solver_time_mean_s=float(np.mean(solve_s)) if solve_s.size else float("nan"))
     return summary
+
+
+def split_machine_keys(runs: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Each run's summary in two: the part its inputs decide, and the part that depends on
+    the machine (:data:`MACHINE_KEYS`, with the run's scenario and controller to name it)."""
+    inputs_only = [{k: v for k, v in run.items() if k not in MACHINE_KEYS} for run in runs]
+    machine = [{"scenario": run["scenario"], "controller": run["controller"],
+                **{k: run[k] for k in MACHINE_KEYS if k in run}} for run in runs]
+    return inputs_only, machine
 
 
 def summary_text(runs: Sequence[dict[str, Any]]) -> str:
@@ -198,9 +215,11 @@ def main(argv: list[str] | None = None) -> int:
         plot_scenario(traces.get(scenario.name, {}), path_xy, f"{title}, {bus_label}",
                       args.out / figure)
         written += [args.out / table, args.out / figure]
-    (args.out / "run_metrics.json").write_text(json.dumps({"bus": bus.describe(), "ecu": args.ecu, "runs": runs},
-                                                          indent=2) + "\n")
-    written.append(args.out / "run_metrics.json")
+    header = {"bus": bus.describe(), "ecu": args.ecu}
+    inputs_only, machine = split_machine_keys(runs)
+    (args.out / "run_metrics.json").write_text(json.dumps({**header, "runs": inputs_only}, indent=2) + "\n")
+    (Path(logs) / "run_timing.json").write_text(json.dumps({**header, "runs": machine}, indent=2) + "\n")
+    written += [args.out / "run_metrics.json", Path(logs) / "run_timing.json"]
     print()
     print(summary_text(runs))
     print(f"\nwrote {', '.join(str(p) for p in written)}; frame logs in {logs}/")

@@ -2,6 +2,7 @@
 results/KNOWN_STALE.md (which the README shows); and stamp / check on a scratch repository."""
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -108,6 +109,23 @@ def test_stamp_then_check_finds_changed_inputs(repo: Path) -> None:
     (repo / "pkg" / "plugin.py").write_text("NAME = 'q'\n")  # a lazily imported module
     [stale] = check(repo)
     assert "pkg/plugin.py" in stale.describe()
+
+
+def test_a_rerun_with_the_same_inputs_and_output_leaves_the_manifest_untouched(repo: Path) -> None:
+    """``make run`` twice, the second time at a later commit: the checkout stays clean."""
+    stamp("results/out.md", "make out", inputs=["data.toml"], modules=["pkg.study"], root=repo)
+    manifest = repo / "results" / "PROVENANCE.json"
+    first = manifest.read_bytes()
+    (repo / "notes.txt").write_text("a later commit\n")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "later")
+    again = stamp("results/out.md", "make out", inputs=["data.toml"], modules=["pkg.study"], root=repo)
+    assert manifest.read_bytes() == first
+    assert again["results/out.md"]["commit"] == json.loads(first)["results"]["results/out.md"]["commit"]
+
+    (repo / "results" / "out.md").write_text("| changed |\n")  # new output bytes: a new stamp
+    stamp("results/out.md", "make out", inputs=["data.toml"], modules=["pkg.study"], root=repo)
+    assert manifest.read_bytes() != first and check(repo) == []
 
 
 def test_dirty_tree_is_marked_and_hand_edited_results_are_stale(repo: Path) -> None:
