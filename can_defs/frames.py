@@ -56,7 +56,8 @@ class CtrlMode(IntEnum):
 
 
 class QpStatus(IntEnum):
-    """CTRL_DIAG.QP_STATUS: optimiser status of the control cycle."""
+    """CTRL_DIAG.QP_STATUS: optimiser status of the control cycle; also the control law's
+    own solver outcome (``controller.base.SolverStatus`` is this enum)."""
 
     SOLVED = 0
     SOLVED_INACCURATE = 1

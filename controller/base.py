@@ -6,28 +6,18 @@ debug record come from the solvers' own statistics (OSQP ``info.solve_time``, IP
 """
 from __future__ import annotations
 
-import enum
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
 
+# The solver outcome is the contract's CTRL_DIAG.QP_STATUS, one enum: the ECU sends it as is.
+from can_defs.frames import QpStatus as SolverStatus
 from models.measurement import VehicleMeasurement
 
 #: Physical steering limit of eq. 22 (rad); the contract's STEER_ANGLE_CMD limit too.
 STEER_LIMIT_RAD = 0.3
-
-
-class SolverStatus(enum.IntEnum):
-    """Solver outcome; values equal the CAN contract's CTRL_DIAG.QP_STATUS choices."""
-
-    SOLVED = 0
-    SOLVED_INACCURATE = 1
-    MAX_ITERATIONS = 2
-    INFEASIBLE = 3
-    NUMERICAL_ERROR = 4
-    NOT_RUN = 15
 
 
 @dataclass(frozen=True)
