@@ -40,6 +40,7 @@ from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumen
 from firmware_sim.bus_quiet import quiet_socketcand
 from firmware_sim.inputs import command_inputs
 from models.input_files import MODEL_FILE_MAX_BYTES, InputFileError, read_bounded
+from models.output_paths import check_output_file
 
 if TYPE_CHECKING:
     from firmware_sim.excitation import ExcitationProgram
@@ -85,36 +86,6 @@ def parse_path_argument(text: str) -> tuple[int, Path]:
     if not os.access(file, os.R_OK):
         raise PathArgumentError(f"--path {text!r}: cannot read {file}: permission denied")
     return path_id, file
-
-
-def check_output_file(file: Path, option: str, replace: bool, inputs: Sequence[Path] = ()) -> None:
-    """Refuse an output file the ECU could not write at its end, before anything runs.
-
-    Raises:
-        ConfigError: ``file`` is one of ``inputs``, a folder, an existing file without
-            ``replace``, not writable, or its parent folder is missing or not writable.
-    """
-    resolved = file.resolve()
-    for source in inputs:
-        try:
-            same = source.resolve() == resolved or (source.exists() and file.exists()
-                                                    and os.path.samefile(source, file))
-        except OSError:
-            same = False
-        if same:
-            raise ConfigError(f"{option} {file}: is one of the inputs of this run ({source})")
-    parent = resolved.parent
-    if not parent.is_dir():
-        raise ConfigError(f"{option} {file}: folder {file.parent} does not exist")
-    if file.is_dir():
-        raise ConfigError(f"{option} {file}: is a folder")
-    if file.exists():
-        if not replace:
-            raise ConfigError(f"{option} {file}: file exists (give --replace to overwrite it)")
-        if not os.access(file, os.W_OK):
-            raise ConfigError(f"{option} {file}: file is not writable")
-    elif not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{option} {file}: folder {file.parent} is not writable")
 
 
 def parse_paths(items: Sequence[str]) -> dict[int, Path]:
@@ -224,7 +195,8 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
         paths = parse_paths(args.path)
         if args.timing_out is not None:
             inputs = command_inputs(paths.values(), dbc=args.dbc, model=args.model, excite=args.excite)
-            check_output_file(args.timing_out, "--timing-out", args.replace, inputs)
+            check_output_file(args.timing_out, "--timing-out", replace=args.replace, inputs=inputs,
+                              error=ConfigError)
         prepare_codec(args.dbc)
         excitation = load_excitation(args.excite)
         controller_factory = model_controller_factory(args.controller, args.model)

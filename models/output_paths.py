@@ -6,7 +6,9 @@ Each check raises ``error`` (``models.errors.OutputPathError`` unless the caller
 own, as ``hil.output_paths`` does) naming the option, the path and the problem, so a CLI
 prints one ``error:`` line and exits non-zero before anything has run or been written. The
 checks live here, in the lowest layer that writes files, so the training CLI
-(``models.koopman_train``) and the HIL's commands share one implementation.
+(``models.koopman_train``), the ECU's ``--timing-out`` (``firmware_sim.cli``, with its
+``ConfigError``) and the HIL's commands share one implementation; the C ECU's executable
+words its own check alike (``firmware/src/ecu_main.c``), so both ECUs print the same line.
 """
 from __future__ import annotations
 
@@ -31,8 +33,7 @@ def check_not_input(path: Path, option: str, inputs: Iterable[Path],
     """Refuse ``path`` when it is (or links to) one of ``inputs``."""
     for source in inputs:
         if _same_file(path, Path(source)):
-            raise error(f"{option} {path}: is one of the inputs of this run "
-                                  f"({source}); it would be overwritten")
+            raise error(f"{option} {path}: is one of the inputs of this run ({source})")
 
 
 def check_output_file(path: Path, option: str, *, replace: bool = False,
@@ -46,7 +47,7 @@ def check_output_file(path: Path, option: str, *, replace: bool = False,
     if not parent.is_dir():
         raise error(f"{option} {path}: folder {path.parent} does not exist")
     if path.is_dir():
-        raise error(f"{option} {path}: is a folder, expected a file")
+        raise error(f"{option} {path}: is a folder")
     if path.exists():
         if not replace:
             raise error(f"{option} {path}: file exists (give {replace_option} to "
