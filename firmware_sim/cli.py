@@ -19,6 +19,11 @@ identification excitation while ACTIVE (``firmware_sim/excitation.py``,
 docs/identification.md). Both are checked before the bus is opened. ``--native`` runs the
 control step in the C core (``firmware_sim/native.py``, docs/firmware.md), loaded and
 checked before the bus is opened too.
+
+Only the arguments and the calls are here; what they call is library code that ``hil``
+shares: ``firmware_sim/path_arguments.py`` (``--path``), ``firmware_sim/controller_factory.py``
+(``--model``), ``firmware_sim/excitation.py`` (``--excite``), ``firmware_sim/can_bus.py``
+(the bus) and ``models/output_paths.py`` (``--timing-out``).
 """
 from __future__ import annotations
 
@@ -26,24 +31,20 @@ import argparse
 import logging
 import os
 import signal
-import stat
 import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, NoReturn
+from typing import NoReturn
 
-import can
-
-from firmware_sim.errors import BusOpenError, ConfigError, EcuError, PathArgumentError
-from firmware_sim.bus_quiet import quiet_socketcand
+from firmware_sim.can_bus import open_ecu_bus
+from firmware_sim.controller_factory import model_controller_factory
+from firmware_sim.errors import BusOpenError, ConfigError, EcuError
+from firmware_sim.excitation import load_excitation
 from firmware_sim.inputs import command_inputs
-from models.input_files import MODEL_FILE_MAX_BYTES, InputFileError, read_bounded
+from firmware_sim.path_arguments import parse_paths
 from models.output_paths import check_output_file
-
-if TYPE_CHECKING:
-    from firmware_sim.excitation import ExcitationProgram
 
 #: The registry's names (the paper's four, the ablations, then the geometric baseline),
 #: repeated here so that ``--help`` needs no controller import; a test checks they equal
@@ -54,67 +55,6 @@ LOG_LEVELS = ("debug", "info", "warning", "error")
 EXIT_OK = 0
 EXIT_BUS = 1
 EXIT_USAGE = 2
-
-
-def parse_path_argument(text: str) -> tuple[int, Path]:
-    """``"ID=FILE.csv"`` -> (PATH_ID, file); the file must exist and be readable.
-
-    Nothing is read from the file here: a pipe (``--path 1=<(cat dlc.csv)``) can be read
-    only once, by the loader (issue 17, defect 1).
-
-    Raises:
-        PathArgumentError: no ``=``, an ID that is not an integer in 0..255, an empty file
-            name or a file that cannot be opened for reading.
-    """
-    path_id_text, separator, file_text = text.partition("=")
-    if not separator or not file_text:
-        raise PathArgumentError(f"--path {text!r}: expected ID=FILE.csv")
-    try:
-        path_id = int(path_id_text, 10)
-    except ValueError:
-        raise PathArgumentError(f"--path {text!r}: ID {path_id_text!r} is not an integer") from None
-    if not 0 <= path_id <= 255:
-        raise PathArgumentError(f"--path {text!r}: ID {path_id} outside 0..255 (PATH_ID is 8 bit)")
-    file = Path(file_text)
-    try:
-        mode = file.stat().st_mode
-    except OSError as error:
-        raise PathArgumentError(f"--path {text!r}: cannot read {file}: "
-                                f"{error.strerror or error}") from error
-    if stat.S_ISDIR(mode):
-        raise PathArgumentError(f"--path {text!r}: cannot read {file}: it is a folder")
-    if not os.access(file, os.R_OK):
-        raise PathArgumentError(f"--path {text!r}: cannot read {file}: permission denied")
-    return path_id, file
-
-
-def parse_paths(items: Sequence[str]) -> dict[int, Path]:
-    """All ``--path`` arguments; a PATH_ID given twice is an error."""
-    paths: dict[int, Path] = {}
-    for item in items:
-        path_id, file = parse_path_argument(item)
-        if path_id in paths:
-            raise PathArgumentError(f"--path {item!r}: PATH_ID {path_id} given twice "
-                                    f"(already {paths[path_id]})")
-        paths[path_id] = file
-    return paths
-
-
-def open_bus(interface: str | None, channel: str | None, bitrate: int | None) -> can.BusABC:
-    """Open the bus; None falls back to python-can's configuration (environment, file).
-
-    Raises:
-        BusOpenError: python-can could not open it (the message names interface and channel).
-    """
-    kwargs: dict[str, object] = {}
-    if bitrate is not None:
-        kwargs["bitrate"] = bitrate
-    quiet_socketcand()   # one connection attempt, no log flood: the ECU retries every second
-    try:
-        return can.Bus(channel=channel, interface=interface, **kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError, TypeError) as error:
-        raise BusOpenError(f"cannot open CAN bus (interface={interface or 'from config'}, "
-                           f"channel={channel or 'from config'}): {error}") from error
 
 
 class _ArgumentParser(argparse.ArgumentParser):
@@ -203,7 +143,7 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
         if args.native:  # the C core's step in place of the Python one (loaded here)
             from firmware_sim.native import native_controller_factory
             controller_factory = native_controller_factory(args.controller, args.model)
-        bus = open_bus(args.interface, args.channel, args.bitrate)
+        bus = open_ecu_bus(args.interface, args.channel, args.bitrate)
     except EcuError as error:
         if args.debug:
             raise
@@ -231,7 +171,7 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     ecu = None
     try:
         ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep,
-                  reopen_bus=lambda: open_bus(args.interface, args.channel, args.bitrate),
+                  reopen_bus=lambda: open_ecu_bus(args.interface, args.channel, args.bitrate),
                   controller_factory=controller_factory, excitation=excitation)
         logging.getLogger("firmware_sim").info(
             "ready: controller %s, PATH_IDs %s, %s, mode %s", args.controller,
@@ -252,62 +192,6 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
                   f"{error.strerror or error}", file=sys.stderr)
             return EXIT_BUS
     return EXIT_OK
-
-
-def load_excitation(spec: str | None) -> "ExcitationProgram | None":
-    """The ``--excite`` program (None without it); ConfigError names the file and field."""
-    if spec is None:
-        return None
-    from firmware_sim.excitation import load_program
-    return load_program(spec)
-
-
-def model_controller_factory(controller: str, model: Path | None) -> Callable[[str], object] | None:
-    """The ECU's controller factory for ``--model`` (None without it: the registry's default).
-
-    A file the controller could never use is refused here, before the bus is opened: a
-    controller without model files, a missing file, the other kind of file, a model whose
-    states or inputs the bus does not carry (for study only). A file that passes these
-    checks but does not load (damaged weights) latches FAULT in the ECU (contract).
-
-    Raises:
-        ConfigError: names the file and what is wrong with it.
-    """
-    if model is None:
-        return None
-    import json
-    from controller.errors import ControllerError
-    from controller.registry import MODEL_FILE_KINDS, check_ecu_model_names, create_controller
-    kind = MODEL_FILE_KINDS.get(controller)
-    if kind is None:
-        raise ConfigError(f"--model {model}: controller {controller!r} takes no model file (those "
-                          f"that do: {', '.join(MODEL_FILE_KINDS)})")
-    meta_file = model.with_suffix(".json") if kind == "koopman" else model
-    needed = [model.with_suffix(".npz"), meta_file] if kind == "koopman" else [model]
-    for file in needed:
-        if not file.is_file():
-            raise ConfigError(f"--model {model}: {file} not found (a {kind} model file for "
-                              f"{controller})")
-    try:
-        meta = json.loads(read_bounded(meta_file, MODEL_FILE_MAX_BYTES))
-    except InputFileError as error:
-        raise ConfigError(f"--model {model}: {error}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ConfigError(f"--model {model}: {meta_file} is not readable JSON: {error}") from error
-    if not isinstance(meta, dict):
-        raise ConfigError(f"--model {model}: {meta_file} is not a JSON object")
-    if kind == "bicycle" and meta.get("kind") != "linear_bicycle":
-        raise ConfigError(f"--model {model}: not a fitted bicycle file (kind {meta.get('kind')!r}); "
-                          f"{controller} takes the bicycle JSON of python -m models.koopman_train --logs")
-    if kind == "koopman":
-        if meta.get("kind") == "linear_bicycle":
-            raise ConfigError(f"--model {model}: a fitted bicycle file; {controller} takes a "
-                              "Koopman artefact")
-        try:
-            check_ecu_model_names(meta.get("state_names", ()), meta.get("input_names", ()), str(model))
-        except ControllerError as error:
-            raise ConfigError(str(error)) from error
-    return lambda name: create_controller(name, model_path=model)
 
 
 def prepare_codec(dbc: Path | None) -> None:

@@ -346,6 +346,11 @@ def load_program(spec: str) -> ExcitationProgram:
     return _toml_program(path, raw)
 
 
+def load_excitation(spec: str | None) -> ExcitationProgram | None:
+    """The ``--excite`` program (None without it); ConfigError names the file and field."""
+    return None if spec is None else load_program(spec)
+
+
 def _toml_program(path: Path, raw: dict[str, Any]) -> ExcitationProgram:
     known = {f.name: f for f in fields(ExcitationProgram)}
     unknown = sorted(set(raw) - set(known))

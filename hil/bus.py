@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import can
 
+from firmware_sim import can_bus, errors as ecu_errors
 from hil.errors import HilError
 
 #: Interface used when neither the arguments, the environment nor a config file name one.
@@ -25,8 +26,9 @@ DEFAULT_CHANNEL = "vcan0"
 _private_channel_numbers = itertools.count()
 
 
-class BusOpenError(HilError):
-    """A CAN bus could not be opened (unknown interface, missing device, no permission)."""
+class BusOpenError(HilError, ecu_errors.BusOpenError):
+    """A CAN bus could not be opened (unknown interface, missing device, no permission):
+    the ECU's error (``firmware_sim.errors.BusOpenError``) in the HIL's hierarchy."""
 
 
 @dataclass(frozen=True)
@@ -97,7 +99,8 @@ def private_virtual_channel(prefix: str = "hil") -> str:
 
 
 def open_bus(config: BusConfig, **kwargs: object) -> can.BusABC:
-    """Open one bus object on ``config`` (one per node).
+    """Open one bus object on ``config`` (one per node): ``firmware_sim.can_bus.open_bus``,
+    the ECU's, with the HIL's error and its SocketCAN hint.
 
     ``kwargs`` go to ``can.Bus`` (e.g. ``can_filters``). Own frames are not received
     (python-can's default), as on a real controller's CAN port.
@@ -106,10 +109,11 @@ def open_bus(config: BusConfig, **kwargs: object) -> can.BusABC:
         BusOpenError: naming the interface and channel, wrapping python-can's error.
     """
     try:
-        return can.Bus(interface=config.interface, channel=config.channel, **kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as e:
-        raise BusOpenError(f"cannot open CAN bus {config.describe()}: {e}"
-                           f"{socketcan_hint(config, e)}") from e
+        return can_bus.open_bus(config.interface, config.channel, **kwargs)
+    except ecu_errors.BusOpenError as e:
+        reason = e.__cause__  # python-can's error
+        raise BusOpenError(f"cannot open CAN bus {config.describe()}: {reason}"
+                           f"{socketcan_hint(config, reason)}") from reason
 
 
 def socketcan_hint(config: BusConfig, error: BaseException | None = None) -> str:

@@ -181,9 +181,9 @@ class InProcessEcu(_EcuRunner):
     """``firmware_sim.ecu.Ecu`` on its own virtual bus object, run in a thread."""
 
     def __init__(self, scenario: Scenario, options: RunOptions) -> None:
+        from firmware_sim.controller_factory import model_controller_factory
         from firmware_sim.ecu import Ecu  # the ECU package: only needed in-process
-
-        from firmware_sim.cli import load_excitation, model_controller_factory
+        from firmware_sim.excitation import load_excitation
 
         self._bus = open_bus(options.bus)
         try:
@@ -291,7 +291,7 @@ def _c_ecu_data_file(options: RunOptions) -> Path:
     """The C ECU's data file: the build's, or ``options.model`` (a Koopman artefact, or a
     fitted bicycle for lmpc) converted once by firmware/tools/ecu_data.py
     (``firmware_sim.native.data_file_for_model``)."""
-    from firmware_sim.cli import model_controller_factory
+    from firmware_sim.controller_factory import model_controller_factory
     from firmware_sim.errors import ConfigError
     from firmware_sim.native import DEFAULT_DATA, NativeController, data_file_for_model
 

@@ -207,8 +207,8 @@ def test_partial_e2e_failures_are_used_with_a_warning_and_counts(sim70, tmp_path
     ("invalid_commands", "CMD_VALID = 0"),
     ("short", "need at least 60 s"),
     ("named_csv", "a named-column CSV"),
-    ("missing", "log file not found"),
-    ("suffix", "unsupported log format"),
+    ("missing", "no such log file"),
+    ("suffix", "unknown log format"),
 ])
 def test_unusable_logs_are_errors_naming_the_file_and_what_is_missing(sim70, tmp_path, case, message):
     traffic = frames(sim70)
@@ -266,7 +266,7 @@ def test_named_csv_with_a_mapping(tmp_path):
 
 # ---------------------------------------------------------------- the CLI, end to end
 def test_koopman_train_logs_writes_an_artefact_the_ecu_loads_a_bicycle_and_a_report(lockstep_log, tmp_path, capsys):
-    from firmware_sim.cli import model_controller_factory
+    from firmware_sim.controller_factory import model_controller_factory
     from models import koopman_train
 
     out = tmp_path / "identified"
@@ -302,7 +302,7 @@ def test_koopman_train_logs_bad_input_is_one_error_line(tmp_path, capsys):
 
 
 def test_named_csv_trains_a_study_model_that_the_ecu_refuses(tmp_path, capsys):
-    from firmware_sim.cli import model_controller_factory
+    from firmware_sim.controller_factory import model_controller_factory
     from firmware_sim.errors import ConfigError
     from models import koopman_train
 

@@ -15,7 +15,7 @@ import can
 import pytest
 from can_defs.frames import HANDSHAKE_TICK, CtrlMode
 
-from firmware_sim import cli
+from firmware_sim import cli, path_arguments
 from firmware_sim.errors import PathArgumentError
 from hil.ecu_harness import PeerNodes, commands, decode_messages
 
@@ -37,15 +37,15 @@ def path_csv(tmp_path: Path) -> Path:
     ("1=/no/such/file.csv", "cannot read")])
 def test_bad_path_argument_is_a_typed_error_naming_it(text, message):
     with pytest.raises(PathArgumentError, match=message) as info:
-        cli.parse_path_argument(text)
+        path_arguments.parse_path_argument(text)
     print(info.value)
     assert repr(text) in str(info.value)
 
 
 def test_duplicate_path_id_is_refused(path_csv):
     with pytest.raises(PathArgumentError, match="given twice"):
-        cli.parse_paths([f"1={path_csv}", f"1={path_csv}"])
-    assert cli.parse_paths([f"1={path_csv}", f"7={path_csv}"]) == {1: path_csv, 7: path_csv}
+        path_arguments.parse_paths([f"1={path_csv}", f"1={path_csv}"])
+    assert path_arguments.parse_paths([f"1={path_csv}", f"7={path_csv}"]) == {1: path_csv, 7: path_csv}
 
 
 def test_main_prints_error_and_exits_2_for_an_unreadable_path(capsys):

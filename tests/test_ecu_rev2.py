@@ -24,7 +24,7 @@ import pytest
 from can_defs.codec import encode
 from can_defs.frames import HANDSHAKE_TICK, CtrlMode, FrameId, HilSync, VehDyn
 
-from firmware_sim import cli
+from firmware_sim import cli, path_arguments
 from firmware_sim.ecu import Ecu
 from firmware_sim.ratelimit import RateLimitedLog
 from hil.ecu_harness import PeerNodes, ScriptedController, commands, diags, pump
@@ -313,7 +313,7 @@ def test_path_from_a_pipe_is_not_consumed_by_the_argument_check():
                                               os.close(write_end)))
     writer.start()
     try:
-        path_id, file = cli.parse_path_argument(f"1=/dev/fd/{read_end}")
+        path_id, file = path_arguments.parse_path_argument(f"1=/dev/fd/{read_end}")
         path = ReferencePath.from_csv(file)
     finally:
         writer.join(5.0)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from firmware_sim import cli
+from firmware_sim.controller_factory import model_controller_factory
 from firmware_sim.errors import ConfigError
 from models.bicycle import nominal_model_params
 from models.bicycle_fit import BicycleFit, load_bicycle_params, save_bicycle
@@ -33,11 +34,11 @@ def _bicycle_file(tmp_path: Path, rear_scale: float = 0.8) -> Path:
 
 
 def test_a_copied_artifact_loads_for_eso_dkmpc_and_a_bicycle_for_lmpc(tmp_path):
-    factory = cli.model_controller_factory("eso-dkmpc", _copy_artifact(tmp_path))
+    factory = model_controller_factory("eso-dkmpc", _copy_artifact(tmp_path))
     controller = factory("eso-dkmpc")
     assert controller.model.metadata["form"] == "scheduled"
     bicycle = _bicycle_file(tmp_path)
-    lmpc = cli.model_controller_factory("lmpc", bicycle)("lmpc")
+    lmpc = model_controller_factory("lmpc", bicycle)("lmpc")
     assert lmpc.bicycle.params.cornering_stiffness_rear == pytest.approx(
         0.8 * nominal_model_params().cornering_stiffness_rear)
     assert load_bicycle_params(bicycle).mass == nominal_model_params().mass
@@ -51,7 +52,7 @@ def test_a_copied_artifact_loads_for_eso_dkmpc_and_a_bicycle_for_lmpc(tmp_path):
 ])
 def test_unusable_model_files_are_refused_before_the_bus(tmp_path, controller, make, message):
     with pytest.raises(ConfigError) as info:
-        cli.model_controller_factory(controller, make(tmp_path))
+        model_controller_factory(controller, make(tmp_path))
     print(info.value)
     assert message in str(info.value)
 
@@ -78,7 +79,7 @@ def test_a_damaged_artifact_latches_fault_with_one_message(tmp_path):
 
     target = _copy_artifact(tmp_path)
     target.with_suffix(".npz").write_bytes(b"not a zip file")
-    factory = cli.model_controller_factory("eso-dkmpc", target)  # the JSON passes
+    factory = model_controller_factory("eso-dkmpc", target)  # the JSON passes
     bus = can.Bus(interface="virtual", channel=f"model-{tmp_path.name}")
     ecu = Ecu(bus, "eso-dkmpc", {}, controller_factory=factory)
     try:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from can_defs.frames import CtrlMode
-from firmware_sim.cli import model_controller_factory
+from firmware_sim.controller_factory import model_controller_factory
 from firmware_sim.ecu import Ecu
 from models.koopman import KoopmanError, KoopmanModel
 
@@ -222,17 +222,17 @@ def test_a_socketcand_server_that_stays_down_is_retried_once_a_second_quietly(mo
     import threading
     import time
 
-    from firmware_sim import cli
+    from firmware_sim.can_bus import open_ecu_bus
     from test_ecu_cli import FakeSocketcand
 
     server = FakeSocketcand()
     monkeypatch.setenv("CAN_CONFIG", json.dumps({"host": "127.0.0.1", "port": server.port}))
     accepting = threading.Thread(target=server.accept, args=(10.0,))
     accepting.start()
-    bus = cli.open_bus("socketcand", "vcan0", None)
+    bus = open_ecu_bus("socketcand", "vcan0", None)
     accepting.join()
     ecu = Ecu(bus, "lmpc", {}, controller_factory=lambda name: None,
-              reopen_bus=lambda: cli.open_bus("socketcand", "vcan0", None))
+              reopen_bus=lambda: open_ecu_bus("socketcand", "vcan0", None))
     stop = threading.Event()
     with caplog.at_level(logging.INFO):
         runner = threading.Thread(target=ecu.run, args=(stop,))

@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Decode; write the requested files; 0 on success."""
-    from firmware_sim.cli import parse_paths
+    from firmware_sim.path_arguments import parse_paths
     from hil.decode_log import decode_log, decode_with_dbc, nothing_to_plot, write_csv
     from hil.logio import read_log
     from hil.output_paths import check_output_file

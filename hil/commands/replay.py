@@ -108,7 +108,7 @@ def controller_from_file_name(log: Path, names: tuple[str, ...]) -> str | None:
 def main(args: argparse.Namespace) -> int:
     """Replay, print the report; see the module docstring for the exit status."""
     from controller.registry import ALL_CONTROLLER_NAMES
-    from firmware_sim.cli import parse_paths
+    from firmware_sim.path_arguments import parse_paths
     from hil.logio import read_log, read_sidecar
     from hil.output_paths import check_output_file
     from hil.replay import (DEFAULT_ACK_TIMEOUT_S, ReplayError, default_paths_for,
