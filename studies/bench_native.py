@@ -2,10 +2,10 @@
 
     python -m studies.bench_native [--steps N] [--controllers eso-dkmpc,dkmpc,lmpc] [--repeats R]
 
-The samples are those of ``make bench`` (``studies.bench.record_samples``: LMPC driving
+The samples are those of ``make bench`` (``studies.step_timing.record_samples``: LMPC driving
 the four-wheel plant through the high-mu double lane change). For each controller the
 Python controller and the C core (``firmware_sim.native.NativeController``, libecu.so)
-are fed the same samples alternately in one process (``studies.bench.time_controllers``:
+are fed the same samples alternately in one process (``studies.step_timing.time_controllers``:
 open loop, the order rotated per sample, the first step left out). Two C figures: the
 step as the C core times itself (``ecu_step`` alone: what an ECU would spend) and the
 wall time of the Python call into it (ctypes and the result's conversion added).
@@ -56,8 +56,8 @@ from controller.base import Command, Controller, StepDebug, VehicleSample  # noq
 from controller.reference import ReferencePath  # noqa: E402
 from firmware_sim.errors import EcuError  # noqa: E402
 from firmware_sim.native import NATIVE_CONTROLLERS, NativeController  # noqa: E402
-from studies.bench import (BenchError, ControllerTiming, Percentiles, record_samples,  # noqa: E402
-                           time_controllers)
+from studies.step_timing import (BenchError, ControllerTiming, Percentiles, record_samples,  # noqa: E402
+                                 time_controllers)
 from studies.machine import load_average, machine_description  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent

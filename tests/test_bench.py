@@ -12,7 +12,7 @@ import pytest
 
 from controller import registry
 from firmware_sim.native import DEFAULT_LIBRARY, NATIVE_CONTROLLERS
-from studies import bench
+from studies import bench, step_timing
 
 STEPS = 6
 
@@ -38,7 +38,7 @@ def test_bench_times_every_registered_controller_on_the_same_samples(tmp_path: P
     assert set(rows) == set(registry.CONTROLLERS) | {bench.ECU_OVERHEAD_ROW} | (c_rows if built else set())
     assert ("is not built (make firmware)" in text) != built
     assert "Load average (1 / 5 / 15 min)" in text and "OPENBLAS_NUM_THREADS=1" in text
-    assert f"{STEPS} samples of `{bench.RECORDING_SCENARIO}`" in text
+    assert f"{STEPS} samples of `{step_timing.RECORDING_SCENARIO}`" in text
 
     document = json.loads(out_json.read_text())
     assert list(document["controllers"]) == list(registry.CONTROLLERS)
