@@ -6,8 +6,10 @@ Everything is in min-max normalised units (bounds from the training runs only);
 ``models/koopman.py`` folds the normalisation into physical-unit matrices. The other parts
 of a training, one job each: the hyper-parameters ``models/koopman_settings.py``
 (``TrainingSettings``), the data (read, split by run, bounds) ``models/koopman_data.py``,
-the windows in torch ``models/koopman_train_windows.py`` (``SequenceSet``), the command
-line ``models/koopman_cli.py``; their names stay importable from here.
+the windows in torch ``models/koopman_train_windows.py`` (``SequenceSet``); their names stay
+importable from here. The command line is ``models/koopman_cli.py`` (``main``,
+``build_parser``), which imports this module when it trains; this module imports it only
+to run as ``python -m models.koopman_train``, so neither imports the other on import.
 
 The sequence length p = 31 gives the MPC's own horizon (30 steps of 25 ms). (Eq. 10 as
 printed re-lifts the true z_{k+i-1}; we roll out in the lifted space, as the MPC does.)
@@ -49,7 +51,6 @@ from tqdm import tqdm
 
 from models.koopman import (KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman, check_dictionary,
                             dictionary_features, knot_weights, save_artifact)
-from models.koopman_cli import build_parser, main  # noqa: F401 - re-exported: the command line
 from models.koopman_data import dictionary_scaling_of, fit_scaling, split_runs
 from models.koopman_data import dataset_hash, load_trajectories  # noqa: F401 - re-exported
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
@@ -327,4 +328,6 @@ def write_artifact(result: TrainingResult, out: str | Path) -> tuple[Path, Path]
 
 
 if __name__ == "__main__":
+    from models.koopman_cli import main
+
     sys.exit(main())

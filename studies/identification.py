@@ -248,14 +248,14 @@ def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path,
              options: Sequence[str] = ()) -> None:
     """``python -m models.koopman_train --logs LOG --out DIR --replace --vehicle FILE [OPTIONS]``
     in this process (the study owns DIR) (``options``: more training options, e.g. ``--steps-per-epoch 5``)."""
-    from models import koopman_train  # torch: only here
+    from models import koopman_cli  # torch: only when it trains
 
     argv = ["--logs", str(log), "--out", str(model_dir), "--replace", "--no-progress", "--vehicle",
             str(vehicle_file)]
     if epochs is not None:
         argv += ["--epochs", str(epochs)]
     argv += list(options)
-    if koopman_train.main(argv) != 0:
+    if koopman_cli.main(argv) != 0:
         raise SystemExit(f"error: training from {log} failed")
 
 

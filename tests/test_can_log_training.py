@@ -267,10 +267,10 @@ def test_named_csv_with_a_mapping(tmp_path):
 # ---------------------------------------------------------------- the CLI, end to end
 def test_koopman_train_logs_writes_an_artefact_the_ecu_loads_a_bicycle_and_a_report(lockstep_log, tmp_path, capsys):
     from firmware_sim.controller_factory import model_controller_factory
-    from models import koopman_train
+    from models import koopman_cli
 
     out = tmp_path / "identified"
-    status = koopman_train.main(["--logs", str(lockstep_log), "--out", str(out), "--epochs", "2",
+    status = koopman_cli.main(["--logs", str(lockstep_log), "--out", str(out), "--epochs", "2",
                                  "--steps-per-epoch", "5", "--no-progress"])
     printed = capsys.readouterr()
     print(printed.out[-2000:], printed.err[-2000:])
@@ -291,11 +291,11 @@ def test_koopman_train_logs_writes_an_artefact_the_ecu_loads_a_bicycle_and_a_rep
 
 
 def test_koopman_train_logs_bad_input_is_one_error_line(tmp_path, capsys):
-    from models import koopman_train
+    from models import koopman_cli
 
     path = tmp_path / "empty.log"
     path.write_text("(1.0) vcan0 123#00\n")
-    status = koopman_train.main(["--logs", str(path), "--out", str(tmp_path / "o"), "--no-progress"])
+    status = koopman_cli.main(["--logs", str(path), "--out", str(tmp_path / "o"), "--no-progress"])
     err = capsys.readouterr().err
     print(err)
     assert status == 2 and err.startswith("error: ") and str(path) in err and "Traceback" not in err
@@ -304,7 +304,7 @@ def test_koopman_train_logs_bad_input_is_one_error_line(tmp_path, capsys):
 def test_named_csv_trains_a_study_model_that_the_ecu_refuses(tmp_path, capsys):
     from firmware_sim.controller_factory import model_controller_factory
     from firmware_sim.errors import ConfigError
-    from models import koopman_train
+    from models import koopman_cli
 
     rng = np.random.default_rng(3)
     t = np.arange(0, 90.0, 0.025)
@@ -315,7 +315,7 @@ def test_named_csv_trains_a_study_model_that_the_ecu_refuses(tmp_path, capsys):
     mapping = tmp_path / "map.toml"
     mapping.write_text('sample_time_s = 0.025\ntime_column = "t"\n[states]\nvx = "v"\n[inputs]\nthrottle = "thr"\n')
     out = tmp_path / "study"
-    status = koopman_train.main(["--logs", str(data), "--mapping", str(mapping), "--out", str(out),
+    status = koopman_cli.main(["--logs", str(data), "--mapping", str(mapping), "--out", str(out),
                                  "--epochs", "1", "--steps-per-epoch", "3", "--no-progress",
                                  "--speed-knots", "5,20"])
     print(capsys.readouterr().out[-600:])

@@ -67,7 +67,7 @@ def test_koopman_train_never_overwrites_an_output_without_replace(tmp_path: Path
     """``--out`` is required (no default at the committed artefact), an existing artefact
     or a ``--logs`` folder holding its outputs needs ``--replace``, and ``--out`` is never
     an input: each is one ``error:`` line, exit 2, before any training (issue 38, item 11)."""
-    from models import koopman_train
+    from models import koopman_cli
 
     data = tmp_path / "data"
     data.mkdir()
@@ -88,11 +88,11 @@ def test_koopman_train_never_overwrites_an_output_without_replace(tmp_path: Path
          f"error: --out {tmp_path / 'prior.json'}: is one of the inputs of this run ({tmp_path / 'prior.json'})"),
     ]
     for argv, message in cases:
-        assert koopman_train.main([*argv, "--no-progress"]) == 2, argv
+        assert koopman_cli.main([*argv, "--no-progress"]) == 2, argv
         assert capsys.readouterr().err.strip().startswith(message), argv
     assert existing.with_suffix(".npz").read_bytes() == b"artefact"
     assert (folder / "koopman.npz").read_bytes() == b"artefact"
-    assert koopman_train.build_parser().get_default("out") is None
+    assert koopman_cli.build_parser().get_default("out") is None
 
 
 def test_every_input_file_has_a_size_bound_checked_before_reading(tmp_path: Path, capsys) -> None:
@@ -101,7 +101,7 @@ def test_every_input_file_has_a_size_bound_checked_before_reading(tmp_path: Path
     from can_defs.dbc import load_database
     from can_defs.errors import DbcLoadError
     from firmware_sim import cli
-    from models import koopman_train
+    from models import koopman_cli
     from models.bicycle_fit import BicycleFitError, load_bicycle_params
     from models.input_files import (DBC_FILE_MAX_BYTES, LOG_FILE_MAX_BYTES, MODEL_FILE_MAX_BYTES,
                                     read_bounded)
@@ -129,7 +129,7 @@ def test_every_input_file_has_a_size_bound_checked_before_reading(tmp_path: Path
         handle.truncate(LOG_FILE_MAX_BYTES + 1)
     for source, message in ((log, f"error: {log}: larger than {LOG_FILE_MAX_BYTES} bytes"),
                             (zero, "error: /dev/zero: not a regular file")):
-        assert koopman_train.main(["--logs", str(source), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+        assert koopman_cli.main(["--logs", str(source), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
         assert capsys.readouterr().err.strip().startswith(message)
 
 

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("torch")
 
 from models.koopman import KoopmanModel  # noqa: E402
-from models.koopman_train import main  # noqa: E402
+from models.koopman_cli import main  # noqa: E402
 from test_koopman_synthetic import synthetic_runs  # noqa: E402
 
 TINY_ARGS = ["--features", "2", "--hidden", "8,8", "--seq-len", "5", "--epochs", "1", "--steps-per-epoch", "5",

@@ -10,12 +10,12 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.koopman import KoopmanError, KoopmanModel, dictionary_features, knot_weights  # noqa: E402
+from models.koopman_cli import main  # noqa: E402
 from models.koopman_metrics import Trajectory  # noqa: E402
 from models.koopman_train import (  # noqa: E402
     SequenceSet,
     TrainingSettings,
     fit_scaling,
-    main,
     settings_json,
     split_runs,
     train,
