@@ -2,10 +2,10 @@
 
 Every frame addressed to the ECU passes the `E2EMonitor` (CRC, alive counter, length,
 TICK) and `decode`; rejected frames are dropped and flagged for FAULTS bit 1. The three
-plant frames of one instant share their alive counter; a sample is assembled only when
-VEH_DYN, VEH_POSE_XY and VEH_POSE_YAW with one counter have all arrived. A counter that
-moves on before its set is complete marks the old set as torn (FAULTS bit 0) and it is
-never used.
+plant frames of one instant share their alive counter; a sample is assembled
+(`models.plant_sample.PlantSampleAssembler`, one set open at a time) only when VEH_DYN,
+VEH_POSE_XY and VEH_POSE_YAW with one counter have all arrived. A counter that moves on
+before its set is complete marks the old set as torn (FAULTS bit 0) and it is never used.
 
 A complete sample is then checked for plausibility (contract, rev. 2): ranges of VX, VY,
 YAW_RATE and YAW, and a position continuous with the last good sample (elapsed time from
@@ -27,11 +27,11 @@ from can_defs.codec import decode
 from can_defs.e2e import E2EMonitor, E2EStatus
 from can_defs.errors import CanDefsError
 from can_defs.frames import (HANDSHAKE_TICK, PLANT_SAMPLE_FRAME_IDS, TICK_STEP_MS, FrameId,
-                             PlannerReq, VehDyn, VehPoseXY, VehPoseYaw)
+                             PlannerReq)
 
 from firmware_sim.config import NS_PER_MS, Plausibility
 from firmware_sim.ratelimit import RateLimitedLog
-from models.measurement import VehicleMeasurement
+from models.plant_sample import PlantMeasurement, PlantSampleAssembler
 
 _LOG = logging.getLogger(__name__)
 
@@ -42,65 +42,12 @@ PLANT_IDS = PLANT_SAMPLE_FRAME_IDS
 
 
 @dataclass(frozen=True)
-class PlantMeasurement(VehicleMeasurement):
-    """One consistent plant sample: the eight measured signals of
-    `models.measurement.VehicleMeasurement` (SI units) and ``counter``, the alive counter
-    its three frames share."""
-
-    counter: int
-
-
-@dataclass(frozen=True)
 class PlannerRequest:
     """The newest accepted PLANNER_REQ."""
 
     engage: bool
     target_speed: float
     path_id: int
-
-
-class SampleAssembler:
-    """Collects the three plant frames of one alive counter value into one measurement."""
-
-    def __init__(self) -> None:
-        self._counter: int | None = None
-        self._parts: dict[FrameId, object] = {}
-        self._completed = False
-
-    def reset(self) -> None:
-        """Forget any partial set."""
-        self._counter = None
-        self._parts = {}
-        self._completed = False
-
-    def add(self, frame_id: FrameId, frame: object, counter: int) -> tuple[PlantMeasurement | None, bool]:
-        """Add one accepted plant frame; returns (completed measurement or None, torn).
-
-        ``torn`` is True when this frame's counter starts a new set while the previous set
-        was incomplete: that previous set is dropped.
-        """
-        torn = False
-        if counter != self._counter:
-            torn = bool(self._parts) and not self._completed
-            self._counter = counter
-            self._parts = {}
-            self._completed = False
-        if self._completed:
-            return None, torn  # late duplicate of a set already used
-        self._parts[frame_id] = frame
-        if len(self._parts) < len(PLANT_IDS):
-            return None, torn
-        self._completed = True
-        dyn = self._parts[FrameId.VEH_DYN]
-        pose_xy = self._parts[FrameId.VEH_POSE_XY]
-        pose_yaw = self._parts[FrameId.VEH_POSE_YAW]
-        assert isinstance(dyn, VehDyn) and isinstance(pose_xy, VehPoseXY) \
-            and isinstance(pose_yaw, VehPoseYaw)
-        measurement = PlantMeasurement(
-            vx=dyn.vx, vy=dyn.vy, yaw_rate=dyn.yaw_rate, x=pose_xy.pos_x, y=pose_xy.pos_y,
-            yaw=pose_yaw.yaw, steer_angle=pose_yaw.steer_angle,
-            drive_torque=pose_yaw.drive_torque, counter=counter)
-        return measurement, torn
 
 
 def implausibility(sample: PlantMeasurement, last_good: PlantMeasurement | None,
@@ -171,7 +118,7 @@ class RxState:
     def reset(self) -> None:
         """Fresh E2E receivers and no inputs (start-up and lockstep handshake)."""
         self._monitor = E2EMonitor()
-        self._assembler = SampleAssembler()
+        self._assembler = PlantSampleAssembler()
         self.newest_sample: PlantMeasurement | None = None
         self.newest_sample_arrival_ns: int | None = None
         self.newest_planner: PlannerRequest | None = None

@@ -1,14 +1,12 @@
-"""Reading recorded CAN logs of any python-can format, robustly, and their sidecar metadata.
+"""Recorded CAN logs for the HIL tools: their frames with counts, their time base, and
+their sidecar metadata.
 
-- `read_log(path)`: every frame of a log through python-can's readers (`can.LogReader`
-  picks the reader by suffix: ``.log`` candump ``-L``, ``.asc``, ``.blf``, ``.csv``,
-  ``.trc``, ... and ``.gz`` variants of these). A damaged file never raises a parser's
-  traceback: a candump line that is not a frame is skipped and counted; a reader that
-  fails in the middle of a file (truncated BLF, garbled ASC) ends the read there with a
-  warning saying how many frames were read. Only a file with no readable frame at all is
-  an error (`LogReadError`); an unknown suffix is `LogFormatError`.
-- `LogContents`: the frames plus counts (frames per contract ID, IDs outside the DBC,
-  error / remote / extended frames, skipped lines) and the warnings.
+- `read_log(path)`: every frame of a log (``can_defs.log_reader``, the project's one log
+  reader: python-can's readers, candump lines checked first, damage skipped with
+  warnings; an unknown suffix is `LogFormatError`, a file with no readable frame
+  `LogReadError`), as `LogContents`: the frames plus counts (frames per contract ID, IDs
+  outside the DBC, error / remote / CAN FD / extended frames, skipped lines) and the
+  warnings.
 - `frame_times(messages)`: the time base of a log. Lockstep logs (with HIL_SYNC) are
   timed by virtual time (`TickStamper`): an input frame belongs to the TICK of the
   HIL_SYNC that follows it (the master sends the frames due at t, then HIL_SYNC t), an
@@ -21,24 +19,20 @@
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import math
-import re
-import zlib
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path, PurePath
-from typing import Any
+from pathlib import Path
+from typing import Any, Iterator
 
 import can
 
+from can_defs import log_reader
 from can_defs.frames import HANDSHAKE_TICK, FrameId
+from can_defs.log_reader import FrameKind, LogFrames, frame_kind, is_contract_data_frame
 from hil.errors import HilError
-
-#: Suffixes python-can reads without optional packages (``.mf4`` needs asammdf), each also
-#: gzip-compressed (``.log.gz``).
-SUPPORTED_SUFFIXES: tuple[str, ...] = (".log", ".asc", ".blf", ".csv", ".db", ".trc")
 
 #: Frames the ECU sends; every other frame of a log is an input of the ECU.
 ECU_OUTPUT_IDS: frozenset[int] = frozenset(
@@ -49,16 +43,6 @@ SIDECAR_VERSION = 2
 
 #: Root of the checkout: relative paths in sidecars are relative to it.
 REPO_ROOT = Path(__file__).resolve().parent.parent
-
-# A candump -L line: "(timestamp) channel ID#DATA [R|T]", DATA in hex bytes, "R[dlc]"
-# for a remote frame, or "#F" + hex for CAN FD. Anything else in a .log is damage.
-_CANDUMP_LINE = re.compile(
-    r"^\(\d+(\.\d+)?\)\s+\S+\s+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#"
-    r"(([0-9A-Fa-f]{2})*|[Rr]\d*|#[0-9A-Fa-f]([0-9A-Fa-f]{2})*)(\s+[RTrt])?$")
-
-#: How many damaged line numbers a warning quotes.
-_QUOTED_LINES = 5
-
 
 class LogError(HilError):
     """A log file cannot be used (the message names the file and what is wrong)."""
@@ -77,22 +61,17 @@ class SidecarError(LogError):
 
 
 @dataclass
-class LogContents:
-    """Frames of one log in file order, with what reading them found.
+class LogContents(LogFrames):
+    """Frames of one log in file order (`can_defs.log_reader.LogFrames`: error, remote,
+    CAN FD and foreign frames included, so a player can put them back on a bus), with
+    counts of what they are. Only classic data frames with an 11-bit ID count per contract
+    ID or as IDs outside the DBC."""
 
-    ``messages`` holds every frame read (error, remote and foreign frames included, so a
-    player can put them back on a bus); the counts say what they are.
-    """
-
-    path: Path
-    messages: list[can.Message]
-    complete: bool = True
-    warnings: list[str] = field(default_factory=list)
-    skipped_lines: int = 0
     frames_by_id: Counter[int] = field(default_factory=Counter)
     unknown_ids: Counter[int] = field(default_factory=Counter)
     error_frames: int = 0
     remote_frames: int = 0
+    fd_frames: int = 0
     extended_frames: int = 0
     timestamps_backwards: int = 0
 
@@ -152,6 +131,7 @@ class LogContents:
                          f"({foreign})")
         for label, count in (("error frames", self.error_frames),
                              ("remote frames", self.remote_frames),
+                             ("CAN FD frames", self.fd_frames),
                              (extended_label, self.extended_frames),
                              ("damaged lines skipped", self.skipped_lines),
                              ("timestamps going backwards", self.timestamps_backwards)):
@@ -160,23 +140,21 @@ class LogContents:
         return lines
 
 
-def log_suffix(path: str | Path) -> str:
-    """Format suffix of a log path, looking through ``.gz`` (``run.log.gz`` -> ``.log``)."""
-    pure = PurePath(path)
-    suffixes = [s.lower() for s in pure.suffixes]
-    if suffixes and suffixes[-1] == ".gz":
-        return suffixes[-2] if len(suffixes) >= 2 else ""
-    return suffixes[-1] if suffixes else ""
+@contextmanager
+def _as_hil_errors() -> Iterator[None]:
+    """The log reader's errors as this package's, which the commands report."""
+    try:
+        yield
+    except log_reader.LogFormatError as error:
+        raise LogFormatError(str(error)) from error
+    except log_reader.LogFileError as error:
+        raise LogReadError(str(error)) from error
 
 
 def check_log_suffix(path: str | Path) -> str:
     """The format suffix of ``path``; `LogFormatError` when python-can has no reader for it."""
-    suffix = log_suffix(path)
-    if suffix not in SUPPORTED_SUFFIXES:
-        raise LogFormatError(
-            f"{path}: unknown log format {suffix or '(no suffix)'!r}; supported: "
-            f"{', '.join(SUPPORTED_SUFFIXES)} (optionally .gz compressed)")
-    return suffix
+    with _as_hil_errors():
+        return log_reader.check_log_suffix(path)
 
 
 def read_log(path: str | Path) -> LogContents:
@@ -184,123 +162,22 @@ def read_log(path: str | Path) -> LogContents:
 
     Raises:
         LogFormatError: the suffix names no supported format.
-        LogReadError: the file is missing or unreadable, or no frame could be read.
+        LogReadError: the file is missing, unreadable or too large, or no frame could be
+            read.
     """
-    path = Path(path)
-    suffix = check_log_suffix(path)
-    if not path.is_file():
-        raise LogReadError(f"{path}: no such log file")
-    from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
-
-    check_file_size(path, LOG_FILE_MAX_BYTES, LogReadError)   # before any reader takes it whole
-    contents = LogContents(path=path, messages=[])
-    if suffix == ".log":
-        _read_candump(path, contents)
-    else:
-        _read_with_python_can(path, contents)
-    if not contents.messages:
-        problem = "; ".join(contents.warnings) or "the file holds no frame"
-        raise LogReadError(f"{path}: no readable CAN frame ({problem})")
+    with _as_hil_errors():
+        frames = log_reader.read_log_frames(path, check_file=_check_size)
+    contents = LogContents(**{f.name: getattr(frames, f.name)
+                              for f in dataclasses.fields(LogFrames)})
     _count(contents)
     return contents
 
 
-def _open_text(path: Path) -> tuple[str, str | None]:
-    """Text of a (possibly gzip-compressed) candump file and what was wrong with the
-    compression, if anything. A truncated or damaged gzip stream yields the text that
-    decompressed before the damage."""
-    raw = path.read_bytes()
-    if path.suffix.lower() != ".gz":
-        return raw.decode("ascii", errors="replace"), None
-    inflater = zlib.decompressobj(wbits=31)  # 31: gzip header and trailer
-    chunks: list[bytes] = []
-    problem = None
-    step = 1 << 16
-    try:
-        for start in range(0, len(raw), step):
-            chunks.append(inflater.decompress(raw[start:start + step]))
-            if inflater.eof:
-                break
-        if not inflater.eof:
-            problem = "the gzip stream is truncated"
-    except zlib.error as error:
-        problem = f"the gzip stream is corrupt ({error})"
-    text = b"".join(chunks).decode("ascii", errors="replace")
-    if problem is not None and not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]  # the last line is cut: drop it
-    return text, problem
+def _check_size(path: Path) -> None:
+    """Before any reader takes the file whole."""
+    from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
 
-
-def _read_candump(path: Path, contents: LogContents) -> None:
-    """candump ``-L`` lines: keep the well-formed ones, count and quote the others, then
-    parse the kept lines with python-can's `CanutilsLogReader`."""
-    try:
-        text, problem = _open_text(path)
-    except OSError as error:
-        raise LogReadError(f"{path}: cannot read: {error}") from error
-    if problem is not None:
-        contents.complete = False
-        contents.warnings.append(f"{problem}: the frames before the damage are kept")
-    lines = text.splitlines()
-    if problem is None and lines and text and not text.endswith(("\n", "\r")):
-        # candump and python-can end every line: a last line without its end was cut
-        # while being written, and may still look like a (shorter) frame.
-        contents.complete = False
-        contents.warnings.append(f"the last line ({len(lines)}) is incomplete (no line end): "
-                                 "dropped; the file was cut while being written")
-        lines.pop()
-    good: list[str] = []
-    damaged: list[int] = []
-    for number, line in enumerate(lines, start=1):
-        stripped = line.strip()
-        if not stripped:
-            continue
-        if _CANDUMP_LINE.match(stripped):
-            good.append(stripped)
-        else:
-            damaged.append(number)
-    if damaged:
-        contents.skipped_lines = len(damaged)
-        quoted = ", ".join(str(n) for n in damaged[:_QUOTED_LINES])
-        more = "" if len(damaged) <= _QUOTED_LINES else f", ... ({len(damaged)} in all)"
-        contents.warnings.append(f"{len(damaged)} line(s) that are not candump frames were "
-                                 f"skipped: line {quoted}{more}")
-        contents.complete = False
-    reader = can.CanutilsLogReader(io.StringIO("\n".join(good)))
-    _drain(reader, contents, path)
-
-
-def _read_with_python_can(path: Path, contents: LogContents) -> None:
-    try:
-        reader = can.LogReader(path)
-    except (OSError, ValueError, EOFError) as error:
-        raise LogReadError(f"{path}: cannot open: {error}") from error
-    except Exception as error:  # noqa: BLE001 - a reader's own parse error on the header
-        raise LogReadError(f"{path}: not a readable {log_suffix(path)} log: "
-                           f"{type(error).__name__}: {error}") from error
-    _drain(reader, contents, path)
-
-
-def _drain(reader: Any, contents: LogContents, path: Path) -> None:
-    """Iterate a python-can reader to its end or to its first failure.
-
-    The readers are third-party parsers of untrusted files and raise whatever their
-    parsing hits (ValueError, struct.error, zlib.error, IndexError, their own errors); any
-    of these ends the read with the frames so far and a warning.
-    """
-    try:
-        for message in reader:
-            contents.messages.append(message)
-    except Exception as error:  # noqa: BLE001 - see the docstring
-        contents.complete = False
-        contents.warnings.append(
-            f"reading stopped after {len(contents.messages)} frame(s): the file is truncated "
-            f"or corrupt ({type(error).__name__}: {error})")
-    finally:
-        try:
-            reader.stop()
-        except Exception:  # noqa: BLE001 - closing a damaged file is best effort
-            pass
+    check_file_size(path, LOG_FILE_MAX_BYTES, LogReadError)
 
 
 def _count(contents: LogContents) -> None:
@@ -310,10 +187,13 @@ def _count(contents: LogContents) -> None:
         if message.timestamp < previous:
             contents.timestamps_backwards += 1
         previous = message.timestamp
-        if message.is_error_frame:
+        kind = frame_kind(message)
+        if kind is FrameKind.ERROR:
             contents.error_frames += 1
-        elif message.is_remote_frame:
+        elif kind is FrameKind.REMOTE:
             contents.remote_frames += 1
+        elif kind is FrameKind.FD:
+            contents.fd_frames += 1
         elif message.is_extended_id:
             contents.extended_frames += 1
         elif message.arbitration_id in known:
@@ -335,11 +215,6 @@ def dbc_message(database: Any, message: can.Message) -> Any:
     except KeyError:
         return None
     return found if bool(found.is_extended_frame) == bool(message.is_extended_id) else None
-
-
-def is_contract_data_frame(message: can.Message) -> bool:
-    """An 11-bit data frame (not error, not remote)."""
-    return not (message.is_error_frame or message.is_remote_frame or message.is_extended_id)
 
 
 def sync_tick(message: can.Message) -> int | None:

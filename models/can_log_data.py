@@ -3,18 +3,20 @@
 ``load_logs(files)`` turns recordings of any vehicle or plant that speaks the contract
 into equally spaced trajectories for ``models.koopman_train`` and ``models.bicycle_fit``:
 
-1. Frames: candump files (``.log``, ``.log.gz``; ``(time) channel ID#DATA`` lines) are
-   parsed here; the other formats python-can reads without extra packages (``.asc``,
-   ``.blf``, ``.csv``, ``.db``, ``.trc`` and their ``.gz`` forms) through
-   ``can.LogReader``. python-can is imported only inside that reader (build time; the run
-   time of this package never touches it). A damaged file ends its read with a warning.
-   A ``.csv`` whose header is not python-can's is a named-column data file
-   (`models.named_csv_data`), not a CAN log.
+1. Frames: the project's one log reader, ``can_defs.log_reader`` (candump ``.log`` and
+   the other formats python-can reads without extra packages, ``.asc``, ``.blf``,
+   ``.csv``, ``.db``, ``.trc``, each also ``.gz``), the same frames the HIL tools see.
+   python-can is imported only inside that reader (build time; the run time of this
+   package never touches it). Damage (lines that are not frames, a truncated file) is
+   left out with a warning. A ``.csv`` whose header is not python-can's is a
+   named-column data file (`models.named_csv_data`), not a CAN log. Only classic data
+   frames with an 11-bit ID (``is_contract_data_frame``) can be the contract's.
 2. Decoding with the DBC (``can_defs.codec``; ``--dbc`` another one) and the E2E checks of
    the contract (``can_defs.e2e.E2EMonitor``: CRC, alive counter); only accepted frames
    are used, the others are counted.
 3. Samples: VEH_DYN, VEH_POSE_XY and VEH_POSE_YAW with one counter value form a consistent
-   sample (a torn one is dropped and counted). State [vx, vy, yaw_rate] from VEH_DYN and
+   sample (`models.plant_sample`, the ECU's assembler in its mode for recorded logs; a
+   torn one is dropped and counted). State [vx, vy, yaw_rate] from VEH_DYN and
    the measured wheel angle (``steer_measured``) from VEH_POSE_YAW; input [torque, steer]
    from STEER_TORQUE_CMD frames with CMD_VALID = 1, or (``inputs="measured"``) the
    measured DRIVE_TORQUE and STEER_ANGLE of VEH_POSE_YAW.
@@ -36,14 +38,11 @@ minute of usable data in all. Partial data are used, with warnings that give the
 """
 from __future__ import annotations
 
-import gzip
-import io
 import math
-import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
@@ -51,14 +50,16 @@ from can_defs.codec import decode, prepare
 from can_defs.e2e import E2EMonitor
 from can_defs.errors import CanDefsError
 from can_defs.frames import HANDSHAKE_TICK, FrameId
+from can_defs.log_reader import (PYTHON_CAN_CSV_HEADER, LogFileError, csv_header,
+                                 is_contract_data_frame, is_python_can_csv, log_suffix,
+                                 read_log_frames)
 from models.errors import ModelError
 from models.input_files import LOG_FILE_MAX_BYTES, check_file_size
 from models.koopman_metrics import Trajectory
+from models.plant_sample import PlantSampleAssembler
 
-#: Suffixes read as CAN logs (each also as ``<suffix>.gz``).
-LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".db", ".trc")
-#: The header python-can writes to a CSV log (``can.CSVWriter``).
-PYTHON_CAN_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
+if TYPE_CHECKING:
+    import can
 STATES = ("vx", "vy", "yaw_rate", "steer_measured")
 MEASURED_INPUT_STATES = ("vx", "vy", "yaw_rate")
 INPUTS = ("torque", "steer")
@@ -77,22 +78,10 @@ MIN_SEGMENT_S = 2.0
 PIECE_S = 30.0
 MIN_PIECE_S = 5.0
 _PLANT_IDS = (int(FrameId.VEH_DYN), int(FrameId.VEH_POSE_XY), int(FrameId.VEH_POSE_YAW))
-_CANDUMP_LINE = re.compile(r"^\((\d+(?:\.\d+)?)\)\s+\S+\s+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#([0-9A-Fa-f]*)(?:\s+[RTrt])?$")
 
 
 class LogDataError(ModelError):
     """A log cannot give training data; the message names the file and what is missing."""
-
-
-@dataclass(frozen=True)
-class RawFrame:
-    """One frame of a log: timestamp (s), identifier, payload, and whether it is a classic
-    CAN data frame with an 11-bit identifier (only those are contract frames)."""
-
-    timestamp: float
-    arbitration_id: int
-    data: bytes
-    classic: bool = True
 
 
 @dataclass
@@ -147,100 +136,30 @@ class LogDataset:
 
 
 # ---------------------------------------------------------------- reading frames
-def _base_suffix(path: Path) -> str:
-    suffixes = [s.lower() for s in path.suffixes]
-    if suffixes and suffixes[-1] == ".gz":
-        suffixes = suffixes[:-1]
-    return suffixes[-1] if suffixes else ""
-
-
-def _open_text(path: Path) -> str:
-    raw = path.read_bytes()
-    if path.suffix.lower() == ".gz":
-        raw = gzip.decompress(raw)
-    return raw.decode("ascii", errors="replace")
-
-
-def csv_header(path: Path) -> str:
-    """First line of a (possibly gzip-compressed) CSV, stripped."""
-    opener = gzip.open if path.suffix.lower() == ".gz" else open
-    with opener(path, "rt", encoding="utf-8", errors="replace") as handle:  # type: ignore[operator]
-        return handle.readline().strip()
-
-
-def is_python_can_csv(path: Path) -> bool:
-    """A python-can CSV log (its fixed header), as opposed to a named-column data CSV."""
-    return csv_header(path).replace(" ", "") == PYTHON_CAN_CSV_HEADER
-
-
-def _read_candump(path: Path) -> tuple[list[RawFrame], str | None]:
-    frames: list[RawFrame] = []
-    skipped = 0
-    for line in _open_text(path).splitlines():
-        match = _CANDUMP_LINE.match(line.strip())
-        if match is None:
-            skipped += bool(line.strip())
-            continue
-        identifier, payload = match.group(2), match.group(3)
-        if len(payload) % 2:
-            skipped += 1
-            continue
-        frames.append(RawFrame(float(match.group(1)), int(identifier, 16), bytes.fromhex(payload),
-                               classic=len(identifier) == 3))
-    warning = f"{skipped} line(s) that are not candump data frames skipped" if skipped else None
-    return frames, warning
-
-
-def _read_python_can(path: Path) -> tuple[list[RawFrame], str | None]:
-    import can  # build-time reader only (docs/identification.md); never the ECU's run time
-
-    frames: list[RawFrame] = []
-    warning = None
-    try:
-        reader = can.LogReader(path)
-    except Exception as error:  # noqa: BLE001 - third-party parsers raise anything
-        raise LogDataError(f"{path}: not a readable {_base_suffix(path)} log: {error}") from error
-    try:
-        for message in reader:
-            frames.append(RawFrame(
-                float(message.timestamp), int(message.arbitration_id), bytes(message.data),
-                classic=not (message.is_extended_id or message.is_remote_frame
-                             or message.is_error_frame or getattr(message, "is_fd", False))))
-    except Exception as error:  # noqa: BLE001 - a damaged file ends the read, frames kept
-        warning = f"reading stopped after {len(frames)} frames ({type(error).__name__}: {error})"
-    finally:
-        try:
-            reader.stop()
-        except Exception:  # noqa: BLE001 - closing a damaged file is best effort
-            pass
-    return frames, warning
-
-
-def read_frames(path: str | Path) -> tuple[list[RawFrame], str | None]:
-    """Every frame of a CAN log and a warning if the read stopped early.
+def read_frames(path: str | Path) -> tuple[list[can.Message], str | None]:
+    """Every frame of a CAN log (``can_defs.log_reader``) and a warning when frames were
+    left out (damaged lines, a read that stopped early).
 
     Raises:
         LogDataError: missing file, unsupported suffix, a named-column CSV, no frame.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise LogDataError(f"{path}: log file not found")
-    check_file_size(path, LOG_FILE_MAX_BYTES, LogDataError)   # before any reader takes it whole
-    suffix = _base_suffix(path)
-    if suffix not in LOG_SUFFIXES:
-        raise LogDataError(f"{path}: unsupported log format {suffix or '(none)'}; readable: "
-                           f"{', '.join(LOG_SUFFIXES)} and their .gz forms")
     try:
-        if suffix == ".csv" and not is_python_can_csv(path):
+        log = read_log_frames(path, check_file=_refuse_unusable)
+    except LogFileError as error:
+        raise LogDataError(str(error)) from error
+    return log.messages, "; ".join(log.warnings) or None
+
+
+def _refuse_unusable(path: Path) -> None:
+    """Before a reader takes the file: one too large, or a CSV that is not a CAN log."""
+    check_file_size(path, LOG_FILE_MAX_BYTES, LogDataError)
+    try:
+        if log_suffix(path) == ".csv" and not is_python_can_csv(path):
             raise LogDataError(f"{path}: a named-column CSV (header {csv_header(path)[:60]!r}), not a "
                                f"python-can CSV log (header {PYTHON_CAN_CSV_HEADER}): give it "
                                "with a --mapping TOML")
-        frames, warning = _read_candump(path) if suffix == ".log" else _read_python_can(path)
-    except (OSError, EOFError, gzip.BadGzipFile) as error:
+    except OSError as error:
         raise LogDataError(f"{path}: cannot read: {error}") from error
-    if not frames:
-        raise LogDataError(f"{path}: no CAN frame in the file")
-    return frames, warning
 
 
 # ---------------------------------------------------------------- decoding and time base
@@ -279,10 +198,11 @@ class _CounterClock:
         return time
 
 
-def _decode_streams(frames: Sequence[RawFrame], counts: LogCounts) -> list[_Streams]:
+def _decode_streams(frames: Sequence[can.Message], counts: LogCounts) -> list[_Streams]:
     """Accepted samples and commands with their times, one `_Streams` per stretch of
     continuous time (a handshake in a lockstep log starts a new one)."""
-    lockstep = any(f.arbitration_id == FrameId.HIL_SYNC and f.classic for f in frames)
+    lockstep = any(f.arbitration_id == FrameId.HIL_SYNC and is_contract_data_frame(f)
+                   for f in frames)
     counts.time_base = ("HIL_SYNC TICK (lockstep log)" if lockstep
                         else "alive counters (10 ms plant, 25 ms command)")
     monitor = E2EMonitor()
@@ -292,37 +212,29 @@ def _decode_streams(frames: Sequence[RawFrame], counts: LogCounts) -> list[_Stre
     first_stamp = frames[0].timestamp if frames else 0.0
     last_tick: int | None = None
     pending_plant: list[tuple[int, Any, int]] = []  # (id, frame, counter) waiting for a TICK
-    partial: dict[int, dict[int, Any]] = {}  # counter -> {id: frame}
-    partial_time: dict[int, float] = {}
+    assembler = PlantSampleAssembler(interleaved=True)
 
     def add_plant(frame_id: int, frame: Any, counter: int, time: float | None) -> None:
-        group = partial.setdefault(counter, {})
-        if frame_id in group or (counter in partial_time and time is not None
-                                 and abs(time - partial_time[counter]) > 0.08):
-            counts.torn_samples += 1 if group else 0  # a set that never completed
-            group.clear()
-            partial_time.pop(counter, None)
-        group[frame_id] = frame
-        if time is not None:
-            partial_time[counter] = time
-        if len(group) == 3 and counter in partial_time:
-            dyn, pose = group[int(FrameId.VEH_DYN)], group[int(FrameId.VEH_POSE_YAW)]
-            stretches[-1].sample_time.append(partial_time.pop(counter))
-            stretches[-1].sample.append((dyn.vx, dyn.vy, dyn.yaw_rate, pose.steer_angle, pose.drive_torque))
+        sample, torn = assembler.add(frame_id, frame, counter, time)
+        counts.torn_samples += torn  # a set that never completed
+        if sample is not None:
+            stretches[-1].sample_time.append(assembler.sample_time)
+            stretches[-1].sample.append((sample.vx, sample.vy, sample.yaw_rate,
+                                         sample.steer_angle, sample.drive_torque))
             counts.samples += 1
-            group.clear()
 
     for raw in frames:
         counts.frames += 1
-        if not raw.classic or raw.arbitration_id not in {int(f) for f in FrameId}:
+        if not is_contract_data_frame(raw) or raw.arbitration_id not in {int(f) for f in FrameId}:
             counts.not_contract += 1
             continue
-        verdict = monitor.check(raw.arbitration_id, raw.data)
+        payload = bytes(raw.data)
+        verdict = monitor.check(raw.arbitration_id, payload)
         if not verdict.accepted:
             counts.e2e_rejected[verdict.status.name] += 1
             continue
         try:
-            decoded = decode(raw.arbitration_id, raw.data)
+            decoded = decode(raw.arbitration_id, payload)
         except CanDefsError:
             counts.e2e_rejected["UNDECODABLE"] += 1
             continue
@@ -334,8 +246,7 @@ def _decode_streams(frames: Sequence[RawFrame], counts: LogCounts) -> list[_Stre
                     stretches.append(_Streams())
                 last_tick = None
                 pending_plant.clear()
-                partial.clear()
-                partial_time.clear()
+                assembler.reset()
                 continue
             last_tick = tick
             for pending_id, pending_frame, pending_counter in pending_plant:

@@ -15,9 +15,9 @@ from firmware_sim.clock import HANDSHAKE_TICK, LockstepClock, RealtimeSchedule, 
 from firmware_sim.config import EcuConfig
 from firmware_sim.errors import ConfigError
 from firmware_sim.guard import GuardLimits, guard_command
-from firmware_sim.rx import SampleAssembler
 from firmware_sim.safe_stop import safe_stop_command
 from firmware_sim.timing import TIMING_FIELDS, TimingRecorder
+from models.plant_sample import PlantSampleAssembler
 
 
 # ------------------------------------------------------------------ dead reckoning
@@ -194,7 +194,7 @@ def test_timing_record_allocates_nothing_per_cycle():
 
 # ------------------------------------------------------------------ sample assembly
 def test_sample_assembler_needs_all_three_frames_with_one_counter():
-    assembler = SampleAssembler()
+    assembler = PlantSampleAssembler()
     dyn, xy, yaw = VehDyn(10.0, 0.1, 0.01), VehPoseXY(1.0, 2.0), VehPoseYaw(0.1, 0.02, 50.0)
     assert assembler.add(FrameId.VEH_DYN, dyn, 3) == (None, False)
     assert assembler.add(FrameId.VEH_POSE_XY, xy, 3) == (None, False)

@@ -1,0 +1,300 @@
+"""Reading recorded CAN logs: every frame of a log of any format python-can reads.
+
+The one reader of log files for the tools above it (``hil.logio`` for replay, decode and
+play; ``models.can_log_data`` for identification), so that both see the same frames:
+
+- `read_log_frames(path)`: the frames in file order (`LogFrames`) through python-can's
+  readers (``can.LogReader`` picks one by suffix: ``.asc``, ``.blf``, ``.csv``, ``.db``,
+  ``.trc`` and their ``.gz`` forms). Candump ``-L`` files (``.log``, ``.log.gz``) are
+  checked line by line first (`CANDUMP_LINE`): a line that is not a frame is skipped,
+  counted and quoted, and only the good lines go to python-can's ``CanutilsLogReader``.
+- Damage never raises a parser's traceback: a truncated or corrupt gzip stream keeps the
+  text before the damage; a last candump line without its line end (a recorder killed
+  mid-write) is dropped; a reader that fails in the middle of a file ends the read there.
+  Each case is a warning and marks the read incomplete. Only an unknown suffix
+  (`LogFormatError`) or a missing, unreadable or frameless file (`LogReadError`) is an
+  error.
+- `frame_kind(message)`: data / CAN FD / remote / error, the one test of what a frame is;
+  `is_contract_data_frame`: the only kind the contract's frames are (classic CAN data
+  frame, 11-bit ID).
+
+python-can is imported inside the readers only: importing this module costs nothing, and
+the packages that use it keep python-can out of their run time.
+"""
+from __future__ import annotations
+
+import enum
+import io
+import re
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path, PurePath
+from typing import TYPE_CHECKING, Any, Callable
+
+from can_defs.errors import CanDefsError
+
+if TYPE_CHECKING:
+    import can
+
+#: Suffixes python-can reads without optional packages (``.mf4`` needs asammdf), each also
+#: gzip-compressed (``.log.gz``).
+SUPPORTED_SUFFIXES: tuple[str, ...] = (".log", ".asc", ".blf", ".csv", ".db", ".trc")
+
+#: The header python-can writes to a CSV log (``can.CSVWriter``).
+PYTHON_CAN_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
+
+#: A candump -L line: "(timestamp) channel ID#DATA [R|T]", DATA in hex bytes, "R[dlc]"
+#: for a remote frame, or "#" + flags nibble + hex bytes for CAN FD. Anything else in a
+#: ``.log`` is damage.
+CANDUMP_LINE = re.compile(
+    r"^\(\d+(\.\d+)?\)\s+\S+\s+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#"
+    r"(([0-9A-Fa-f]{2})*|[Rr]\d*|#[0-9A-Fa-f]([0-9A-Fa-f]{2})*)(\s+[RTrt])?$")
+
+#: How many damaged line numbers a warning quotes.
+_QUOTED_LINES = 5
+
+#: Compressed bytes inflated per step: a damaged stream fails at the step that holds the
+#: damage, and the text of the steps before it is kept.
+_INFLATE_STEP = 1 << 16
+
+#: Bytes read for a CSV header: a header line is far shorter.
+_HEADER_BYTES = 1 << 16
+
+
+class LogFileError(CanDefsError):
+    """A log file cannot be used (the message names the file and what is wrong)."""
+
+
+class LogFormatError(LogFileError):
+    """The file suffix names no log format python-can reads."""
+
+
+class LogReadError(LogFileError):
+    """The log is missing, unreadable, or holds no readable frame."""
+
+
+class FrameKind(enum.Enum):
+    """What a frame of a log is."""
+
+    DATA = "data"        # classic CAN data frame (8 bytes at most)
+    FD = "fd"            # CAN FD data frame
+    REMOTE = "remote"    # remote request: an ID, no data
+    ERROR = "error"      # error frame: neither ID nor data
+
+
+def frame_kind(message: can.Message) -> FrameKind:
+    """The kind of a python-can message (an error frame first: its other flags mean nothing)."""
+    if message.is_error_frame:
+        return FrameKind.ERROR
+    if message.is_remote_frame:
+        return FrameKind.REMOTE
+    if message.is_fd:
+        return FrameKind.FD
+    return FrameKind.DATA
+
+
+def is_contract_data_frame(message: can.Message) -> bool:
+    """A classic CAN data frame with an 11-bit ID: the only kind the contract's frames are."""
+    return frame_kind(message) is FrameKind.DATA and not message.is_extended_id
+
+
+@dataclass
+class LogFrames:
+    """Frames of one log in file order and what reading them found.
+
+    ``messages`` holds every frame read (error, remote, CAN FD and foreign frames
+    included); ``complete`` is False when anything was skipped or the read stopped early,
+    and ``warnings`` say what (one sentence each, without the file name).
+    """
+
+    path: Path
+    messages: list[can.Message]
+    complete: bool = True
+    warnings: list[str] = field(default_factory=list)
+    skipped_lines: int = 0
+
+    def damaged(self, warning: str) -> None:
+        """Record what was lost: the read is incomplete."""
+        self.complete = False
+        self.warnings.append(warning)
+
+
+def log_suffix(path: str | Path) -> str:
+    """Format suffix of a log path, looking through ``.gz`` (``run.log.gz`` -> ``.log``)."""
+    suffixes = [s.lower() for s in PurePath(path).suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        return suffixes[-2] if len(suffixes) >= 2 else ""
+    return suffixes[-1] if suffixes else ""
+
+
+def check_log_suffix(path: str | Path) -> str:
+    """The format suffix of ``path``; `LogFormatError` when python-can has no reader for it."""
+    suffix = log_suffix(path)
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise LogFormatError(
+            f"{path}: unknown log format {suffix or '(no suffix)'!r}; supported: "
+            f"{', '.join(SUPPORTED_SUFFIXES)} (optionally .gz compressed)")
+    return suffix
+
+
+def read_log_frames(path: str | Path,
+                    check_file: Callable[[Path], None] | None = None) -> LogFrames:
+    """Every frame of a log, with warnings (see the module docstring).
+
+    Args:
+        path: the log file.
+        check_file: called with the path of an existing log before any reader opens it:
+            the caller's own refusals (a bound on the size, before a reader takes the file
+            whole), raising the caller's error.
+
+    Raises:
+        LogFormatError: the suffix names no supported format.
+        LogReadError: the file is missing or unreadable, or no frame could be read.
+    """
+    path = Path(path)
+    suffix = check_log_suffix(path)
+    if not path.is_file():
+        raise LogReadError(f"{path}: no such log file")
+    if check_file is not None:
+        check_file(path)
+    frames = LogFrames(path=path, messages=[])
+    if suffix == ".log":
+        _read_candump(frames)
+    else:
+        _read_with_python_can(frames)
+    if not frames.messages:
+        problem = "; ".join(frames.warnings) or "the file holds no frame"
+        raise LogReadError(f"{path}: no readable CAN frame ({problem})")
+    return frames
+
+
+def _inflate(raw: bytes) -> tuple[bytes, str | None]:
+    """Decompress a gzip stream as far as it goes: the bytes, and what was wrong with the
+    stream (None when it was whole)."""
+    inflater = zlib.decompressobj(wbits=31)  # 31: gzip header and trailer
+    chunks: list[bytes] = []
+    problem = None
+    try:
+        for start in range(0, len(raw), _INFLATE_STEP):
+            chunks.append(inflater.decompress(raw[start:start + _INFLATE_STEP]))
+            if inflater.eof:
+                break
+        if not inflater.eof:
+            problem = "the gzip stream is truncated"
+    except zlib.error as error:
+        problem = f"the gzip stream is corrupt ({error})"
+    return b"".join(chunks), problem
+
+
+def _is_gzip(path: Path) -> bool:
+    return path.suffix.lower() == ".gz"
+
+
+def read_log_text(path: Path) -> tuple[str, str | None]:
+    """Text of a (possibly gzip-compressed) text log and what was wrong with the
+    compression, if anything. A truncated or damaged gzip stream yields the text that
+    decompressed before the damage, up to its last whole line.
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    raw = path.read_bytes()
+    if not _is_gzip(path):
+        return raw.decode("ascii", errors="replace"), None
+    inflated, problem = _inflate(raw)
+    text = inflated.decode("ascii", errors="replace")
+    if problem is not None and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]  # the last line is cut: drop it
+    return text, problem
+
+
+def csv_header(path: Path) -> str:
+    """First line of a (possibly gzip-compressed) CSV, stripped.
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    with open(path, "rb") as handle:
+        raw = handle.read(_HEADER_BYTES)
+    if _is_gzip(path):
+        raw, _ = _inflate(raw)  # only the head was read: the stream is "truncated"
+    first = raw.decode("utf-8", errors="replace").split("\n", 1)[0].split("\r", 1)[0]
+    return first.strip()
+
+
+def is_python_can_csv(path: Path) -> bool:
+    """A python-can CSV log (its fixed header), as opposed to a named-column data CSV."""
+    return csv_header(path).replace(" ", "") == PYTHON_CAN_CSV_HEADER
+
+
+def _read_candump(frames: LogFrames) -> None:
+    """candump ``-L`` lines: keep the well-formed ones, count and quote the others, then
+    parse the kept lines with python-can's ``CanutilsLogReader``."""
+    import can
+
+    path = frames.path
+    try:
+        text, problem = read_log_text(path)
+    except OSError as error:
+        raise LogReadError(f"{path}: cannot read: {error}") from error
+    if problem is not None:
+        frames.damaged(f"{problem}: the frames before the damage are kept")
+    lines = text.splitlines()
+    if problem is None and lines and text and not text.endswith(("\n", "\r")):
+        # candump and python-can end every line: a last line without its end was cut
+        # while being written, and may still look like a (shorter) frame.
+        frames.damaged(f"the last line ({len(lines)}) is incomplete (no line end): "
+                       "dropped; the file was cut while being written")
+        lines.pop()
+    good: list[str] = []
+    damaged: list[int] = []
+    for number, line in enumerate(lines, start=1):
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if CANDUMP_LINE.match(stripped):
+            good.append(stripped)
+        else:
+            damaged.append(number)
+    if damaged:
+        frames.skipped_lines = len(damaged)
+        quoted = ", ".join(str(n) for n in damaged[:_QUOTED_LINES])
+        more = "" if len(damaged) <= _QUOTED_LINES else f", ... ({len(damaged)} in all)"
+        frames.damaged(f"{len(damaged)} line(s) that are not candump frames were "
+                       f"skipped: line {quoted}{more}")
+    _drain(can.CanutilsLogReader(io.StringIO("\n".join(good))), frames)
+
+
+def _read_with_python_can(frames: LogFrames) -> None:
+    import can
+
+    path = frames.path
+    try:
+        reader = can.LogReader(path)
+    except (OSError, ValueError, EOFError) as error:
+        raise LogReadError(f"{path}: cannot open: {error}") from error
+    except Exception as error:  # noqa: BLE001 - a reader's own parse error on the header
+        raise LogReadError(f"{path}: not a readable {log_suffix(path)} log: "
+                           f"{type(error).__name__}: {error}") from error
+    _drain(reader, frames)
+
+
+def _drain(reader: Any, frames: LogFrames) -> None:
+    """Iterate a python-can reader to its end or to its first failure.
+
+    The readers are third-party parsers of untrusted files and raise whatever their
+    parsing hits (ValueError, struct.error, zlib.error, IndexError, their own errors); any
+    of these ends the read with the frames so far and a warning.
+    """
+    try:
+        for message in reader:
+            frames.messages.append(message)
+    except Exception as error:  # noqa: BLE001 - see the docstring
+        frames.damaged(
+            f"reading stopped after {len(frames.messages)} frame(s): the file is truncated "
+            f"or corrupt ({type(error).__name__}: {error})")
+    finally:
+        try:
+            reader.stop()
+        except Exception:  # noqa: BLE001 - closing a damaged file is best effort
+            pass
