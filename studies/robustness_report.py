@@ -14,7 +14,7 @@ import numpy as np
 
 from studies.machine import machine_description
 from studies.robustness_cells import MANOEUVRES, MARGIN_S, SETTLE_M
-from studies.robustness_runs import CSV_FIELDS, LEAVE_ROAD_M, ROOT, RunRecord
+from studies.robustness_records import CSV_FIELDS, LEAVE_ROAD_M, ROOT, RunRecord
 from studies.robustness_summary import GridSummary, by_cell, summarise
 
 
@@ -130,7 +130,7 @@ def inputs_note(root: Path = ROOT) -> str:
 
 
 def report_markdown(records: Sequence[RunRecord], summary: GridSummary, *, command: str,
-                    workers: int, inputs: str) -> str:
+                    inputs: str) -> str:
     """``robustness.md``."""
     from studies.report import display_name
 
@@ -145,7 +145,8 @@ def report_markdown(records: Sequence[RunRecord], summary: GridSummary, *, comma
         "# Robustness grid on our plant (`make robustness`)",
         "",
         f"`{command}`: every controller in closed loop with the four-wheel plant "
-        "(`studies.closed_loop`, no CAN) on every cell of the grid; see docs/robustness.md.",
+        "(`studies.closed_loop`, no CAN) on every cell of the grid, run by the campaign engine "
+        "(`python -m studies.campaign`, runner `closed_loop`); see docs/robustness.md.",
         "",
         "- Grid: " + "; ".join(f"{axis} {' / '.join(f'{v:g}' if isinstance(v, float) else v for v in values)}"
                                  for axis, values in axes.items())
@@ -154,8 +155,8 @@ def report_markdown(records: Sequence[RunRecord], summary: GridSummary, *, comma
         f"(end of the course + {SETTLE_M:g} m) / speed + {MARGIN_S:g} s; it is completed when "
         f"the runner does not stop it and max |e_Y| <= {LEAVE_ROAD_M:g} m (the road).",
         f"- Inputs: {inputs}.",
-        f"- Machine: {machine_description()}; {workers} worker process(es); the runs took "
-        f"{run_seconds / 60:.1f} min of worker time in all (cached runs count their own run).",
+        f"- Machine: {machine_description()}; the runs took {run_seconds / 60:.1f} min of worker "
+        "time in all (cached runs count their own run).",
         "",
         f"## (a) Per controller, over the {len(summary.common_cells)} cells every controller completed",
         "",
@@ -277,13 +278,13 @@ def plot_heatmaps(records: Sequence[RunRecord], controllers: Sequence[str], file
 
 
 def write_outputs(records: Sequence[RunRecord], controllers: Sequence[str], out: Path, *,
-                  command: str, workers: int) -> GridSummary:
+                  command: str) -> GridSummary:
     """Write ``robustness.md``, ``.csv`` and ``.png`` into ``out``; return the summary."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(records, controllers)
     write_csv(records, out / "robustness.csv")
     (out / "robustness.md").write_text(report_markdown(
-        records, summary, command=command, workers=workers, inputs=inputs_note()))
+        records, summary, command=command, inputs=inputs_note()))
     plot_heatmaps(records, controllers, out / "robustness.png")
     return summary
 

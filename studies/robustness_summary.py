@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from studies.robustness_cells import MANOEUVRES, Cell
-from studies.robustness_runs import RunRecord
+from studies.robustness_records import RunRecord
 
 @dataclass(frozen=True)
 class ControllerSummary:

@@ -1,7 +1,8 @@
 """One campaign cell: one lockstep run on the virtual bus through ``hil.session.run_hil``,
 the same code path as ``python -m hil run --faults [--ecu c]``: the Python ECU in-process,
 or the C ECU executable (``build/firmware/ecu``) as a process on the run's own loopback
-socketcand hub.
+socketcand hub; or, on the ``closed_loop`` runner, one run without CAN
+(``studies.campaign.closed_loop_cell``, which says what its row's fields mean there).
 
 :func:`run_cell` runs in a Ray worker (or in-process with ``--serial``); it takes a
 :class:`CellJob` (plain data, so it pickles to any worker) and never raises for a failure
@@ -35,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from studies.campaign.closed_loop_cell import CLOSED_LOOP_RUNNER, run_closed_loop_cell
+
 #: |e_Y| above this (m) is off the road: the cell is not completed.
 LEAVE_ROAD_M = 2.0
 ROOT = Path(__file__).resolve().parent.parent.parent
@@ -51,7 +54,8 @@ class CellJob:
     ``path.file`` relative to the repository root (``{ROOT}/`` prefix), so the job is the
     same on any node with a checkout; ``model``: artefact path relative to the root, or
     None for the controllers' default; ``ecu``: "python" or "c" (``hil.session.RunOptions.ecu``);
-    ``keep_trace``: add the e_Y trace to the row (``trace``, see the module docstring).
+    ``keep_trace``: add the e_Y trace to the row (``trace``, see the module docstring);
+    ``runner``: "hil" (over CAN) or "closed_loop" (without CAN).
     """
 
     key: str
@@ -60,6 +64,7 @@ class CellJob:
     model: str | None = None
     ecu: str = "python"
     keep_trace: bool = False
+    runner: str = "hil"
 
 
 def model_factory(artefact: Path) -> Any:
@@ -101,6 +106,11 @@ def run_cell(job: CellJob) -> dict[str, Any]:
             file = Path(folder) / "scenario.toml"
             file.write_text(job.scenario_toml.replace("{ROOT}", str(ROOT)), encoding="utf-8")
             scenario = Scenario.load(file)
+        if job.runner == CLOSED_LOOP_RUNNER:
+            run_closed_loop_cell(scenario, job.controller, ROOT / job.model if job.model else None,
+                                 row, LEAVE_ROAD_M)
+            row["wall_s"] = time.perf_counter() - started
+            return row
         bus = BusConfig("virtual", private_virtual_channel())
         if job.ecu == "c":
             # the executable reads another model as its data file (``--model`` of hil run);

@@ -20,6 +20,7 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     seed = [0, 1]                               # seed of the random faults
     ecu = ["python", "c"]                       # the Python ECU in-process, the C executable
     disturbance = ["none", "wind"]              # "none" or a [disturbances.NAME] table
+    runner = ["hil", "closed_loop"]             # over CAN (default), or without CAN
 
     [[exclude]]                  # a cell matching every key of one table is dropped
     controller = "nmpc"
@@ -27,6 +28,7 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
 
     [run]
     distance_m = 110.0           # cells at a constant speed run this far (+ margin_s);
+                                 # or a table by scenario: { dlc_high_mu = 110.0, slalom = 204.0 }
     margin_s = 1.0               # without it a cell keeps its scenario's duration
     keep_trace = false           # true: each row also has the run's e_Y trace (cell.py)
 
@@ -47,6 +49,13 @@ process on a loopback socketcand hub, as ``hil run --ecu c``). A C cell the C EC
 run is left out, not an error (:func:`c_ecu_unavailable`: a controller it does not have,
 NMPC and the ablations; a fault sending frame kinds its hub cannot carry), and counted
 per reason in ``Grid.c_left_out``.
+
+The ``runner`` axis (default ``["hil"]``) runs a cell over CAN in lockstep
+(``hil.session.run_hil``, either ECU) or, with ``closed_loop``, the controller and the plant
+in one loop without CAN (``studies.campaign.closed_loop_cell``: the runner of ``make
+tables``, for grids too large for the bus). A ``closed_loop`` cell takes no fault (no bus
+carries frames there; the lag, mass, friction and disturbance axes act on the plant) and
+no C ECU (left out as a C cell the C ECU cannot run).
 
 Each cell becomes one scenario TOML (:func:`scenario_document`): the base scenario's file
 with the cell's values written in, its ``[faults]`` table holding the fault, the lag and
@@ -81,7 +90,7 @@ PROFILE_SPEED_RANGE_KMH = _SPEED_RANGE_KMH
 GRID_DIR = Path(__file__).resolve().parent / "grids"
 #: Every axis, in the order of a cell's fields and of cells.csv.
 AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
-        "model", "seed", "ecu", "disturbance")
+        "model", "seed", "ecu", "disturbance", "runner")
 REQUIRED_AXES = ("controller", "scenario")
 #: Value of an axis the grid does not set: the scenario's own (mu, speed, mass), x1, none.
 SCENARIO_VALUE = "scenario"
@@ -91,6 +100,10 @@ NO_DISTURBANCE = "none"
 DEFAULT_MODEL = "default"
 #: The ECU of a grid without an ``ecu`` axis (and the only one before the axis existed).
 DEFAULT_ECU = "python"
+#: The runners of the ``runner`` axis: over CAN in lockstep (the default), or without CAN.
+HIL_RUNNER = "hil"
+CLOSED_LOOP_RUNNER = "closed_loop"
+RUNNERS = (HIL_RUNNER, CLOSED_LOOP_RUNNER)
 #: Controllers that run a Koopman artefact (the only ones the model axis changes).
 KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
 #: Path the MPC horizons need beyond a run's last position (m): 30 steps at 25 ms, 70 km/h.
@@ -123,6 +136,7 @@ class Cell:
     seed: int | str = SCENARIO_VALUE
     ecu: str = DEFAULT_ECU
     disturbance: str = NO_DISTURBANCE
+    runner: str = HIL_RUNNER
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -132,7 +146,8 @@ class Cell:
         """Short text for errors and logs."""
         return ", ".join(f"{k}={v}" for k, v in self.as_dict().items()
                          if v not in (SCENARIO_VALUE, NO_FAULT, DEFAULT_MODEL) and
-                         not (k == "lag_factor" and v == 1.0) and not (k == "ecu" and v == DEFAULT_ECU))
+                         not (k == "lag_factor" and v == 1.0) and not (k == "ecu" and v == DEFAULT_ECU)
+                         and not (k == "runner" and v == HIL_RUNNER))
 
 
 @dataclass(frozen=True)
@@ -147,7 +162,8 @@ class Grid:
     scenario_files: Mapping[str, Path]
     speed_profiles: Mapping[str, tuple[tuple[float, ...], tuple[float, ...]]]
     faults: Mapping[str, Mapping[str, Any]]
-    distance_m: float | None
+    #: ``[run] distance_m``: one distance (m) for every scenario, or one per scenario name.
+    distance_m: float | Mapping[str, float] | None
     margin_s: float
     excluded: int
     not_applicable: int
@@ -161,6 +177,12 @@ class Grid:
     def scenario_document(self, cell: Cell) -> dict[str, Any]:
         """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
         return scenario_document(self, cell)
+
+    def distance_for(self, scenario: str) -> float | None:
+        """``[run] distance_m`` of the cells of ``scenario`` (None: their scenario's duration)."""
+        if isinstance(self.distance_m, Mapping):
+            return self.distance_m.get(scenario)
+        return self.distance_m
 
 
 # ---------------------------------------------------------------------------- loading
@@ -215,10 +237,20 @@ def load_grid(file: str | Path) -> Grid:
         raise GridError(f"{file}: [run] takes only {', '.join(sorted(_RUN_KEYS))}")
     distance = run.get("distance_m")
     margin = run.get("margin_s", 1.0)
-    for key, value in (("distance_m", distance), ("margin_s", margin)):
+    numbers = [("distance_m", distance), ("margin_s", margin)]
+    if isinstance(distance, dict):
+        unknown = sorted(set(distance) - set(axes["scenario"]))
+        if unknown:
+            raise GridError(f"{file}: run.distance_m.{unknown[0]}: not a value of axes.scenario "
+                            f"({', '.join(axes['scenario'])})")
+        numbers = [(f"distance_m.{name}", value) for name, value in distance.items()] + numbers[1:]
+    for key, value in numbers:
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not 0 <= value < 1e5):
             raise GridError(f"{file}: run.{key} = {value!r}: must be a number >= 0")
+    if CLOSED_LOOP_RUNNER in axes["runner"] and any(name != NO_FAULT for name in axes["fault"]):
+        raise GridError(f"{file}: axes.fault with runner {CLOSED_LOOP_RUNNER!r}: that runner has no bus "
+                        f"to inject faults on; run faults with runner {HIL_RUNNER!r}")
     keep_trace = run.get("keep_trace", False)
     if not isinstance(keep_trace, bool):
         raise GridError(f"{file}: run.keep_trace = {keep_trace!r}: must be true or false")
@@ -239,7 +271,7 @@ def load_grid(file: str | Path) -> Grid:
     grid = Grid(name=str(raw.get("name", file.stem)), description=str(raw.get("description", "")),
                 source=file.resolve(), cells=tuple(cells), scenario_files=scenario_files,
                 speed_profiles=profiles, faults=faults,
-                distance_m=None if distance is None else float(distance), margin_s=float(margin),
+                distance_m=_distances(distance), margin_s=float(margin),
                 excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out,
                 disturbances=disturbances, keep_trace=keep_trace)
     if not cells:
@@ -250,11 +282,20 @@ def load_grid(file: str | Path) -> Grid:
     return grid
 
 
+def _distances(raw: Any) -> float | dict[str, float] | None:
+    """``[run] distance_m`` as floats (checked by :func:`load_grid`)."""
+    if raw is None:
+        return None
+    if isinstance(raw, dict):
+        return {name: float(value) for name, value in raw.items()}
+    return float(raw)
+
+
 def _axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
     defaults = {"controller": None, "scenario": None, "mu": SCENARIO_VALUE, "speed": SCENARIO_VALUE,
                 "mass_offset_kg": SCENARIO_VALUE, "lag_factor": 1.0, "fault": NO_FAULT,
                 "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE, "ecu": DEFAULT_ECU,
-                "disturbance": NO_DISTURBANCE}
+                "disturbance": NO_DISTURBANCE, "runner": HIL_RUNNER}
     if raw is None:
         return (defaults[name],)
     values = raw if isinstance(raw, list) else [raw]
@@ -289,6 +330,10 @@ def _axis_value(file: Path, name: str, value: Any) -> Any:
         if value not in ECU_IMPLEMENTATIONS:
             raise bad(f"unknown ECU; choose from {', '.join(ECU_IMPLEMENTATIONS)}")
         return value
+    if name == "runner":
+        if value not in RUNNERS:
+            raise bad(f"unknown runner; choose from {', '.join(RUNNERS)}")
+        return value
     if name in ("scenario", "fault", "model", "disturbance"):
         if not isinstance(value, str) or not value:
             raise bad("must be a non-empty string")
@@ -320,6 +365,8 @@ def c_ecu_unavailable(cell: Cell, faults: Mapping[str, Mapping[str, Any]]) -> st
     """
     if cell.ecu != "c":
         return None
+    if cell.runner == CLOSED_LOOP_RUNNER:
+        return f"the {CLOSED_LOOP_RUNNER} runner has no bus for the C ECU"
     from hil.session import C_ECU_CONTROLLERS
 
     if cell.controller not in C_ECU_CONTROLLERS:
@@ -495,8 +542,9 @@ def scenario_document(grid: Grid, cell: Cell) -> dict[str, Any]:
         document["speed_profile"] = {"time_s": list(times), "target_speed_kmh": list(speeds)}
         document["start"]["speed_kmh"] = speeds[0]
         start_speed_kmh = speeds[0]
-        if grid.distance_m is not None and len(speeds) == 1:
-            seconds = grid.distance_m / (speeds[0] * _KMH) + grid.margin_s
+        distance = grid.distance_for(cell.scenario)
+        if distance is not None and len(speeds) == 1:
+            seconds = distance / (speeds[0] * _KMH) + grid.margin_s
             document["duration_s"] = round(math.ceil(seconds / CONTROL_PERIOD_S - 1e-9)
                                            * CONTROL_PERIOD_S, 3)
     faults = copy.deepcopy(dict(grid.faults[cell.fault]))

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from studies.campaign.grid import AXES, DEFAULT_ECU, Grid
+from studies.campaign.grid import AXES, DEFAULT_ECU, HIL_RUNNER, Grid
 
 #: Columns of cells.csv, in order (the axes as the issue names them, then the results).
 CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "disturbance",
@@ -24,10 +24,10 @@ CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fa
 _AXIS_COLUMN = {"mass": "mass_offset_kg", "lag": "lag_factor"}
 #: Axes the pivot tables and heat maps split by (controller is always the columns).
 PIVOT_AXES = ("scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault", "disturbance",
-              "model", "seed")
+              "model", "seed", "runner")
 _TITLES = {"mass_offset_kg": "mass offset (kg)", "lag_factor": "steering lag (x time constant)",
            "mu": "mu", "speed": "speed (km/h)", "scenario": "scenario", "fault": "fault",
-           "disturbance": "disturbance", "model": "model", "seed": "seed"}
+           "disturbance": "disturbance", "model": "model", "seed": "seed", "runner": "runner"}
 
 
 def _text(value: Any, digits: int = 6) -> str:
@@ -156,10 +156,7 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
         f"{len(grid.cells)} finished{' (interrupted)' if interrupted else ''}; wall time "
         f"{wall_s:.0f} s on {executor}.",
         f"- Machine: {machine}.",
-        "- Each cell: one lockstep run on the virtual bus (`hil.session.run_hil`, as "
-        "`python -m hil run --faults`): the Python ECU in-process; \"NAME (C)\" the C ECU "
-        "executable `build/firmware/ecu` as a process on the run's own loopback socketcand hub "
-        "(`--ecu c`). Completed: ran to the end with the ECU ACTIVE and |e_Y| <= 2 m throughout.",
+        *runner_lines(grid),
         "",
         "## Per controller", "",
         "| controller | completed | e_Y RMSE mean (cm) | e_Y max worst (cm) | heading RMSE mean (mrad) "
@@ -194,12 +191,31 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
     if failures:
         lines += ["", "## Cells not completed", "", "| controller | cell | end | error |", "|---|---|---|---|"]
         for r in failures[:60]:
-            cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r and a != "ecu")
+            cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r and a != "ecu"
+                             and not (a == "runner" and r[a] == HIL_RUNNER))
             error = str(r.get("error", "")).replace("|", "/").replace("\n", " ")[:160]
             lines.append(f"| {_column(r)} | {cell} | {r.get('end_reason', '')} | {error} |")
         if len(failures) > 60:
             lines.append(f"| ... | {len(failures) - 60} more in cells.csv | | |")
     return "\n".join(lines) + "\n"
+
+
+def runner_lines(grid: Grid) -> list[str]:
+    """What one cell is, for each runner of the grid (summary.md's header)."""
+    from studies.campaign.grid import CLOSED_LOOP_RUNNER
+
+    runners = {cell.runner for cell in grid.cells}
+    lines = []
+    if HIL_RUNNER in runners:
+        lines.append("- Each cell: one lockstep run on the virtual bus (`hil.session.run_hil`, as "
+                     "`python -m hil run --faults`): the Python ECU in-process; \"NAME (C)\" the C ECU "
+                     "executable `build/firmware/ecu` as a process on the run's own loopback socketcand hub "
+                     "(`--ecu c`). Completed: ran to the end with the ECU ACTIVE and |e_Y| <= 2 m throughout.")
+    if CLOSED_LOOP_RUNNER in runners:
+        lines.append(f"- Each {CLOSED_LOOP_RUNNER} cell: one run of the controller and the plant without "
+                     "CAN (`studies.closed_loop.run_closed_loop`, the runner of `make tables`). Completed: "
+                     "ran to the end with |e_Y| <= 2 m throughout; step times are the controller's.")
+    return lines
 
 
 def c_against_python(rows: Sequence[dict[str, Any]]) -> list[str]:
@@ -210,7 +226,7 @@ def c_against_python(rows: Sequence[dict[str, Any]]) -> list[str]:
     pairs both completed; over those, the largest and the mean of C's e_Y RMSE minus
     Python's (mm); the median of the cells' step p99 (us) on each ECU.
     """
-    others = [a for a in AXES if a != "ecu"]
+    others = [a for a in AXES if a not in ("ecu", "runner")]  # a C cell is always over CAN
     python = {tuple(r[a] for a in others): r for r in rows if r.get("ecu", DEFAULT_ECU) == DEFAULT_ECU}
     pairs: dict[str, list[tuple[dict[str, Any], dict[str, Any]]]] = defaultdict(list)
     for row in rows:

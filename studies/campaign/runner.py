@@ -34,8 +34,8 @@ from hil.errors import HilError
 from hil.session import C_ECU_EXECUTABLE
 from studies.campaign.cell import ROOT, CellJob
 from studies.campaign.executors import Executor
-from studies.campaign.grid import (DEFAULT_ECU, NO_DISTURBANCE, Cell, Grid, effective_values,
-                                   model_file, to_toml)
+from studies.campaign.grid import (DEFAULT_ECU, HIL_RUNNER, NO_DISTURBANCE, Cell, Grid,
+                                   effective_values, model_file, to_toml)
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
@@ -108,6 +108,8 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
     values = cell.as_dict()
     if cell.disturbance == NO_DISTURBANCE:
         del values["disturbance"]  # as before the disturbance axis (its scenario text says it)
+    if cell.runner == HIL_RUNNER:
+        del values["runner"]  # the key material of a cell over CAN as before the runner axis
     if cell.ecu == DEFAULT_ECU:
         # the key material of a Python cell as before the ecu axis: its cached results stay
         del values["ecu"]
@@ -120,7 +122,7 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
     material = json.dumps(facts, sort_keys=True)
     key = hashlib.sha256(material.encode()).hexdigest()[:24]
     return CellJob(key=key, controller=cell.controller, scenario_toml=text, model=model,
-                   ecu=cell.ecu, keep_trace=grid.keep_trace)
+                   ecu=cell.ecu, keep_trace=grid.keep_trace, runner=cell.runner)
 
 
 def cell_key(grid: Grid, cell: Cell, version: str | None = None) -> str:
