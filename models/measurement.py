@@ -5,7 +5,7 @@ of VEH_DYN, VEH_POSE_XY and VEH_POSE_YAW, ``docs/can-contract.md``). It is one t
 the three places that need this record: the plant's outputs (``models.vehicle``,
 ``FourWheelVehicle.outputs()``), the controller's input (``controller.base.VehicleSample``
 adds the planner's target speed) and the ECU's assembled sample
-(``firmware_sim.rx.PlantMeasurement`` adds the shared alive counter). It lives in
+(``models.plant_sample.PlantMeasurement`` adds the shared alive counter). It lives in
 ``models`` because ``models`` imports neither ``controller`` nor ``firmware_sim``, while
 both of them may import ``models``.
 
