@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from studies.campaign.closed_loop_cell import CLOSED_LOOP_RUNNER, run_closed_loop_cell
+from studies.campaign.model_controllers import model_factory
 
 #: |e_Y| above this (m) is off the road: the cell is not completed.
 LEAVE_ROAD_M = 2.0
@@ -65,27 +66,6 @@ class CellJob:
     ecu: str = "python"
     keep_trace: bool = False
     runner: str = "hil"
-
-
-def model_factory(artefact: Path) -> Any:
-    """A ``controller_factory`` building the Koopman controllers on ``artefact``."""
-
-    def build(name: str) -> Any:
-        from controller.registry import CONTROLLERS, create_controller
-        from controller.tuning import load_tuning
-        from models.koopman import KoopmanModel
-
-        if name not in ("eso-dkmpc", "dkmpc"):
-            return create_controller(name)
-        import importlib
-
-        module, class_name = CONTROLLERS[name]
-        controller_class = getattr(importlib.import_module(module), class_name)
-        tuning = load_tuning()
-        table = tuning.eso_dkmpc if name == "eso-dkmpc" else tuning.dkmpc
-        return controller_class(KoopmanModel.load(artefact), table, tuning.longitudinal)
-
-    return build
 
 
 def run_cell(job: CellJob) -> dict[str, Any]:

@@ -27,14 +27,14 @@ from typing import Any
 
 import numpy as np
 
+from studies.campaign.model_controllers import model_factory
+
 #: The runner's name in a grid's ``runner`` axis.
 CLOSED_LOOP_RUNNER = "closed_loop"
 
 
 def controller_for(name: str, model: Path | None) -> Any:
     """The registry's controller ``name``, on the Koopman artefact ``model`` when given."""
-    from studies.campaign.cell import model_factory
-
     if model is not None:
         return model_factory(model)(name)
     from controller.registry import create_controller
