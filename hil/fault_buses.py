@@ -8,6 +8,8 @@ between the ECU and the bus).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import can
 
 from can_defs.codec import encode
@@ -101,3 +103,18 @@ class LosableBus:
 
     def shutdown(self) -> None:
         self.bus.shutdown()
+
+
+def time_jump_wrapper(fault: dict, onset_ms: int,
+                      made: list[TimeShiftingBus]) -> Callable[[can.BusABC], can.BusABC]:
+    """A ``hil.rig.RigHooks.wrap_master_bus`` for an ECU-level fault case (``fault``, its
+    ``kind`` and ``ahead_ms``): a jump of virtual time at ``onset_ms`` for ``time_jump``,
+    the bus as it is otherwise; the wrapper it made goes into ``made`` (its record counts
+    the frames it changed)."""
+    def wrap(bus: can.BusABC) -> can.BusABC:
+        if fault["kind"] != "time_jump":
+            return bus
+        made.append(TimeShiftingBus(bus, onset_ms, fault["ahead_ms"]))
+        return made[-1]
+
+    return wrap

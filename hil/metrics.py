@@ -15,6 +15,7 @@ change; one piece of code thus defines e_Y for the controllers and for the table
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -22,8 +23,12 @@ from controller.reference import ReferencePath, lateral_error
 from hil.errors import MetricsError
 from models.measurement import wrap_angle  # re-exported for the studies
 
-__all__ = ["ComputeTimeStats", "ErrorStats", "PathErrors", "TrackingMetrics", "path_errors",
+__all__ = ["CONTROL_PERIOD_MS", "ComputeTimeStats", "ErrorStats", "PathErrors", "TrackingMetrics",
+           "control_instant_errors", "control_instant_metrics", "path_errors", "reference_path",
            "tracking_metrics", "wrap_angle"]
+
+#: Control period of the ECU (contract: 25 ms); a run's metrics are sampled at these instants.
+CONTROL_PERIOD_MS = 25
 
 
 @dataclass(frozen=True)
@@ -132,3 +137,34 @@ def _finite_1d(values: np.ndarray, name: str) -> np.ndarray:
     if not np.all(np.isfinite(values)):
         raise MetricsError(f"{name} has {int(np.sum(~np.isfinite(values)))} non-finite values")
     return values
+
+
+# --- the true pose of a run at the control instants ---------------------------------------
+
+def reference_path(scenario: Any) -> ReferencePath:
+    """The scenario's (``hil.scenario.Scenario``) reference path: what e_Y is measured to."""
+    return ReferencePath.from_csv(scenario.path_file)
+
+
+def control_instant_errors(plant_trace: dict[str, np.ndarray], path: ReferencePath) -> tuple[np.ndarray, PathErrors]:
+    """The true pose's errors to the path at t = 0, 25, 50, ... ms.
+
+    Args:
+        plant_trace: the plant node's trace (``time``, ``x``, ``y``, ``yaw``: (n_ticks,)).
+        path: the reference path (``controller.reference.ReferencePath``).
+
+    Returns:
+        (the control instants (s), shape (k,); their e_Y, heading error and progress, (k,) each).
+    """
+    time_ms = np.round(plant_trace["time"] * 1000.0).astype(np.int64)
+    at_control = time_ms % CONTROL_PERIOD_MS == 0
+    pose = np.column_stack([plant_trace["x"][at_control], plant_trace["y"][at_control],
+                            plant_trace["yaw"][at_control]])
+    return plant_trace["time"][at_control], path_errors(pose, path)
+
+
+def control_instant_metrics(plant_trace: dict[str, np.ndarray], path: ReferencePath) -> TrackingMetrics:
+    """e_Y and heading-error statistics of the true pose at t = 0, 25, 50, ... ms
+    (:func:`control_instant_errors`)."""
+    _, errors = control_instant_errors(plant_trace, path)
+    return tracking_metrics(errors.lateral_error, errors.heading_error)

@@ -41,14 +41,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402 (after the BLAS setting on purpose)
 import dataclasses  # noqa: E402
 import json  # noqa: E402
-import signal  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import can  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -120,54 +117,44 @@ def run_on_hub(which: str, scenario_name: str, controller: str, log: Path, path_
                faults: dict | None = None, jump: tuple[int, int] | None = None, realtime: bool = False,
                executable: Path = DEFAULT_EXECUTABLE, duration_s: float | None = None,
                extra: tuple[str, ...] = ()):
-    """The scenario with one ECU process on the hub; this process runs plant, planner and
-    time master (``hil``), the bus faults of ``faults`` (a ``[faults]`` table) injected
-    as ``hil run --faults`` does, ``jump`` = (from TICK ms, ahead ms) a jump of virtual
-    time; ``realtime``: every node on the wall clock (``hil.time_master.RealTimeMaster``);
-    ``duration_s``: shorter than the scenario; ``extra``: more ECU options. Returns (the monitor's raw frames (tick ms,
-    ID, payload), tracking, exit status, the ECU's output)."""
+    """The scenario with one ECU process on a hub of its own: ``hil.rig.Rig`` runs plant,
+    planner and time master (``hil``) here, the bus faults of ``faults`` (a ``[faults]``
+    table) injected as ``hil run --faults`` does, ``jump`` = (from TICK ms, ahead ms) a
+    jump of virtual time; ``realtime``: every node on the wall clock
+    (``hil.time_master.RealTimeMaster``); ``duration_s``: shorter than the scenario;
+    ``extra``: more ECU options. Returns (the monitor's raw frames (tick ms, ID, payload),
+    tracking, exit status, the ECU's output)."""
+    from hil.bus import BusConfig, private_virtual_channel
+    from hil.ecu_runners import EcuProcess
     from hil.fault_buses import TimeShiftingBus
-    from hil.fault_injector import FaultInjector
     from hil.faults import FaultSpec
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
+    from hil.rig import Rig, RigHooks
+    from hil.run_types import RunOptions
     from hil.scenario import load_scenario
-    from hil.session import control_instant_metrics, reference_path
-    from hil.time_master import LockstepMaster, RealTimeMaster
-    from hil.timing.hub import LoopbackCanHub
 
     scenario = load_scenario(scenario_name)
-    injector = FaultInjector(FaultSpec.from_mapping(faults)) if faults else None
-    hub = LoopbackCanHub(port=0).start()
-    command, environment = ecu_command(which, controller, path_file or scenario.path_file, hub.port,
-                                       "--realtime" if realtime else "--lockstep", executable, extra)
-    with log.open("w") as output:
-        ecu = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=output, stderr=subprocess.STDOUT)
-        bus = None
-        try:
-            bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=hub.port, tcp_tune=True)
-            master_bus = bus if jump is None else TimeShiftingBus(bus, *jump)
-            time.sleep(0.2)  # the hub delivers to a new client after its READY_DELAY_S
-            plant = PlantNode(scenario, vehicle=injector.vehicle(scenario) if injector else None)
-            planner, monitor = PlannerNode(scenario), EcuFrameMonitor()
-            if realtime:
-                time.sleep(1.5 if which == "python" else 0.3)  # the ECU's start-up (imports, model)
-                master = RealTimeMaster(master_bus, [plant, planner, monitor])
-            else:
-                master = LockstepMaster(master_bus, [plant, planner, monitor], handshake_timeout_s=60.0,
-                                        ack_timeout_s=10.0, send_hook=injector.outgoing if injector else None,
-                                        peer_alive=lambda: None if ecu.poll() is None else f"ECU exited {ecu.returncode}")
-            master.run(min(scenario.duration_s, duration_s or scenario.duration_s))
-            time.sleep(0.1)
-        finally:
-            ecu.send_signal(signal.SIGTERM)
-            status = ecu.wait(timeout=20)
-            if bus is not None:
-                bus.shutdown()
-            hub.close()
-    tracking = control_instant_metrics(plant.trace(), reference_path(scenario))
-    return monitor.raw, tracking, status, log.read_text()
+    options = RunOptions(controller=controller, bus=BusConfig("virtual", private_virtual_channel("bench")),
+                         lockstep=not realtime, handshake_timeout_s=60.0, ack_timeout_s=10.0,
+                         faults=FaultSpec.from_mapping(faults) if faults else None, ecu_output=log)
+
+    def start_ecu(rig: Rig) -> EcuProcess:
+        command, environment = ecu_command(which, controller, path_file or scenario.path_file, rig.hub_port,
+                                           "--realtime" if realtime else "--lockstep", executable, extra)
+        return EcuProcess(scenario, options, command, environment)
+
+    def before_run() -> None:
+        if realtime:
+            time.sleep(1.5 if which == "python" else 0.3)  # the ECU's start-up (imports, model)
+
+    hooks = RigHooks(ecu=start_ecu, own_hub=True, before_run=before_run,
+                     wrap_master_bus=None if jump is None else (lambda bus: TimeShiftingBus(bus, *jump)))
+    rig = Rig(scenario, options, hooks)
+    with rig:
+        rig.run(min(scenario.duration_s, duration_s or scenario.duration_s))
+        time.sleep(0.1)
+    status = rig.ecu.process.returncode
+    tracking = rig.result().tracking
+    return rig.monitor.raw, tracking, status, log.read_text()
 
 
 def _timed_pass(name: str, samples: Sequence[VehicleSample], path: ReferencePath

@@ -80,21 +80,18 @@ def _lose_c_bus(ecu: Any, relay: DroppingRelay, outage_s: float) -> LostBusProbe
 
 def run_c_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
                    duration_s: float | None = None) -> Verdict:
-    """A fault of the time base or of the ECU's own bus against the C ECU: the executable on
-    a loopback socketcand hub of its own (as ``hil.session.run_hil`` starts it for ``--ecu
-    c``); the time master's bus wrapped in `TimeShiftingBus` (time jump), or the ECU's
-    connection through a `DroppingRelay` (lost bus); judged as `run_ecu_case` judges the
-    Python ECU's run, the lost bus by the same rules from the process's output and CPU time."""
-    from hil.bus import BusConfig, open_bus
-    from hil.fault_buses import TimeShiftingBus
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
+    """A fault of the time base or of the ECU's own bus against the C ECU: the rig of
+    ``hil.session.run_hil`` for ``--ecu c`` (``hil.rig.Rig``: the executable on a loopback
+    socketcand hub of its own); the time master's bus wrapped in `TimeShiftingBus` (time
+    jump), or the ECU's connection through a `DroppingRelay` (lost bus); judged as
+    `run_ecu_case` judges the Python ECU's run, the lost bus by the same rules from the
+    process's output and CPU time."""
+    from hil.fault_buses import TimeShiftingBus, time_jump_wrapper
+    from hil.rig import Rig, RigHooks
     from hil.scenario import load_scenario
-    from hil.session import (HUB_CHANNEL, EcuProcess, HilRunResult, SessionError, c_ecu_command,
-                             control_instant_metrics, default_options, reference_path)
-    from hil.time_master import LockstepMaster, TimeMasterError
-    from hil.timing.hub import LOOPBACK, READY_DELAY_S, LoopbackCanHub
+    from hil.session import EcuProcess, SessionError, c_ecu_command, default_options, reference_path
+    from hil.time_master import TimeMasterError
+    from hil.timing.hub import READY_DELAY_S
 
     fault = case.ecu_fault
     assert fault is not None and fault["kind"] in ("time_jump", "lost_bus")
@@ -103,53 +100,41 @@ def run_c_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENAR
         scenario = dataclasses.replace(scenario, duration_s=duration_s)
     onset_ms = round(fault["start_s"] * 1000)
     options = default_options(controller, ecu="c")
-    hub = LoopbackCanHub(port=0).start()
-    relay = DroppingRelay(hub.port) if fault["kind"] == "lost_bus" else None
-    ecu: Any = None
-    master_bus: Any = None
-    probe, error, result = None, None, None
-    started = time.monotonic()
+    relays: list[DroppingRelay] = []
+    shifted: list[TimeShiftingBus] = []
+    probes: list[LostBusProbe] = []
+
+    def start_ecu(rig: Rig) -> EcuProcess:
+        if fault["kind"] == "lost_bus":  # the executable connects through the relay
+            relays.append(DroppingRelay(rig.hub_port))
+        port = relays[0].port if relays else rig.hub_port
+        return EcuProcess(scenario, options, c_ecu_command(scenario, options, port))
+
+    rig: Rig | None = None
+
+    def before_tick(tick_ms: int) -> None:
+        if relays and tick_ms == onset_ms:
+            probes.append(_lose_c_bus(rig.ecu, relays[0], fault["outage_s"]))
+            time.sleep(2 * READY_DELAY_S)   # the reopened connection is a new client of the hub
+
+    error, result = None, None
+    rig = Rig(scenario, options, RigHooks(ecu=start_ecu, wrap_master_bus=time_jump_wrapper(fault, onset_ms, shifted),
+                                          before_tick=before_tick))
     try:
-        master_bus = open_bus(BusConfig("socketcand", HUB_CHANNEL), host=LOOPBACK, port=hub.port, tcp_tune=True)
-        if fault["kind"] == "time_jump":
-            master_bus = TimeShiftingBus(master_bus, onset_ms, fault["ahead_ms"])
-        ecu = EcuProcess(scenario, options, c_ecu_command(scenario, options, relay.port if relay else hub.port))
-        time.sleep(2 * READY_DELAY_S)   # the hub delivers to a new client after READY_DELAY_S
-        plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
-        master = LockstepMaster(master_bus, [plant, planner, monitor], ack_timeout_s=options.ack_timeout_s,
-                                handshake_timeout_s=options.handshake_timeout_s,
-                                peer_alive=ecu.alive_problem)
-        master.handshake()
-        for tick_ms in range(0, round(scenario.duration_s * 1000), 5):
-            if relay is not None and tick_ms == onset_ms:
-                probe = _lose_c_bus(ecu, relay, fault["outage_s"])
-                time.sleep(2 * READY_DELAY_S)   # the reopened connection is a new client of the hub
-            master.tick(tick_ms)
-        plant_trace = plant.trace()
-        result = HilRunResult(
-            scenario=scenario.name, controller=controller, bus=f"socketcand:{HUB_CHANNEL} (loopback hub)",
-            mode="lockstep", plant_trace=plant_trace, ecu_trace=monitor.trace(),
-            tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
-            stats=master.stats, wall_time_s=time.monotonic() - started,
-            extra={"ecu_frames_raw": monitor.raw, "ecu": "c"})
+        with rig:
+            rig.run()
+        result = rig.result()
     except (TimeMasterError, SessionError) as e:   # the ECU stalled or died: a result of the case
         error = e
     finally:
-        try:
-            if ecu is not None:
-                ecu.stop()
-        finally:
-            if master_bus is not None:
-                master_bus.shutdown()
-            if relay is not None:
-                relay.close()
-            hub.close()
-    frames_hit = master_bus.record.actions if fault["kind"] == "time_jump" and master_bus is not None else 1
+        for relay in relays:
+            relay.close()
+    frames_hit = shifted[0].record.actions if shifted else 1
     verdict = evaluate(case, controller, result, error, 0, 0, f"{case.name}: {case.note}",
                        reference_path(scenario), onset_ms=onset_ms, frames_hit=frames_hit)
     verdict.ecu = "c"
     if result is not None and fault["kind"] == "time_jump":
         verdict.expects.append(jump_tasks_expect(result.extra["ecu_frames_raw"], onset_ms))
-    elif probe is not None:
-        verdict.expects.extend(probe.expects())
+    elif probes:
+        verdict.expects.extend(probes[0].expects())
     return verdict

@@ -84,19 +84,19 @@ def _lose_bus(ecu: Any, thread: threading.Thread, bus: Any, outage_s: float,
 
 def run_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
                  duration_s: float | None = None) -> Verdict:
-    """Run a fault of the time base or of the ECU's own bus (``case.ecu_fault``): the same
-    nodes as ``hil.session.run_hil`` in lockstep on a private virtual bus, with the ECU in
-    a thread here so that its bus (`LosableBus`) or the master's (`TimeShiftingBus`) can
-    be wrapped; judged as `evaluate` judges every run, plus the case's own measurements."""
+    """Run a fault of the time base or of the ECU's own bus (``case.ecu_fault``): the rig
+    of ``hil.session.run_hil`` (``hil.rig.Rig``) in lockstep on a private virtual bus, with
+    the ECU in a thread here so that its bus (`LosableBus`) or the master's
+    (`TimeShiftingBus`) can be wrapped; judged as `evaluate` judges every run, plus the
+    case's own measurements."""
     from firmware_sim.ecu import Ecu
-    from hil.bus import BusConfig, open_bus, private_virtual_channel
-    from hil.fault_buses import BusDownError, LosableBus, TimeShiftingBus
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
+    from hil.bus import BusConfig, private_virtual_channel
+    from hil.ecu_runners import EcuRunner
+    from hil.fault_buses import BusDownError, LosableBus, TimeShiftingBus, time_jump_wrapper
+    from hil.rig import Rig, RigHooks
     from hil.scenario import load_scenario
-    from hil.session import HilRunResult, control_instant_metrics, reference_path
-    from hil.time_master import LockstepMaster, TimeMasterError
+    from hil.session import default_options, reference_path
+    from hil.time_master import TimeMasterError
 
     fault = case.ecu_fault
     assert fault is not None
@@ -104,62 +104,66 @@ def run_ecu_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO
     if duration_s is not None:
         scenario = dataclasses.replace(scenario, duration_s=duration_s)
     onset_ms = round(fault["start_s"] * 1000)
-    config = BusConfig("virtual", private_virtual_channel("faults"))
+    options = default_options(controller, BusConfig("virtual", private_virtual_channel("faults")),
+                              ack_timeout_s=5.0)
     back = threading.Event()
     reopen_tries: list[float] = []
-    opened: list[Any] = []
+    shifted: list[TimeShiftingBus] = []
+    probes: list[LostBusProbe] = []
 
-    def reopen() -> Any:
-        reopen_tries.append(time.monotonic())
-        if not back.is_set():
-            raise BusDownError("CAN interface still down")
-        opened.append(open_bus(config))
-        return opened[-1]
+    class ThreadEcu(EcuRunner):
+        """The Python ECU in a thread on a bus this case can take away."""
+
+        def __init__(self, rig: Rig) -> None:
+            def reopen() -> Any:
+                reopen_tries.append(time.monotonic())
+                if not back.is_set():
+                    raise BusDownError("CAN interface still down")
+                return rig.open_bus()
+
+            self.bus = LosableBus(rig.open_bus())
+            self.ecu = Ecu(self.bus, controller, {scenario.path_id: scenario.path_file}, lockstep=True,
+                           reopen_bus=reopen)
+            self.stop_event = threading.Event()
+            self.thread = threading.Thread(target=self.ecu.run, args=(self.stop_event,),
+                                           name="ecu-fault-case", daemon=True)
+            self.thread.start()
+
+        def alive_problem(self) -> str | None:
+            return None if self.thread.is_alive() else "ECU thread ended"
+
+        def stop(self) -> None:
+            self.stop_event.set()
+            self.thread.join(5.0)
+            self.ecu.close()   # it shuts down its own bus (the reopened one too)
+
+    rig: Rig | None = None
+
+    def before_tick(tick_ms: int) -> None:
+        if fault["kind"] == "lost_bus" and tick_ms == onset_ms:
+            ecu = rig.ecu
+            probes.append(_lose_bus(ecu.ecu, ecu.thread, ecu.bus, fault["outage_s"], back, reopen_tries))
 
     counter = EcuLogCounter()
     logging.getLogger("firmware_sim").addHandler(counter)
-    ecu_bus = LosableBus(open_bus(config))
-    master_bus: Any = open_bus(config)
-    if fault["kind"] == "time_jump":
-        master_bus = TimeShiftingBus(master_bus, onset_ms, fault["ahead_ms"])
-    ecu = Ecu(ecu_bus, controller, {scenario.path_id: scenario.path_file}, lockstep=True,
-              reopen_bus=reopen)
-    stop = threading.Event()
-    thread = threading.Thread(target=ecu.run, args=(stop,), name="ecu-fault-case", daemon=True)
-    plant, planner, monitor = PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()
-    master = LockstepMaster(master_bus, [plant, planner, monitor], ack_timeout_s=5.0,
-                            peer_alive=lambda: None if thread.is_alive() else "ECU thread ended")
-    probe, error, result = None, None, None
-    started = time.monotonic()
-    thread.start()
+    error, result = None, None
+    rig = Rig(scenario, options, RigHooks(ecu=ThreadEcu, wrap_master_bus=time_jump_wrapper(fault, onset_ms, shifted),
+                                          before_tick=before_tick))
     try:
-        master.handshake()
-        for tick_ms in range(0, round(scenario.duration_s * 1000), 5):
-            if fault["kind"] == "lost_bus" and tick_ms == onset_ms:
-                probe = _lose_bus(ecu, thread, ecu_bus, fault["outage_s"], back, reopen_tries)
-            master.tick(tick_ms)
+        with rig:
+            rig.run()
     except TimeMasterError as e:   # the ECU stalled or died: a result of the case
         error = e
     finally:
-        stop.set()
-        thread.join(5.0)
-        ecu.close()
         logging.getLogger("firmware_sim").removeHandler(counter)
-        master_bus.shutdown()   # the ECU shut down its own bus (the reopened one too)
     if error is None:
-        plant_trace = plant.trace()
-        result = HilRunResult(
-            scenario=scenario.name, controller=controller, bus=config.describe(),
-            mode="lockstep", plant_trace=plant_trace, ecu_trace=monitor.trace(),
-            tracking=control_instant_metrics(plant_trace, reference_path(scenario)),
-            stats=master.stats, wall_time_s=time.monotonic() - started,
-            extra={"ecu_frames_raw": monitor.raw})
-    frames_hit = master_bus.record.actions if fault["kind"] == "time_jump" else 1
+        result = rig.result()
+    frames_hit = shifted[0].record.actions if shifted else 1
     verdict = evaluate(case, controller, result, error, counter.unexpected, counter.controller,
                        f"{case.name}: {case.note}", reference_path(scenario), onset_ms=onset_ms,
                        frames_hit=frames_hit)
     if fault["kind"] == "time_jump":
-        verdict.expects.append(jump_tasks_expect(monitor.raw, onset_ms))
-    elif probe is not None:
-        verdict.expects.extend(probe.expects())
+        verdict.expects.append(jump_tasks_expect(rig.monitor.raw, onset_ms))
+    elif probes:
+        verdict.expects.extend(probes[0].expects())
     return verdict

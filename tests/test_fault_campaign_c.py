@@ -101,7 +101,7 @@ def test_results_compare_each_verdict_with_the_python_campaigns(tmp_path: Path) 
 
 
 def test_an_unbuilt_c_ecu_is_one_error_line_before_any_run(tmp_path: Path, monkeypatch, capsys) -> None:
-    monkeypatch.setattr("hil.session.C_ECU_EXECUTABLE", tmp_path / "no-ecu")
+    monkeypatch.setattr("hil.ecu_runners.C_ECU_EXECUTABLE", tmp_path / "no-ecu")  # where check_c_ecu reads it
     assert fault_campaign.main(["--ecu", "c", "--out", str(tmp_path / "out")]) == 1
     assert capsys.readouterr().err.strip() == (f"error: the C ECU {tmp_path / 'no-ecu'} is not built: "
                                                "run make firmware")

@@ -408,10 +408,10 @@ def test_hil_run_with_the_c_ecu_equals_the_python_ecu(native, controller: str, t
 def test_hil_run_refuses_a_c_ecu_that_is_not_built(tmp_path: Path, monkeypatch, capsys) -> None:
     """Without build/firmware/ecu: one error line naming make firmware, nothing run or
     written (no --out folder); NMPC, which the C ECU does not have, likewise."""
-    import hil.session
+    import hil.ecu_runners
     from hil.__main__ import main
 
-    monkeypatch.setattr(hil.session, "C_ECU_EXECUTABLE", tmp_path / "ecu")
+    monkeypatch.setattr(hil.ecu_runners, "C_ECU_EXECUTABLE", tmp_path / "ecu")  # where check_c_ecu reads it
     out = tmp_path / "out"
     assert main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ecu", "c", "--out", str(out)]) != 0
     error = capsys.readouterr().err.strip().splitlines()

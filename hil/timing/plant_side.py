@@ -79,18 +79,19 @@ class CommandAudit:
 
 
 def run_plant_side(port: int, scenario_file: Path) -> dict[str, Any]:
-    """Run the plant, planner and audit for the scenario's duration; the JSON-ready result."""
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
+    """Run the plant, planner and audit for the scenario's duration on the hub at ``port``
+    (``hil.rig.Rig`` in real time; the ECU is another process, started by the benchmark);
+    the JSON-ready result."""
+    from hil.bus import BusConfig
+    from hil.rig import NoEcu, Rig, RigHooks
+    from hil.run_types import RunOptions
     from hil.scenario import load_scenario
-    from hil.session import control_instant_metrics, reference_path
-    from hil.time_master import RealTimeMaster
 
     scenario = load_scenario(scenario_file)
-    plant, planner, audit = PlantNode(scenario), PlannerNode(scenario), CommandAudit()
-    bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=port,
-                  tcp_tune=True)
-    try:
+    audit = CommandAudit()
+    times: dict[str, float] = {}
+
+    def before_run() -> None:
         time.sleep(0.2)  # the hub delivers to a new client after its READY_DELAY_S
         # Python's full (generation 2) collection scans every tracked object, the loaded
         # modules, numpy and python-can included: measured 23-44 ms once in every run,
@@ -99,19 +100,22 @@ def run_plant_side(port: int, scenario_file: Path) -> dict[str, Any]:
         # objects of start-up are left out of every later collection.
         gc.collect()
         gc.freeze()
-        started = time.monotonic()
-        stats = RealTimeMaster(bus, [plant, planner, audit]).run(scenario.duration_s)
+        times["started"] = time.monotonic()
+
+    options = RunOptions(controller="(another process)", bus=BusConfig("socketcand", CHANNEL), lockstep=False)
+    rig = Rig(scenario, options, RigHooks(ecu=lambda rig: NoEcu(), nodes=[audit], before_run=before_run,
+                                          bus_options={"host": "127.0.0.1", "port": port, "tcp_tune": True}))
+    with rig:
+        stats = rig.run()
         ended = time.monotonic()
-    finally:
-        bus.shutdown()
-    trace = plant.trace()
-    tracking = control_instant_metrics(trace, reference_path(scenario))
-    return {"started": started, "ended": ended, "ticks": stats.ticks,
+    result = rig.result()
+    trace = result.plant_trace
+    return {"started": times["started"], "ended": ended, "ticks": stats.ticks,
             "tick_overruns": stats.overruns, "tick_max_lateness_s": stats.max_lateness_s,
             "frames_sent": stats.frames_sent, "frames_received": stats.frames_received,
-            "plant_commands_rejected": plant.commands_rejected,
+            "plant_commands_rejected": rig.plant.commands_rejected,
             "commands": audit.result(),
-            "tracking": tracking.as_dict(),
+            "tracking": result.tracking.as_dict(),
             "final_vx": float(trace["vx"][-1]) if len(trace["vx"]) else float("nan")}
 
 
