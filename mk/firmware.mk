@@ -33,9 +33,14 @@ FW_GEN_CFLAGS := $(FW_CFLAGS) -Wno-unused-function -Wno-missing-field-initialize
 FW_SAN_FLAGS := -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=all
 # Python itself is not instrumented: the sanitizer runtimes are preloaded into it.
 FW_SAN_PRELOAD = $(shell $(FW_CC) -print-file-name=libasan.so) $(shell $(FW_CC) -print-file-name=libubsan.so)
-FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/can -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public -I$(FW_GEN)/qp/inc/private
+# Our sources see OSQP's public headers only; the generated OSQP sources also its private ones.
+FW_INCLUDES := -Ifirmware/src -I$(FW_GEN) -I$(FW_GEN)/can -I$(FW_GEN)/qp -I$(FW_GEN)/qp/inc/public
+FW_GEN_INCLUDES := $(FW_INCLUDES) -I$(FW_GEN)/qp/inc/private
 # The library: every source but the executable's main.
 FW_SOURCES := $(filter-out firmware/src/ecu_main.c,$(wildcard firmware/src/*.c))
+# The executable: the library's sources but the default instances of the ctypes API
+# (ecu_default.c; ecu_main.c has its own core and node), and its main.
+FW_EXE_SOURCES := $(filter-out firmware/src/ecu_default.c,$(FW_SOURCES)) firmware/src/ecu_main.c
 FW_HEADERS := $(wildcard firmware/src/*.h)
 # The generators (firmware/tools/footprint.py only reports on the build).
 FW_TOOLS := firmware/tools/ecu_data.py firmware/tools/generate.py
@@ -75,7 +80,7 @@ $(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) | $(STAMP)
 $(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS) mk/firmware.mk
 	@mkdir -p $(FW_DIR)/obj
 	for f in $(FW_GEN)/qp/src/*.c $(FW_GEN)/qp/*_workspace.c; do \
-		$(FW_CC) $(FW_GEN_CFLAGS) $(FW_EXTRA_CFLAGS) -fstack-usage $(FW_INCLUDES) -c $$f -o $(FW_DIR)/obj/$$(basename $$f .c).o || exit 1; \
+		$(FW_CC) $(FW_GEN_CFLAGS) $(FW_EXTRA_CFLAGS) -fstack-usage $(FW_GEN_INCLUDES) -c $$f -o $(FW_DIR)/obj/$$(basename $$f .c).o || exit 1; \
 	done
 	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) $(FW_INCLUDES) -shared -o $@ $(FW_SOURCES) $(FW_GEN)/ecu_version.c \
 		$(FW_GEN)/can/vehicle.c \
@@ -85,8 +90,9 @@ $(FW_DIR)/libecu.so: $(FW_GEN)/stamp $(FW_SOURCES) $(FW_HEADERS) mk/firmware.mk
 # needed at run time); -fstack-usage writes each function's stack use (obj-ecu/*.su).
 $(FW_DIR)/ecu: $(FW_DIR)/libecu.so firmware/src/ecu_main.c
 	@mkdir -p $(FW_DIR)/obj-ecu
+	rm -f $(FW_DIR)/obj-ecu/*.o $(FW_DIR)/obj-ecu/*.su
 	cd $(FW_DIR)/obj-ecu && $(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) -fstack-usage $(addprefix -I$(CURDIR)/,$(subst -I,,$(FW_INCLUDES))) \
-		-c $(addprefix $(CURDIR)/,$(FW_SOURCES) firmware/src/ecu_main.c $(FW_GEN)/ecu_version.c $(FW_GEN)/can/vehicle.c)
+		-c $(addprefix $(CURDIR)/,$(FW_EXE_SOURCES) $(FW_GEN)/ecu_version.c $(FW_GEN)/can/vehicle.c)
 	$(FW_CC) $(FW_CFLAGS) $(FW_EXTRA_CFLAGS) -o $@ $(FW_DIR)/obj-ecu/*.o $(FW_DIR)/obj/*.o -lm
 
 ## the C core's tests (libecu.so against the Python controllers)

@@ -1,85 +1,81 @@
 /*
- * The ECU's control core (libecu.so): the steering MPCs ESO-DKMPC, DKMPC and LMPC with
- * the longitudinal P controller, the same control step as the Python controllers
- * (the modules of controller/). One core per process; all storage is static (no heap).
+ * The ECU's control core: the steering MPCs ESO-DKMPC, DKMPC and LMPC with the
+ * longitudinal P controller, the same control step as the Python controllers (the
+ * modules of controller/). All of a core's state is one ecu_core_t, the caller's storage
+ * (static, or zeroed before the first load: nothing is allocated), so several cores live
+ * in one process; each holds one of the generated QP workspaces of its controller
+ * (ECU_QP_WORKSPACES per controller, ecu_qp.h) from its load to ecu_core_unload. A loaded
+ * core points into itself: it is used where it was loaded, never copied.
  *
- * Life cycle: ecu_load (start-up: reads the data file, selects the controller),
- * ecu_set_path (start-up or on a path change), then ecu_step every Ts = 25 ms;
- * ecu_reset forgets plans, progress and the observer (as Controller.reset()).
+ * Life cycle: ecu_core_load (start-up: reads the data file, selects the controller),
+ * ecu_core_set_path (start-up or on a path change), then ecu_core_step every Ts = 25 ms;
+ * ecu_core_reset forgets plans, progress and the observer (as Controller.reset()).
  */
 #ifndef ECU_CORE_H
 #define ECU_CORE_H
 
 #include <stddef.h>
 
-/* The library exports these functions only (built with -fvisibility=hidden): the OSQP
- * sources inside keep their symbols to themselves, so a process that also loads the
- * Python osqp extension never mixes the two. */
-#define ECU_API __attribute__((visibility("default")))
+#include "ecu_observer.h"
+#include "ecu_path_reader.h"
+#include "ecu_qp.h"
 
-/* Controller ids, in the order of firmware/tools/ecu_data.py QP_CONTROLLERS. */
-enum ecu_controller { ECU_ESO_DKMPC = 0, ECU_DKMPC = 1, ECU_LMPC = 2, ECU_N_CONTROLLERS = 3 };
-
-/* Solver outcome; the values of controller.base.SolverStatus and CTRL_DIAG.QP_STATUS. */
-enum ecu_status {
-  ECU_SOLVED = 0, ECU_SOLVED_INACCURATE = 1, ECU_MAX_ITERATIONS = 2, ECU_INFEASIBLE = 3,
-  ECU_NUMERICAL_ERROR = 4, ECU_NOT_RUN = 15
-};
-
-/* Largest horizon of any build (the step result's arrays). */
-#define ECU_MAX_HORIZON 200
-/* Largest path (the contract's limit, revision 2). */
-#define ECU_MAX_PATH_POINTS 100000
-
-/* controller.base.VehicleSample, field for field (SI units, rad). */
 typedef struct {
-  double vx, vy, yaw_rate, x, y, yaw, steer_angle, drive_torque, target_speed;
-} ecu_sample_t;
+  ecu_config_t cfg;
+  int loaded, controller;
+  const ecu_tuning_t *tun; /* cfg.tuning[controller] */
+  int n_pred, n_ctrl;
+  /* Path (ReferencePath arrays) and progress (PathTracker). */
+  double path_x[ECU_MAX_PATH_POINTS], path_y[ECU_MAX_PATH_POINTS];
+  double path_yaw[ECU_MAX_PATH_POINTS], path_s[ECU_MAX_PATH_POINTS];
+  int path_n, has_progress;
+  double progress;
+  /* SteeringMpc state: last good plan (Nc,), its age, the last command. */
+  double plan_steer[ECU_NC_MAX];
+  int has_plan, plan_age, has_last;
+  double last_steer, last_torque;
+  /* ESO-DKMPC: the observers; the step's local model and z_k (for the observer's update). */
+  ecu_observer_t observer;
+  ecu_local_model_t model;
+  double lifted[ECU_NZ];
+  double decay_power[ECU_NP_MAX]; /* disturbance_decay^i, i = 0..Np-1 (set at load: pow once) */
+  ecu_qp_t qp;
+  /* One step's working arrays (no state between steps): the horizon's reference poses,
+   * free (Np + 1, 3), gain (Np + 1, 3, Nc), nominal states, poses, their Jacobian. */
+  double reference[ECU_NP_MAX][3];
+  double free[ECU_NP_MAX + 1][3], gain[ECU_NP_MAX + 1][3][ECU_NC_MAX], nominal_states[ECU_NP_MAX + 1][3];
+  double poses[ECU_NP_MAX][3], jac[ECU_NP_MAX][3][ECU_NC_MAX], pose_offset[ECU_NP_MAX][3];
+} ecu_core_t;
 
-/* controller.base.Command plus StepDebug. predicted_* rows 0..n_pred-1 are steps 1..Np
- * (n_pred = 0 when no plan was made). step_time_s: the whole ecu_step, solve_time_s: the
- * QP's update and solve (wall clock, for diagnostics only). */
-typedef struct {
-  double steer_angle, drive_torque;
-  int status, iterations, fallback, observer_reset, n_pred;
-  double solve_time_s, cost, slack_max, step_time_s;
-  double predicted_pose[ECU_MAX_HORIZON][3];
-  double predicted_state[ECU_MAX_HORIZON][3];
-} ecu_output_t;
+/* sizeof(ecu_core_t), for callers that allocate a core themselves (ctypes). */
+ECU_API size_t ecu_core_size(void);
 
 /* Start-up: read the data file (firmware/tools/ecu_data.py) and select controller
  * "eso-dkmpc", "dkmpc" or "lmpc". 0 on success; otherwise -1 and one line in err
  * (the file, the record, and for a shape mismatch the file's and the build's shapes). */
-ECU_API int ecu_load(const char *data_path, const char *controller, char *err, size_t err_len);
+ECU_API int ecu_core_load(ecu_core_t *core, const char *data_path, const char *controller, char *err,
+                          size_t err_len);
+
+/* Give the core's QP workspace back (the core steps no more until loaded again). */
+ECU_API void ecu_core_unload(ecu_core_t *core);
 
 /* Set the path: n points x, y (m), yaw (rad, unwrapped) and s (m, arc length from 0), as
  * controller.reference.ReferencePath holds them. Resets the progress. 0 or -1 + err. */
-ECU_API int ecu_set_path(const double *x, const double *y, const double *yaw, const double *s, int n,
-                 char *err, size_t err_len);
+ECU_API int ecu_core_set_path(ecu_core_t *core, const double *x, const double *y, const double *yaw,
+                              const double *s, int n, char *err, size_t err_len);
 
-/* Read and check a path CSV as controller.reference.ReferencePath.from_csv does (the
- * contract's checks, the same messages), then ecu_set_path. 0 or -1 + err. */
-ECU_API int ecu_load_path_csv(const char *file, char *err, size_t err_len);
-
-/* The ECU's paths by PATH_ID (all together at most ECU_MAX_PATH_POINTS points): forget
- * them, read and check one more, whether one is loaded, make one the core's path. */
-void ecu_path_pool_reset(void);
-int ecu_path_pool_add(int path_id, const char *file, char *err, size_t err_len);
-int ecu_path_pool_has(int path_id);
-int ecu_path_pool_select(int path_id, char *err, size_t err_len);
+/* ecu_core_set_path with the pool's path PATH_ID. 0 or -1 + err. */
+int ecu_core_select_path(ecu_core_t *core, const ecu_path_pool_t *paths, int path_id, char *err, size_t err_len);
 
 /* Copy the current path (at most max points) out; returns its number of points. */
-ECU_API int ecu_path_copy(double *x, double *y, double *yaw, double *s, int max);
+ECU_API int ecu_core_path_copy(const ecu_core_t *core, double *x, double *y, double *yaw, double *s, int max);
 
 /* Forget plans, the previous command, progress and the observer (Controller.reset). */
-ECU_API void ecu_reset(void);
+ECU_API void ecu_core_reset(ecu_core_t *core);
 
 /* One control step (Controller.step): never fails; the command is finite and within
  * the limits whatever the sample. */
-ECU_API void ecu_step(const ecu_sample_t *sample, ecu_output_t *out);
-
-/* The generator inputs' hashes, one "sha256  path" line each (generated). */
-ECU_API const char *ecu_version(void);
+ECU_API void ecu_core_step(ecu_core_t *core, const ecu_sample_t *sample, ecu_output_t *out);
 
 /* The build's shapes, one line (generated header ecu_build.h). */
 ECU_API const char *ecu_build_shapes(void);

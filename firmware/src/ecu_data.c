@@ -8,7 +8,7 @@
 #include <stdio.h>
 #include <string.h>
 
-#include "ecu_internal.h"
+#include "ecu_config.h"
 
 #define NAME_BYTES 48
 #define N_TUNING_VALUES 27

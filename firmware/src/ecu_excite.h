@@ -4,47 +4,68 @@
  * rate limited, clipped to the command limits, and stopped for the rest of the engagement
  * once |e_Y| exceeds the program's bound. Programs: the shipped ones (chirp, prbs, steps,
  * prbs-torque), a .toml file of ExcitationProgram's fields, or a .csv table
- * time_s,steer_rad[,torque_nm] of at most ECU_EXCITE_TABLE_MAX rows (static storage: no
- * heap). Loading is start-up only; the step never fails.
+ * time_s,steer_rad[,torque_nm] of at most ECU_EXCITE_TABLE_MAX rows. All of it is one
+ * ecu_excite_t, the caller's storage (static or zeroed: no heap; zeroed is disabled).
+ * Loading (ecu_excite_program.c) is start-up only; the step (ecu_excite.c) never fails.
  */
 #ifndef ECU_EXCITE_H
 #define ECU_EXCITE_H
 
 #include <stddef.h>
+#include <stdint.h>
 
-#include "ecu_core.h"
+#include "ecu_path_reader.h"
 
 /* Rows of a table program (a larger file is refused, naming the file and this limit). */
 #define ECU_EXCITE_TABLE_MAX 20000
 
+enum ecu_excite_kind { ECU_EXCITE_CHIRP, ECU_EXCITE_PRBS, ECU_EXCITE_STEPS, ECU_EXCITE_TABLE };
+
+/* ExcitationProgram (SI units; times relative to entering ACTIVE). */
+typedef struct {
+  char name[128];
+  int kind;
+  double steer_amplitude_rad, lateral_accel_mps2, wheelbase_m;
+  double chirp_start_hz, chirp_end_hz, chirp_period_s, hold_s;
+  int64_t seed;
+  double torque_amplitude_nm, torque_hold_s, delay_s, steer_rate_limit_rad_s, lateral_error_bound_m;
+} ecu_excite_program_t;
+
+typedef struct {
+  ecu_excite_program_t program;
+  int enabled;
+  double table_time[ECU_EXCITE_TABLE_MAX], table_steer[ECU_EXCITE_TABLE_MAX], table_torque[ECU_EXCITE_TABLE_MAX];
+  int table_rows, table_has_torque;
+  char description[700];
+  /* One engagement's state (Excitation): start, applied offset, stop; e_Y's tracker. */
+  int started, stopped, path_id, has_progress;
+  double started_s, steer_offset, progress;
+  char stopped_reason[200];
+} ecu_excite_t;
+
 /* Start-up: load the program `spec` (a shipped name or a .toml / .csv file) and enable
  * the excitation. 0, or -1 and one line in err naming the file and the field (the
  * messages of firmware_sim/excitation.py). */
-ECU_API int ecu_excite_load(const char *spec, char *err, size_t err_len);
+int ecu_excite_load(ecu_excite_t *excite, const char *spec, char *err, size_t err_len);
 
 /* Whether `spec` names a program file (not one of the shipped programs). */
-ECU_API int ecu_excite_is_file(const char *spec);
+int ecu_excite_is_file(const char *spec);
 
 /* Whether a program is loaded; its one-line description (excitation.describe). */
-ECU_API int ecu_excite_enabled(void);
-ECU_API const char *ecu_excite_describe(void);
+int ecu_excite_enabled(const ecu_excite_t *excite);
+const char *ecu_excite_describe(const ecu_excite_t *excite);
 
 /* A new engagement on PATH_ID path_id (entering ACTIVE / DEGRADED or a path change): the
  * program starts again, a stop is forgotten, e_Y is tracked on that path anew. */
-ECU_API void ecu_excite_reset(int path_id);
+void ecu_excite_reset(ecu_excite_t *excite, int path_id);
 
 /* One control task: the law's command (*steer rad, *torque N m) with the excitation
  * superimposed when `active` (mode ACTIVE), else unchanged. now_s: the task's time (virtual
- * time in lockstep), vx the measured speed, x / y the measured position (e_Y). A
- * non-finite command stays non-finite (the final guard refuses it). */
-ECU_API void ecu_excite_step(double now_s, int active, double vx, double x, double y, double *steer,
-                             double *torque, double steer_min, double steer_max, double torque_min,
-                             double torque_max);
-
-/* The pool's path PATH_ID: controller.reference.PathTracker.update's signed lateral error
- * (m) at x, y, searched around *progress (the whole path when !*has_progress); updates the
- * progress. 0, or -1 when the path is not loaded (ecu_path.c). */
-int ecu_path_pool_track(int path_id, double x, double y, double *progress, int *has_progress,
-                        double *lateral_error);
+ * time in lockstep), vx the measured speed, x / y the measured position (e_Y on the path
+ * of paths the engagement runs on). A non-finite command stays non-finite (the final guard
+ * refuses it). */
+void ecu_excite_step(ecu_excite_t *excite, const ecu_path_pool_t *paths, double now_s, int active, double vx,
+                     double x, double y, double *steer, double *torque, double steer_min, double steer_max,
+                     double torque_min, double torque_max);
 
 #endif

@@ -43,8 +43,6 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "ecu_core.h"
-#include "ecu_excite.h"
 #include "ecu_node.h"
 #include "ecu_sha256.h"
 #include "os.h"
@@ -58,6 +56,12 @@
 #define MAX_PATHS 256
 #define PERIOD_NS 25000000 /* Ts = 25 ms */
 #define N_SAMPLE_FIELDS 9
+
+/* The one core of the executable, its paths, its excitation and its node (static: no heap). */
+static ecu_core_t core;
+static ecu_path_pool_t paths;
+static ecu_excite_t excitation;
+static ecu_node_t node;
 #define DBC_FILE_MAX 4194304L /* bytes of a --dbc file, as the Python ECU's */
 
 static const char *const SAMPLE_HEADER = "vx,vy,yaw_rate,x,y,yaw,steer_angle,drive_torque,target_speed";
@@ -122,7 +126,7 @@ static int replay(FILE *samples, const char *name, int realtime) {
     }
     ecu_sample_t sample = {values[0], values[1], values[2], values[3], values[4],
                            values[5], values[6], values[7], values[8]};
-    ecu_step(&sample, &out);
+    ecu_core_step(&core, &sample, &out);
     printf("%.17g,%.17g,%d,%d,%d,%d,%.3f\n", out.steer_angle, out.drive_torque, out.status, out.iterations,
            out.fallback, out.observer_reset, out.step_time_s * 1e6);
   }
@@ -230,8 +234,8 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     fprintf(stderr, "info: ready: %s\n", ready);
     fflush(stderr);
   }
-  ecu_node_init(send_on_bus, load_error);
-  if (realtime) ecu_node_set_realtime();
+  ecu_node_start(&node, &core, &paths, &excitation, send_on_bus, load_error);
+  if (realtime) ecu_node_set_realtime(&node);
   os_install_stop_handler(&stop_requested);
   int lost = 0;
   int64_t next_reopen = 0, failing_since = -1;
@@ -251,7 +255,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
        * DEGRADED, SAFE_STOP, STANDBY; nothing can be sent); lockstep: no tick, nothing. */
       int64_t wake = now + RECV_TIMEOUT_NS < next_reopen ? now + RECV_TIMEOUT_NS : next_reopen;
       if (realtime) {
-        int64_t next = ecu_node_poll(now);
+        int64_t next = ecu_node_poll(&node, now);
         wake = next < wake ? next : wake;
       }
       os_sleep_until_ns(wake);
@@ -259,12 +263,12 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     }
     int64_t wait = RECV_TIMEOUT_NS;
     if (realtime) {
-      int64_t now = os_monotonic_ns(), next = ecu_node_poll(now);
+      int64_t now = os_monotonic_ns(), next = ecu_node_poll(&node, now);
       if (next - now < wait) wait = next - now > 0 ? next - now : 0;
     }
     int status = os_can_recv(&frame, wait);
     if (status == 1) {
-      ecu_node_receive(frame.id, frame.data, frame.length, frame.contract_kind);
+      ecu_node_frame(&node, frame.id, frame.data, frame.length, frame.contract_kind);
     }
     if (status >= 0) {
       failing_since = -1;
@@ -290,9 +294,9 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     failing_since = -1;
     next_reopen = now + REOPEN_INTERVAL_NS;
   }
-  if (!lost) ecu_node_close();
+  if (!lost) ecu_node_close(&node);
   os_can_close();
-  if (timing_out && ecu_node_save_timing(timing_out, err, sizeof err) != 0) {
+  if (timing_out && ecu_timing_save(&node.timing, timing_out, err, sizeof err) != 0) {
     fprintf(stderr, "error: --timing-out %s\n", err);
     return EXIT_BUS;
   }
@@ -465,8 +469,8 @@ int main(int argc, char **argv) {
   if (dbc && check_dbc(dbc, message, sizeof message)) return fail(message);
   if (excite && !(interface || channel || lockstep))
     return fail("--excite runs on the bus (the excitation is added while ACTIVE), not with --replay");
-  if (excite && ecu_excite_load(excite, message, sizeof message) != 0) return fail(message);
-  if (excite) fprintf(stderr, "warning: %s\n", ecu_excite_describe());
+  if (excite && ecu_excite_load(&excitation, excite, message, sizeof message) != 0) return fail(message);
+  if (excite) fprintf(stderr, "warning: %s\n", ecu_excite_describe(&excitation));
   if (debug) {
     fprintf(stderr, "debug: controller %s, data file %s, build shapes: %s\n", controller, data, ecu_build_shapes());
     for (int k = 0; k < n_paths; k++) fprintf(stderr, "debug: PATH_ID %d: %s\n", path_ids[k], path_files[k]);
@@ -501,13 +505,13 @@ int main(int argc, char **argv) {
     }
     /* As the Python ECU: a model or path that does not load latches FAULT on the bus. */
     const char *failure = NULL;
-    if (ecu_load(data, controller, err, sizeof err) != 0) {
+    if (ecu_core_load(&core, data, controller, err, sizeof err) != 0) {
       snprintf(load_error, sizeof load_error, "controller '%s' failed to load: %s", controller, err);
       failure = load_error;
     }
-    ecu_path_pool_reset();
+    ecu_paths_reset(&paths);
     for (int k = 0; k < n_paths && !failure; k++) {
-      if (ecu_path_pool_add(path_ids[k], path_files[k], err, sizeof err) != 0) {
+      if (ecu_paths_add(&paths, path_ids[k], path_files[k], err, sizeof err) != 0) {
         snprintf(load_error, sizeof load_error, "PATH_ID %d file %s: %s", path_ids[k], path_files[k], err);
         failure = load_error;
       }
@@ -528,16 +532,16 @@ int main(int argc, char **argv) {
              realtime ? "real time" : "lockstep", failure ? "FAULT" : "loaded");
     return run_bus(interface, channel, host, port, failure, realtime, timing_out, info ? ready : NULL);
   }
-  if (ecu_load(data, controller, err, sizeof err) != 0) return fail(err);
+  if (ecu_core_load(&core, data, controller, err, sizeof err) != 0) return fail(err);
   /* Every path file is checked at start-up; the selected one is loaded last. */
   int chosen = 0;
   for (int k = 0; k < n_paths; k++)
     if (path_ids[k] == selected) chosen = k;
   if (selected >= 0 && path_ids[chosen] != selected) return fail("--path-id: no --path with that ID");
-  ecu_path_pool_reset();
+  ecu_paths_reset(&paths);
   for (int k = 0; k < n_paths; k++)
-    if (ecu_path_pool_add(path_ids[k], path_files[k], err, sizeof err) != 0) return fail(err);
-  if (ecu_path_pool_select(path_ids[chosen], err, sizeof err) != 0) return fail(err);
+    if (ecu_paths_add(&paths, path_ids[k], path_files[k], err, sizeof err) != 0) return fail(err);
+  if (ecu_core_select_path(&core, &paths, path_ids[chosen], err, sizeof err) != 0) return fail(err);
   if (!samples_file) return fail("give --interface / --channel / --lockstep (the bus) or --replay SAMPLES.csv");
   FILE *samples = fopen(samples_file, "r");
   if (!samples) {

@@ -1,9 +1,12 @@
 /*
- * The ECU node in lockstep: a port of firmware_sim/ecu.py (the cyclic executive),
- * firmware_sim/rx.py (sample assembly, plausibility), firmware_sim/modes.py,
- * firmware_sim/guard.py, firmware_sim/safe_stop.py, firmware_sim/tx.py and
- * controller/dead_reckoning.py around the control core (ecu_core.c). Pure logic: frames
- * go out through the send function given to ecu_node_init; no clock, no bus.
+ * The ECU node: a port of firmware_sim/ecu.py (the cyclic executive) around the control
+ * core (ecu_core.h), in lockstep with HIL_SYNC or on absolute 25 ms deadlines in real time.
+ * Its parts are the inputs (ecu_rx_state.c, firmware_sim/rx.py), the control task
+ * (ecu_control_task.c: events, modes, request, guard, TX), the transmitter (ecu_tx.c), the
+ * mode logic (ecu_modes.c), dead reckoning (ecu_dead_reckoning.c) and the timing record
+ * (ecu_timing.c). Pure logic: frames go out through the send function given to
+ * ecu_node_start; no clock but os_monotonic_ns for the task's own time, no bus. All of a
+ * node's state is one ecu_node_t, the caller's storage (static or zeroed; no heap).
  */
 #ifndef ECU_NODE_H
 #define ECU_NODE_H
@@ -12,35 +15,49 @@
 #include <stdint.h>
 
 #include "ecu_core.h"
+#include "ecu_excite.h"
+#include "ecu_rx_state.h"
+#include "ecu_timing.h"
+#include "ecu_tx.h"
 
-typedef int (*ecu_send_fn)(uint32_t id, const uint8_t *data, int length);
+typedef struct {
+  /* What the node runs on (the caller's, loaded at start-up). */
+  ecu_core_t *core;
+  const ecu_path_pool_t *paths;
+  ecu_excite_t *excite;
+  const char *load_error; /* NULL, or why the model or a path failed (FAULT latched) */
+  ecu_tx_t tx;
+  ecu_rx_state_t rx;
+  /* Ecu */
+  int mode, awaiting_disengage, active_path_id, pending_model_reset, overruns, cycles;
+  double previous_valid_steer;
+  int synchronised;
+  ecu_when_t last_tick;
+  int realtime, warned_sync, release_started;
+  int64_t next_release;
+  ecu_output_t out; /* the core's output of the task running (no state between tasks) */
+  ecu_timing_t timing;
+} ecu_node_t;
 
-/* The node on a loaded core: load_error NULL, or why the model or a path failed (FAULT
- * latched, as the Python ECU does). */
-ECU_API void ecu_node_init(ecu_send_fn send, const char *load_error);
+/* The node on a loaded core, its paths and excitation: load_error NULL, or why the model or
+ * a path failed (FAULT latched, as the Python ECU does). */
+void ecu_node_start(ecu_node_t *node, ecu_core_t *core, const ecu_path_pool_t *paths, ecu_excite_t *excite,
+                    ecu_send_fn send, const char *load_error);
 
 /* One received frame (contract_kind: a classic data frame with an 11-bit ID); a HIL_SYNC
  * runs the due control tasks and answers. Never fails. */
-ECU_API void ecu_node_receive(uint32_t id, const uint8_t *data, int length, int contract_kind);
+void ecu_node_frame(ecu_node_t *node, uint32_t id, const uint8_t *data, int length, int contract_kind);
 
 /* Real-time mode (instead of lockstep): arrivals stamped on the monotonic clock, HIL_SYNC
  * ignored, the control task released by ecu_node_poll on absolute 25 ms deadlines. */
-ECU_API void ecu_node_set_realtime(void);
+void ecu_node_set_realtime(ecu_node_t *node);
 
 /* Real time: run the control task if its release has come; returns the next release (ns
  * on os_monotonic_ns). */
-ECU_API int64_t ecu_node_poll(int64_t now_ns);
+int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns);
 
 /* On stopping: one last STEER_TORQUE_CMD with CMD_VALID = 0 (STANDBY, FAULT when latched),
  * the held steering angle and zero torque. */
-ECU_API void ecu_node_close(void);
-
-/* Write the timing record (the last 65,536 control tasks) as firmware_sim.timing's .npz
- * (``--timing-out``); 0, or -1 with err. */
-ECU_API int ecu_node_save_timing(const char *path, char *err, size_t err_len);
-
-/* The node's mode (CTRL_MODE values) and its counts, for logs and tests. */
-ECU_API int ecu_node_mode(void);
-ECU_API int ecu_node_cycles(void);
+void ecu_node_close(ecu_node_t *node);
 
 #endif

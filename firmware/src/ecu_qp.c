@@ -1,8 +1,9 @@
 /*
  * The condensed steering QP of eq. 15 (a port of controller/steering_qp.py) on the
- * solvers OSQP generated at build time (build/firmware/gen/qp, one workspace per
- * controller, embedded mode 2). The sparsity is fixed by the generator; each step writes
- * the values in the same column order as the Python SteeringQp and updates them in place.
+ * solvers OSQP generated at build time (build/firmware/gen/qp, ECU_QP_WORKSPACES workspaces
+ * per controller, embedded mode 2), through OSQP's public API only. The sparsity is fixed by
+ * the generator; each step writes the values in the same column order as the Python
+ * SteeringQp and updates them in place.
  *
  * Variables v = [U (Nc steer angles), s (3 slacks)]. Constraints, in row order: the Nc
  * steer bounds, the 3 slack bounds s >= 0, then per soft-constrained prediction step and
@@ -18,53 +19,68 @@
 #include <string.h>
 #include <stdio.h>
 
-#include "ecu_internal.h"
-#include "osqp.h"
-#include "algebra_matrix.h" /* OSQPMatrix_get_nz, OSQPWorkspace: the generated A's size, checked at start-up */
-#include "types.h"
-#include "qp_dkmpc_workspace.h"
-#include "qp_eso_dkmpc_workspace.h"
-#include "qp_lmpc_workspace.h"
+#include "ecu_qp.h"
+#include "qp_workspaces.h" /* the generated solvers and the nonzeros of their A */
 
-#define N_SOFT 3
+#define N_SOFT ECU_QP_N_SOFT
 #define STEER_LIMIT 0.3 /* rad, eq. 22 (controller.base.STEER_LIMIT_RAD) */
 #define NP ECU_NP_MAX
 #define NC ECU_NC_MAX
-#define N_VAR (NC + N_SOFT)
-#define N_CON (NC + N_SOFT + 2 * N_SOFT * NP)
-#define P_NNZ (NC * (NC + 1) / 2 + N_SOFT)
-#define A_NNZ (NC * (1 + 2 * N_SOFT * NP) + N_SOFT * (1 + 2 * NP)) /* at most (all causal) */
 #if ECU_SOFT_STRIDE < 1 || ECU_SOFT_LEADING_STEPS < 0 || (ECU_SOFT_STATE_MASK & ~7)
 #error "ecu_build.h: ECU_SOFT_STRIDE must be >= 1, ECU_SOFT_LEADING_STEPS >= 0 and ECU_SOFT_STATE_MASK within [vx, vy, yaw_rate]"
 #endif
 
-static OSQPSolver *solver;
-static const ecu_tuning_t *tun;
-static int n_pred, n_ctrl;
-static int constraints_were_active;
-static double fixed_hessian[NC][NC], rate_diagonal[NC];
-static double p_data[P_NNZ], a_data[A_NNZ], q[N_VAR], lower[N_CON], upper[N_CON];
-static double warm[N_VAR], initial_dual[N_CON], pose_weight[3 * NP];
-/* A's data: U column c starts at a_column[c] (its bound row; then the gain rows from
- * gain_first[c] on, both sides); the slack columns start at a_column[n_ctrl]. */
-static int a_column[NC + 1], gain_first[NC], a_count;
-/* The soft rows: the r-th pair of rows bounds the flattened state soft_row[r] (3 step +
- * state, step-major as soft_state_rows); state k has soft_count[k] of them. */
-static int soft_row[N_SOFT * NP], n_soft_rows, soft_count[N_SOFT];
+/* The generated workspaces are the process's, whichever core holds one: who holds each
+ * (NULL: free) and the rho it was generated with (0: not yet read), so that a core taking
+ * it starts the solver afresh. */
+static const ecu_qp_t *holder[ECU_N_CONTROLLERS][ECU_QP_WORKSPACES];
+static double initial_rho[ECU_N_CONTROLLERS][ECU_QP_WORKSPACES];
 
-int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t err_len) {
-  OSQPSolver *const solvers[ECU_N_CONTROLLERS] = {&qp_eso_dkmpc_solver, &qp_dkmpc_solver, &qp_lmpc_solver};
+void ecu_qp_release(ecu_qp_t *qp) {
+  if (qp->solver && holder[qp->controller][qp->workspace] == qp) holder[qp->controller][qp->workspace] = NULL;
+  qp->solver = NULL;
+}
+
+/* qp's own workspace of controller, else the first free one; -1 when all are held. */
+static int take_workspace(ecu_qp_t *qp, int controller) {
+  if (qp->solver && qp->controller == controller && holder[controller][qp->workspace] == qp) return qp->workspace;
+  ecu_qp_release(qp);
+  for (int k = 0; k < ECU_QP_WORKSPACES; k++) {
+    if (!holder[controller][k]) {
+      holder[controller][k] = qp;
+      return k;
+    }
+  }
+  return -1;
+}
+
+int ecu_qp_init(ecu_qp_t *qp, int controller, const ecu_tuning_t *tuning, char *err, size_t err_len) {
+  static const char *const NAMES[ECU_N_CONTROLLERS] = {"eso-dkmpc", "dkmpc", "lmpc"};
+  OSQPSolver *const solvers[ECU_N_CONTROLLERS][ECU_QP_WORKSPACES] = ECU_QP_WORKSPACE_TABLE;
+  static const int GENERATED_A_NNZ[ECU_N_CONTROLLERS] = ECU_QP_A_NNZ_TABLE;
   OSQPSettings settings;
-  solver = solvers[controller];
-  tun = tuning;
-  n_pred = tuning->n_pred;
-  n_ctrl = tuning->n_ctrl;
+  int workspace = take_workspace(qp, controller);
+  if (workspace < 0) {
+    snprintf(err, err_len, "all %d generated QP workspaces of %s are held by other cores", ECU_QP_WORKSPACES,
+             NAMES[controller]);
+    return -1;
+  }
+  OSQPSolver *const solver = solvers[controller][workspace];
+  qp->solver = solver;
+  qp->controller = controller;
+  qp->workspace = workspace;
+  qp->tuning = tuning;
+  const int n_pred = qp->n_pred = tuning->n_pred;
+  const int n_ctrl = qp->n_ctrl = tuning->n_ctrl;
+  double *const p_data = qp->p_data, *const a_data = qp->a_data, *const q = qp->q;
+  double *const lower = qp->lower, *const upper = qp->upper;
+  int *const soft_row = qp->soft_row, *const soft_count = qp->soft_count, *const a_column = qp->a_column;
   /* A reload starts the solver afresh: rho back to its generated value (the rest of the
    * solver's state is rewritten by the first step's update and warm start). */
-  static double initial_rho[ECU_N_CONTROLLERS];
-  if (initial_rho[controller] == 0.0) initial_rho[controller] = solver->settings->rho;
-  else if (osqp_update_rho(solver, initial_rho[controller]) != 0) {
-    snprintf(err, err_len, "OSQP refused to restore rho %g", initial_rho[controller]);
+  double *rho = &initial_rho[controller][workspace];
+  if (*rho == 0.0) *rho = solver->settings->rho;
+  else if (osqp_update_rho(solver, *rho) != 0) {
+    snprintf(err, err_len, "OSQP refused to restore rho %g", *rho);
     return -1;
   }
   settings = *solver->settings;
@@ -77,15 +93,15 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
     return -1;
   }
   /* p D'D, D the increment operator (U_j - U_{j-1}); r I is added per step (use_weights). */
-  memset(fixed_hessian, 0, sizeof fixed_hessian);
+  memset(qp->fixed_hessian, 0, sizeof qp->fixed_hessian);
   for (int j = 0; j < n_ctrl; j++) {
-    rate_diagonal[j] = tuning->p_steer_rate * (j + 1 < n_ctrl ? 2.0 : 1.0);
-    if (j + 1 < n_ctrl) fixed_hessian[j][j + 1] = fixed_hessian[j + 1][j] = -tuning->p_steer_rate;
+    qp->rate_diagonal[j] = tuning->p_steer_rate * (j + 1 < n_ctrl ? 2.0 : 1.0);
+    if (j + 1 < n_ctrl) qp->fixed_hessian[j][j + 1] = qp->fixed_hessian[j + 1][j] = -tuning->p_steer_rate;
   }
   /* The parts of P, A, q, l, u that never change. */
   int upper_count = n_ctrl * (n_ctrl + 1) / 2;
   for (int k = 0; k < N_SOFT; k++) p_data[upper_count + k] = 2.0 * tuning->slack_l2;
-  n_soft_rows = 0;
+  int n_soft_rows = 0;
   for (int k = 0; k < N_SOFT; k++) soft_count[k] = 0;
   for (int i = 0; i < n_pred; i++) {
     /* soft_steps: the leading steps, every stride-th step, the last. */
@@ -101,16 +117,18 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
     /* The first soft row whose step the input of step j reaches (the causal entries). */
     int first = 0, step_row = N_SOFT * (j < n_pred ? j : n_pred);
     while (first < n_soft_rows && soft_row[first] < step_row) first++;
-    gain_first[j] = first;
+    qp->gain_first[j] = first;
     a_column[j + 1] = a_column[j] + 1 + 2 * (n_soft_rows - first);
     a_data[a_column[j]] = 1.0;
   }
-  a_count = a_column[n_ctrl];
+  qp->n_soft_rows = n_soft_rows;
+  int a_count = a_column[n_ctrl];
   for (int k = 0; k < N_SOFT; k++) a_count += 1 + 2 * soft_count[k];
+  qp->a_count = a_count;
   /* The generated solver must have this pattern (it is generated from SteeringQp). */
-  if (a_count != OSQPMatrix_get_nz(solver->work->data->A)) {
+  if (a_count != GENERATED_A_NNZ[controller]) {
     snprintf(err, err_len, "the generated QP's A has %d nonzeros, the C core writes %d (regenerate: make firmware)",
-             (int)OSQPMatrix_get_nz(solver->work->data->A), a_count);
+             GENERATED_A_NNZ[controller], a_count);
     return -1;
   }
   /* Slack column k: its bound row, then state k's soft rows (upper -1, lower +1). */
@@ -138,10 +156,10 @@ int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t er
     lower[soft_first + 2 * r] = -OSQP_INFTY;
     upper[soft_first + 2 * r + 1] = OSQP_INFTY;
   }
-  memset(warm, 0, sizeof warm);
-  memset(initial_dual, 0, sizeof initial_dual);
-  for (int k = 0; k < N_SOFT; k++) initial_dual[n_ctrl + k] = -tuning->slack_l1;
-  constraints_were_active = 0;
+  memset(qp->warm, 0, sizeof qp->warm);
+  memset(qp->initial_dual, 0, sizeof qp->initial_dual);
+  for (int k = 0; k < N_SOFT; k++) qp->initial_dual[n_ctrl + k] = -tuning->slack_l1;
+  qp->constraints_were_active = 0;
   return 0;
 }
 
@@ -160,24 +178,33 @@ static int map_status(OSQPInt status) {
 
 /* MpcTuning.weights_at and SteeringQp._use_weights: the pose weights and r I + p D'D at
  * measured speed vx, the same arithmetic as the Python (bit-identical weights). */
-static void use_weights(double vx) {
+static void use_weights(ecu_qp_t *qp, double vx) {
+  const ecu_tuning_t *tun = qp->tuning;
+  const int n_pred = qp->n_pred, n_ctrl = qp->n_ctrl;
   const double blend = fmin(fmax((vx - tun->schedule_low) / (tun->schedule_high - tun->schedule_low), 0.0), 1.0);
   const double q_position = tun->low_q_position + blend * (tun->q_position - tun->low_q_position);
   const double q_yaw = tun->low_q_yaw + blend * (tun->q_yaw - tun->low_q_yaw);
   const double r_steer = tun->low_r_steer + blend * (tun->r_steer - tun->low_r_steer);
-  for (int j = 0; j < n_ctrl; j++) fixed_hessian[j][j] = r_steer + rate_diagonal[j];
+  for (int j = 0; j < n_ctrl; j++) qp->fixed_hessian[j][j] = r_steer + qp->rate_diagonal[j];
   for (int i = 0; i < n_pred; i++) {
-    pose_weight[3 * i] = pose_weight[3 * i + 1] = q_position;
-    pose_weight[3 * i + 2] = q_yaw;
+    qp->pose_weight[3 * i] = qp->pose_weight[3 * i + 1] = q_position;
+    qp->pose_weight[3 * i + 2] = q_yaw;
   }
 }
 
-void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, double previous_steer,
+void ecu_qp_solve(ecu_qp_t *qp, double vx, const double *jac, const double *pose_offset, double previous_steer,
                   const double *gain, const double *free_states, const double *warm_steer, ecu_qp_solution_t *sol) {
+  const ecu_tuning_t *tun = qp->tuning;
+  OSQPSolver *const solver = qp->solver;
+  const int n_pred = qp->n_pred, n_ctrl = qp->n_ctrl, n_soft_rows = qp->n_soft_rows;
   const int rows = 3 * n_pred, soft_first = n_ctrl + N_SOFT;
+  double *const p_data = qp->p_data, *const a_data = qp->a_data, *const q = qp->q;
+  double *const lower = qp->lower, *const upper = qp->upper, *const warm = qp->warm;
+  const double *const pose_weight = qp->pose_weight, *const initial_dual = qp->initial_dual;
+  const int *const soft_row = qp->soft_row;
   double weighted[3 * NP][NC];
   double hessian[NC][NC];
-  use_weights(vx);
+  use_weights(qp, vx);
   for (int r = 0; r < rows; r++)
     for (int c = 0; c < n_ctrl; c++) weighted[r][c] = jac[r * n_ctrl + c] * pose_weight[r];
   /* Half of OSQP's P: J' W J + the fixed part; its upper triangle in column order. */
@@ -185,7 +212,7 @@ void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, doubl
     for (int b = a; b < n_ctrl; b++) {
       double sum = 0.0;
       for (int r = 0; r < rows; r++) sum += jac[r * n_ctrl + a] * weighted[r][b];
-      hessian[a][b] = sum + fixed_hessian[a][b];
+      hessian[a][b] = sum + qp->fixed_hessian[a][b];
     }
   }
   int k = 0;
@@ -199,8 +226,8 @@ void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, doubl
   q[0] -= 2.0 * tun->p_steer_rate * previous_steer;
   /* The causal state-gain entries of A (both rows of a soft pair) and the soft bounds. */
   for (int j = 0; j < n_ctrl; j++) {
-    double *col = a_data + a_column[j] + 1;
-    for (int r = gain_first[j], k = 0; r < n_soft_rows; r++, k += 2)
+    double *col = a_data + qp->a_column[j] + 1;
+    for (int r = qp->gain_first[j], k = 0; r < n_soft_rows; r++, k += 2)
       col[k] = col[k + 1] = gain[soft_row[r] * n_ctrl + j];
   }
   for (int r = 0; r < n_soft_rows; r++) {
@@ -210,10 +237,10 @@ void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, doubl
   }
   /* The Python interface's order: vectors first, then matrices (rescaled, refactored). */
   osqp_update_data_vec(solver, q, lower, upper);
-  osqp_update_data_mat(solver, p_data, OSQP_NULL, n_ctrl * (n_ctrl + 1) / 2 + N_SOFT, a_data, OSQP_NULL, a_count);
+  osqp_update_data_mat(solver, p_data, OSQP_NULL, n_ctrl * (n_ctrl + 1) / 2 + N_SOFT, a_data, OSQP_NULL, qp->a_count);
   for (int c = 0; c < n_ctrl; c++) warm[c] = warm_steer[c];
   /* Dual start at the inactive-constraint values unless a state constraint was active. */
-  osqp_warm_start(solver, warm, constraints_were_active ? OSQP_NULL : initial_dual);
+  osqp_warm_start(solver, warm, qp->constraints_were_active ? OSQP_NULL : initial_dual);
   osqp_solve(solver);
   sol->status = map_status(solver->info->status_val);
   sol->iterations = (int)solver->info->iter;
@@ -224,10 +251,10 @@ void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, doubl
   if (sol->status == ECU_SOLVED || sol->status == ECU_SOLVED_INACCURATE) {
     double largest = 0.0;
     for (int r = soft_first; r < soft_first + 2 * n_soft_rows; r++) largest = fmax(largest, fabs(y[r]));
-    constraints_were_active = largest > 1.0;
+    qp->constraints_were_active = largest > 1.0;
   } else {
     osqp_warm_start(solver, OSQP_NULL, initial_dual);
-    constraints_were_active = 0;
+    qp->constraints_were_active = 0;
   }
   double constant = 0.0;
   for (int r = 0; r < rows; r++) constant += pose_offset[r] * (pose_offset[r] * pose_weight[r]);

@@ -1,6 +1,7 @@
 /*
  * E2E receive (can_defs/e2e.py) and frame decoding (cantools' generated codecs).
- * One receiver per contract frame ID; static state only.
+ * One receiver per contract frame ID in the caller's ecu_e2e_monitor_t; the CRC table is
+ * the only static (a constant, computed on first use).
  */
 #include <string.h>
 
@@ -23,8 +24,8 @@ static const uint32_t FRAME_IDS[] = {
   VEHICLE_STEER_TORQUE_CMD_FRAME_ID, VEHICLE_CTRL_DIAG_FRAME_ID};
 #define N_FRAMES ((int)(sizeof FRAME_IDS / sizeof FRAME_IDS[0]))
 #define N_HIL_FRAMES 2
+_Static_assert(N_FRAMES == ECU_E2E_FRAMES, "ecu_rx.h: ECU_E2E_FRAMES is the number of contract frames");
 
-static int last_counter[N_FRAMES]; /* -1: not synchronised */
 static int initialised;
 static uint8_t crc_table[256];
 
@@ -35,7 +36,6 @@ static void initialise(void) {
     for (int bit = 0; bit < 8; bit++) reg = (uint8_t)((reg & 0x80u) ? ((unsigned)reg << 1) ^ CRC_POLY : (unsigned)reg << 1);
     crc_table[byte] = reg;
   }
-  for (int i = 0; i < N_FRAMES; i++) last_counter[i] = -1;
   initialised = 1;
 }
 
@@ -48,17 +48,15 @@ uint8_t ecu_e2e_crc(uint32_t frame_id, const uint8_t data[8]) {
   return (uint8_t)(reg ^ CRC_XOR_OUT);
 }
 
-void ecu_e2e_reset(void) {
-  if (!initialised) initialise();
-  for (int i = 0; i < N_FRAMES; i++) last_counter[i] = -1;
-}
+void ecu_e2e_monitor_reset(ecu_e2e_monitor_t *monitor) { memset(monitor, 0, sizeof *monitor); }
 
 static ecu_e2e_result_t verdict(int status, int lost, int accepted) {
   ecu_e2e_result_t result = {status, lost, accepted};
   return result;
 }
 
-ecu_e2e_result_t ecu_e2e_check(uint32_t frame_id, const uint8_t *data, int length) {
+ecu_e2e_result_t ecu_e2e_monitor_check(ecu_e2e_monitor_t *monitor, uint32_t frame_id, const uint8_t *data,
+                                       int length) {
   int slot = -1;
   if (!initialised) initialise();
   for (int i = 0; i < N_FRAMES; i++)
@@ -71,23 +69,24 @@ ecu_e2e_result_t ecu_e2e_check(uint32_t frame_id, const uint8_t *data, int lengt
                                                               : verdict(ECU_E2E_BAD_TICK, 0, 0);
   }
   if (data[0] != ecu_e2e_crc(frame_id, data)) return verdict(ECU_E2E_CRC_ERROR, 0, 0);
-  int counter = data[1] & 0x0F, last = last_counter[slot];
-  if (last < 0) {
-    last_counter[slot] = counter;
+  int counter = data[1] & 0x0F, last = monitor->last_counter[slot];
+  if (!monitor->synchronised[slot]) {
+    monitor->synchronised[slot] = 1;
+    monitor->last_counter[slot] = counter;
     return verdict(ECU_E2E_OK, 0, 1);
   }
   int jump = (counter - last + COUNTER_MODULUS) % COUNTER_MODULUS;
   if (jump == 1) {
-    last_counter[slot] = counter;
+    monitor->last_counter[slot] = counter;
     return verdict(ECU_E2E_OK, 0, 1);
   }
   if (jump == 0) return verdict(ECU_E2E_REPEATED, 0, 0);
   if (jump <= MAX_TOLERATED_LOST + 1) {
-    last_counter[slot] = counter;
+    monitor->last_counter[slot] = counter;
     return verdict(ECU_E2E_LOST, jump - 1, 1);
   }
   /* Too many frames missing to trust the sequence: the next good frame re-synchronises. */
-  last_counter[slot] = -1;
+  monitor->synchronised[slot] = 0;
   return verdict(ECU_E2E_SEQUENCE_ERROR, jump - 1, 0);
 }
 

@@ -8,7 +8,7 @@
 
 #include <stdint.h>
 
-#include "ecu_core.h"
+#include "ecu_types.h"
 
 /* can_defs.e2e.E2EStatus, in the order of its members. */
 enum ecu_e2e_status {
@@ -21,14 +21,24 @@ typedef struct {
   int status, lost, accepted;
 } ecu_e2e_result_t;
 
+/* The contract's frames (one receiver each). */
+#define ECU_E2E_FRAMES 8
+
+/* E2EMonitor: per frame, whether a counter reference is held and the last counter. A
+ * zeroed monitor is a reset one. */
+typedef struct {
+  int synchronised[ECU_E2E_FRAMES], last_counter[ECU_E2E_FRAMES];
+} ecu_e2e_monitor_t;
+
 /* CRC of an E2E-protected frame: over the identifier (low, high byte) and bytes 1..7. */
 ECU_API uint8_t ecu_e2e_crc(uint32_t frame_id, const uint8_t data[8]);
 
 /* E2EMonitor.check: classify one received frame (any length, any ID); never fails. */
-ECU_API ecu_e2e_result_t ecu_e2e_check(uint32_t frame_id, const uint8_t *data, int length);
+ecu_e2e_result_t ecu_e2e_monitor_check(ecu_e2e_monitor_t *monitor, uint32_t frame_id, const uint8_t *data,
+                                       int length);
 
 /* E2EMonitor.reset: forget every counter reference. */
-ECU_API void ecu_e2e_reset(void);
+void ecu_e2e_monitor_reset(ecu_e2e_monitor_t *monitor);
 
 /* The physical values of a received contract frame (8 bytes), in the order of
  * can_defs.frames' dataclass fields: VEH_DYN vx, vy, yaw_rate; VEH_POSE_XY x, y;

@@ -1,10 +1,8 @@
 /*
- * Path files: the CSV reader and the contract's checks of controller/reference.py
- * (read_path_csv, check_path_file, ReferencePath.from_arrays), with the same messages.
- * The file is read line by line and refused at its 100,001st point. Differences from
- * Python's csv and float(): a quoted cell may not contain a comma, and numbers with
- * underscores ("1_000") or hexadecimal floats are refused. Also the path search both
- * trackers share (the control core's and the excitation's): ecu_search_sorted, ecu_path_track.
+ * Path files into the pool (see ecu_path_reader.h). The file is read line by line and
+ * refused at its 100,001st point. Differences from Python's csv and float(): a quoted cell
+ * may not contain a comma, and numbers with underscores ("1_000") or hexadecimal floats
+ * are refused.
  */
 #include <ctype.h>
 #include <math.h>
@@ -12,9 +10,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "ecu_excite.h"
-#include "ecu_internal.h"
 #include "ecu_lines.h"
+#include "ecu_path_reader.h"
 
 #define PI 3.141592653589793
 #define TWO_PI 6.283185307179586
@@ -25,21 +22,14 @@
 #define POSITION_MIN (-8388.608)    /* m: the range of POS_X / POS_Y */
 #define POSITION_MAX 8388.607
 #define LINE_BYTES (ECU_LINE_MAX + 2)
-#define WINDOW_AHEAD 6.0  /* m: PathTracker's search window around the last progress */
-#define WINDOW_BEHIND 2.0 /* m */
 
 static const char *const HEADER[3] = {"x", "y", "yaw"};
-/* The pool of every loaded path, one after the other (ECU_MAX_PATH_POINTS in all). The
- * file being read goes to the free end; px .. line_of point there while it is checked. */
-static double pool_x[ECU_MAX_PATH_POINTS], pool_y[ECU_MAX_PATH_POINTS], pool_yaw[ECU_MAX_PATH_POINTS];
-static double pool_s[ECU_MAX_PATH_POINTS];
-static int pool_lines[ECU_MAX_PATH_POINTS];
-static int pool_used;
-static double *px, *py, *pyaw, *ps;
-static int *line_of;
-#define MAX_POOL_PATHS 256
-static struct { int id, first, n; } slices[MAX_POOL_PATHS];
-static int n_slices;
+
+/* The points of the file being read: the free end of the pool. */
+typedef struct {
+  double *x, *y, *yaw, *s;
+  int *line;
+} points_t;
 
 /* Python's a % b for b > 0 (the result takes b's sign). */
 static double py_mod(double a, double b) {
@@ -85,7 +75,9 @@ static void format_float(char *buf, size_t len, double v) {
   else snprintf(buf, len, "%.17g", v);
 }
 
-static int check_points(const char *where, int n, char *err, size_t err_len) {
+static int check_points(const points_t *p, const char *where, int n, char *err, size_t err_len) {
+  const double *px = p->x, *py = p->y, *pyaw = p->yaw;
+  const int *line_of = p->line;
   char value[64];
   if (n < 2) {
     snprintf(err, err_len, "%s: needs at least 2 points, got %d", where, n);
@@ -140,7 +132,8 @@ static int check_points(const char *where, int n, char *err, size_t err_len) {
 }
 
 /* ReferencePath.from_arrays: yaw wrapped then unwrapped (numpy.unwrap), s the chord sum. */
-static void path_arrays(int n) {
+static void path_arrays(const points_t *p, int n) {
+  double *px = p->x, *py = p->y, *pyaw = p->yaw, *ps = p->s;
   double correction = 0.0, previous = wrap_angle(pyaw[0]);
   ps[0] = 0.0;
   pyaw[0] = previous;
@@ -156,15 +149,14 @@ static void path_arrays(int n) {
 }
 
 /* Read, check and convert one file into the free end of the pool; its point count in *n. */
-static int read_path_file(const char *file, int *n_out, char *err, size_t err_len) {
-  static char line[LINE_BYTES];
+static int read_path_file(ecu_path_pool_t *pool, const char *file, int *n_out, char *err, size_t err_len) {
+  static char line[LINE_BYTES]; /* start-up only: one file is read at a time */
   int got;
-  int capacity = ECU_MAX_PATH_POINTS - pool_used;
-  px = pool_x + pool_used;
-  py = pool_y + pool_used;
-  pyaw = pool_yaw + pool_used;
-  ps = pool_s + pool_used;
-  line_of = pool_lines + pool_used;
+  int capacity = ECU_MAX_PATH_POINTS - pool->used;
+  const points_t free_end = {pool->x + pool->used, pool->y + pool->used, pool->yaw + pool->used,
+                             pool->s + pool->used, pool->lines + pool->used};
+  double *px = free_end.x, *py = free_end.y, *pyaw = free_end.yaw;
+  int *line_of = free_end.line;
   FILE *stream = fopen(file, "r");
   int n = 0, line_number = 0, header_seen = 0, status = 0;
   if (!stream) {
@@ -239,110 +231,48 @@ static int read_path_file(const char *file, int *n_out, char *err, size_t err_le
     snprintf(err, err_len, "%s: empty file (expected header 'x,y,yaw')", file);
     return -1;
   }
-  if (check_points(file, n, err, err_len) != 0) return -1;
-  path_arrays(n);
+  if (check_points(&free_end, file, n, err, err_len) != 0) return -1;
+  path_arrays(&free_end, n);
   *n_out = n;
   return 0;
 }
 
-void ecu_path_pool_reset(void) {
-  pool_used = 0;
-  n_slices = 0;
+void ecu_paths_reset(ecu_path_pool_t *pool) {
+  pool->used = 0;
+  pool->n_slices = 0;
 }
 
-int ecu_path_pool_add(int path_id, const char *file, char *err, size_t err_len) {
+int ecu_paths_add(ecu_path_pool_t *pool, int path_id, const char *file, char *err, size_t err_len) {
   int n = 0;
-  if (n_slices == MAX_POOL_PATHS) {
-    snprintf(err, err_len, "%s: more than %d paths", file, MAX_POOL_PATHS);
+  if (pool->n_slices == ECU_MAX_POOL_PATHS) {
+    snprintf(err, err_len, "%s: more than %d paths", file, ECU_MAX_POOL_PATHS);
     return -1;
   }
-  if (read_path_file(file, &n, err, err_len) != 0) return -1;
-  slices[n_slices].id = path_id;
-  slices[n_slices].first = pool_used;
-  slices[n_slices++].n = n;
-  pool_used += n;
+  if (read_path_file(pool, file, &n, err, err_len) != 0) return -1;
+  pool->slices[pool->n_slices].id = path_id;
+  pool->slices[pool->n_slices].first = pool->used;
+  pool->slices[pool->n_slices++].n = n;
+  pool->used += n;
   return 0;
 }
 
-int ecu_path_pool_has(int path_id) {
-  for (int k = 0; k < n_slices; k++)
-    if (slices[k].id == path_id) return 1;
+int ecu_paths_has(const ecu_path_pool_t *pool, int path_id) {
+  for (int k = 0; k < pool->n_slices; k++)
+    if (pool->slices[k].id == path_id) return 1;
   return 0;
 }
 
-int ecu_path_pool_select(int path_id, char *err, size_t err_len) {
-  for (int k = n_slices - 1; k >= 0; k--) {
-    if (slices[k].id == path_id) {
-      int first = slices[k].first;
-      return ecu_set_path(pool_x + first, pool_y + first, pool_yaw + first, pool_s + first, slices[k].n, err,
-                          err_len);
+int ecu_paths_find(const ecu_path_pool_t *pool, int path_id, ecu_path_view_t *view) {
+  for (int k = pool->n_slices - 1; k >= 0; k--) {
+    if (pool->slices[k].id == path_id) {
+      int first = pool->slices[k].first;
+      view->x = pool->x + first;
+      view->y = pool->y + first;
+      view->yaw = pool->yaw + first;
+      view->s = pool->s + first;
+      view->n = pool->slices[k].n;
+      return 0;
     }
   }
-  snprintf(err, err_len, "PATH_ID %d is not loaded", path_id);
   return -1;
-}
-
-int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
-  ecu_path_pool_reset();
-  if (ecu_path_pool_add(0, file, err, err_len) != 0) return -1;
-  return ecu_path_pool_select(0, err, err_len);
-}
-
-int ecu_search_sorted(const double *s, int n, double v, int right) {
-  int lo = 0, hi = n;
-  while (lo < hi) {
-    int mid = (lo + hi) / 2;
-    if (right ? s[mid] <= v : s[mid] < v) lo = mid + 1;
-    else hi = mid;
-  }
-  return lo;
-}
-
-double ecu_path_track(const double *x, const double *y, const double *s, int n, double px, double py,
-                      double *progress, int *has_progress) {
-  int n_segments = n - 1, first = 0, last = n_segments;
-  if (*has_progress) {
-    first = ecu_search_sorted(s, n, *progress - WINDOW_BEHIND, 1) - 1;
-    if (first < 0) first = 0;
-    last = ecu_search_sorted(s, n, *progress + WINDOW_AHEAD, 0) + 1;
-    if (last > n_segments) last = n_segments;
-    if (last < first + 1) last = first + 1;
-  }
-  /* best_len_sq starts at 1: when no segment is nearer than infinity (coordinates so large
-   * that d overflows) the progress is s[first] + 0 * 1, never 0 * inf. */
-  double best = INFINITY, best_t = 0.0, best_ex = 0.0, best_ey = 0.0, best_len_sq = 1.0;
-  int best_k = first;
-  for (int k = first; k < last; k++) {
-    double dx = x[k + 1] - x[k], dy = y[k + 1] - y[k];
-    double length_sq = dx * dx + dy * dy;
-    double t = ((px - x[k]) * dx + (py - y[k]) * dy) / length_sq;
-    t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
-    double ex = px - (x[k] + t * dx), ey = py - (y[k] + t * dy), d = ex * ex + ey * ey;
-    if (d < best) {
-      best = d;
-      best_k = k;
-      best_t = t;
-      best_ex = ex;
-      best_ey = ey;
-      best_len_sq = length_sq;
-    }
-  }
-  double length = sqrt(best_len_sq);
-  *progress = s[best_k] + best_t * length;
-  *has_progress = 1;
-  /* cross product of the tangent with the offset: > 0 when the point is to the left */
-  return ((x[best_k + 1] - x[best_k]) * best_ey - (y[best_k + 1] - y[best_k]) * best_ex) / length;
-}
-
-/* The excitation's e_Y: a tracker of its own on a pooled path, apart from the control core's. */
-int ecu_path_pool_track(int path_id, double x, double y, double *progress, int *has_progress,
-                        double *lateral_error) {
-  int slice = -1;
-  for (int k = n_slices - 1; k >= 0 && slice < 0; k--)
-    if (slices[k].id == path_id) slice = k;
-  if (slice < 0) return -1;
-  int first = slices[slice].first;
-  *lateral_error = ecu_path_track(pool_x + first, pool_y + first, pool_s + first, slices[slice].n, x, y, progress,
-                                  has_progress);
-  return 0;
 }

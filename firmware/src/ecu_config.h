@@ -1,12 +1,13 @@
 /*
- * Internals shared by the core's files: the configuration read from the data file
- * (ecu_data.c) and used by the control law (ecu_core.c, ecu_qp.c).
+ * The configuration read from the data file at start-up (ecu_data.c; layout:
+ * firmware/tools/ecu_data.py): the tuning of each controller, the longitudinal law, the
+ * nominal bicycle and the Koopman model in physical units.
  */
-#ifndef ECU_INTERNAL_H
-#define ECU_INTERNAL_H
+#ifndef ECU_CONFIG_H
+#define ECU_CONFIG_H
 
 #include "ecu_build.h"
-#include "ecu_core.h"
+#include "ecu_types.h"
 
 /* Sum of the encoder's weight counts (layer i: width_i x width_{i-1}, width_{-1} = NX). */
 #define ECU_ENCODER_MAX (ECU_NX * ECU_HIDDEN_MAX + (ECU_N_LAYERS) * ECU_HIDDEN_MAX * ECU_HIDDEN_MAX)
@@ -53,38 +54,8 @@ typedef struct {
   int weight_at[ECU_N_LAYERS], bias_at[ECU_N_LAYERS];
 } ecu_config_t;
 
-/* numpy.searchsorted(s, v, side) on s[0..n-1] (ascending): the first index i with
- * s[i] > v when right != 0 (side="right"), s[i] >= v when right == 0 (side="left"); n when
- * there is none, so v goes in before index i and s stays sorted (ecu_path.c). */
-int ecu_search_sorted(const double *s, int n, double v, int right);
-
-/* controller.reference.PathTracker.update (window 2 m behind, 6 m ahead) on a path of
- * n >= 2 points x, y, s (n,) (s increasing): the nearest foot point of (px, py) on the
- * segments around *progress, on all of them when !*has_progress. Sets *progress to the
- * foot point's arc length (m) and *has_progress to 1; returns the signed lateral error (m,
- * > 0 when the point is left of the path). Used by the control core's tracker and by the
- * excitation's own (ecu_path.c). */
-double ecu_path_track(const double *x, const double *y, const double *s, int n, double px, double py,
-                      double *progress, int *has_progress);
-
-/* Read the data file into cfg; 0, or -1 with one line in err. */
+/* Read the data file into cfg; 0, or -1 with one line in err. Start-up only: the record
+ * being read goes through one static buffer, so two loads may not run at once. */
 int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len);
-
-/* The steering QP of one controller (ecu_qp.c), a port of controller/steering_qp.py. */
-typedef struct {
-  int status, iterations;
-  double steer[ECU_NC_MAX], slack[3];
-  double cost, solve_time_s;
-} ecu_qp_solution_t;
-
-/* Select the generated workspace of `controller` and apply the tuning's solver settings. */
-int ecu_qp_init(int controller, const ecu_tuning_t *tuning, char *err, size_t err_len);
-
-/* SteeringQp.solve: jac (Np*3 x Nc, row-major), offset (Np*3), gain (Np*3 x Nc, states at
- * steps 1..Np), free (Np*3), warm (Nc); vx (m/s) the measured speed the weights are
- * scheduled on. */
-void ecu_qp_solve(double vx, const double *jac, const double *pose_offset, double previous_steer,
-                  const double *gain, const double *free_states, const double *warm,
-                  ecu_qp_solution_t *solution);
 
 #endif
