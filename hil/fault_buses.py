@@ -2,7 +2,7 @@
 
 Two faults of the contract's revision 2 cannot be frames of the HIL nodes, so they are bus
 wrappers for a run that drives the ECU itself (the fault campaign's ECU-level cases,
-studies/fault_python_ecu.py and studies/fault_c_ecu.py): a jump of virtual time
+hil/fault_cases/python_ecu.py and hil/fault_cases/c_ecu.py): a jump of virtual time
 (`TimeShiftingBus`, between the time master and the bus) and a lost bus (`LosableBus`,
 between the ECU and the bus).
 """

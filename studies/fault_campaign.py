@@ -1,8 +1,8 @@
 """`make faults`: every fault of hil/faults.py in the high-mu double lane change, in
 lockstep on the virtual bus, judged from the frames alone.
 
-The cases (``studies.fault_cases``) run as tasks of the campaigns' executors
-(``studies.fault_runs``), each judged from the frames (``studies.fault_verdicts``); the
+The cases (``hil.fault_cases.catalogue``) run as tasks of the campaigns' executors
+(``studies.fault_runs``), each judged from the frames (``hil.fault_cases.verdicts``); the
 report goes to results/faults.* (``studies.fault_report``). The full 13.5 s scenario every
 time (about 12-15 s of wall clock per run here); faults start at 3.0 s, in the first lane
 change (X ~ 29 m).
@@ -10,7 +10,7 @@ change (X ~ 29 m).
 ``--ecu c`` (``make faults-c``) runs the same cases against the C ECU executable
 (``build/firmware/ecu``) as ``hil run --ecu c`` does: a separate process on a socketcand hub
 of its own on TCP loopback, the injector between this process's nodes and the hub
-(``studies.fault_c_ecu``). It writes results/faults_c.* and compares each verdict with the
+(``hil.fault_cases.c_ecu``). It writes results/faults_c.* and compares each verdict with the
 Python campaign's (results/faults.json).
 
 This module is the command: its options (shared with ``python -m hil faults --campaign``),
@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError
-from studies.fault_cases import all_cases
+from hil.fault_cases.catalogue import all_cases
 from studies.fault_report import check_paths, write_results
 from studies.fault_runs import run_campaign
 

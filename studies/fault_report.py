@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from hil.errors import HilError
-from studies.fault_cases import ONSET_S, SCENARIO
-from studies.fault_verdicts import PATH_TOLERANCE_M, Verdict
+from hil.fault_cases.catalogue import ONSET_S, SCENARIO
+from hil.fault_cases.verdicts import PATH_TOLERANCE_M, Verdict
 
 #: The files the campaign writes into its output folder.
 RESULT_FILES = ("faults.md", "faults.json", "faults_vehicle.png")

@@ -10,10 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from studies import fault_c_ecu, fault_campaign, fault_cases, fault_report
-from studies.fault_cases import FaultCase
-from studies.fault_runs import run_case
-from studies.fault_verdicts import Verdict
+from hil.fault_cases import c_ecu as fault_c_ecu, catalogue as fault_cases
+from studies import fault_campaign, fault_report
+from hil.fault_cases.catalogue import FaultCase
+from hil.fault_cases.runs import run_case
+from hil.fault_cases.verdicts import Verdict
 from test_firmware_c_core import native  # noqa: F401 (the fixture: the firmware built)
 
 

@@ -17,9 +17,9 @@ from can_defs.codec import decode, encode
 from can_defs.frames import (CtrlMode, FrameId, HilSync, PlannerReq, SteerTorqueCmd, VehDyn,
                              VehPoseXY, VehPoseYaw)
 from hil.commands.faults import faults_table, parse_pairs
-from studies.fault_cases import DEGRADED, FaultCase
-from studies.fault_runs import run_case
-from studies.fault_verdicts import check_commands, mode_sequence
+from hil.fault_cases.catalogue import DEGRADED, FaultCase
+from hil.fault_cases.runs import run_case
+from hil.fault_cases.verdicts import check_commands, mode_sequence
 from hil.fault_injector import FaultInjector
 from hil.fault_vehicle import OffsetSteeringVehicle
 from hil.faults import FaultSpec, FaultSpecError
@@ -291,7 +291,8 @@ def test_cli_one_run_prints_the_verdict(capsys):
 
 from can_defs.frames import HANDSHAKE_TICK  # noqa: E402
 from hil.fault_buses import BusDownError, LosableBus, TimeShiftingBus  # noqa: E402
-from studies import fault_cases, fault_report, fault_verdicts  # noqa: E402
+from hil.fault_cases import catalogue as fault_cases, verdicts as fault_verdicts  # noqa: E402
+from studies import fault_report  # noqa: E402
 
 RX_PLANT_AND_PLANNER = [0x100, 0x101, 0x102, 0x110]
 
@@ -531,7 +532,7 @@ def test_campaign_runs_go_to_this_process_unless_workers_or_an_address_is_given(
 @pytest.mark.slow
 def test_campaign_on_a_local_ray_gives_the_verdicts_of_a_serial_one():
     pytest.importorskip("ray")
-    from studies.fault_cases import all_cases
+    from hil.fault_cases.catalogue import all_cases
     from studies.fault_runs import run_campaign
 
     cases = [c for c in all_cases() if c.name in ("drop 5 %", "mass +200 kg")]

@@ -10,7 +10,7 @@ One run: the scenario's ``[faults]`` table (hil/faults.py) plus faults from flag
 ``ids=0x100/0x101``, ``true`` / ``false``); repeatable. It prints the run's verdict
 (mode sequence, detection, max |e_Y|, invalid commands, crashes) as JSON.
 
-``--campaign``: every case of studies/fault_cases.py (what ``make faults`` runs,
+``--campaign``: every case of hil/fault_cases/catalogue.py (what ``make faults`` runs,
 studies/fault_campaign.py), writing ``results/faults.md``, ``faults.json`` and
 ``faults_vehicle.png``. The output folder is checked before any run: its parent must
 exist, and results of an earlier campaign in it are an error unless ``--replace`` is given
@@ -128,8 +128,8 @@ def main(args: argparse.Namespace) -> int:
     import json
 
     from studies import fault_campaign
-    from studies.fault_cases import FaultCase
-    from studies.fault_runs import run_case
+    from hil.fault_cases.catalogue import FaultCase
+    from hil.fault_cases.runs import run_case
     from hil.scenario import load_scenario
 
     if args.campaign:

@@ -360,7 +360,7 @@ def c_ecu_unavailable(cell: Cell, faults: Mapping[str, Mapping[str, Any]]) -> st
 
     The rule: the C ECU has the controllers ``hil.session.C_ECU_CONTROLLERS`` (NMPC and the
     ablations are Python only), and its loopback socketcand hub cannot carry FD, remote or
-    error frames (``studies.fault_c_ecu.c_not_applicable``: a fault sending such
+    error frames (``hil.fault_cases.c_ecu.c_not_applicable``: a fault sending such
     look-alikes would be another fault there).
     """
     if cell.ecu != "c":
@@ -371,8 +371,8 @@ def c_ecu_unavailable(cell: Cell, faults: Mapping[str, Mapping[str, Any]]) -> st
 
     if cell.controller not in C_ECU_CONTROLLERS:
         return f"the C ECU has no {cell.controller} (Python only)"
-    from studies.fault_c_ecu import c_not_applicable
-    from studies.fault_cases import FaultCase
+    from hil.fault_cases.c_ecu import c_not_applicable
+    from hil.fault_cases.catalogue import FaultCase
 
     if c_not_applicable(FaultCase(cell.fault, "bus", dict(faults[cell.fault]), ())) is not None:
         return (f"fault {cell.fault!r}: FD / remote / error frames, which the C ECU's loopback "
@@ -435,8 +435,8 @@ def _speed_profiles(file: Path, raw: Any) -> dict[str, tuple[tuple[float, ...], 
 @lru_cache(maxsize=1)
 def fault_catalogue() -> dict[str, dict[str, Any]]:
     """The fault catalogue: name -> ``[faults]`` table of each case of ``make faults``
-    (``studies.fault_cases.campaign_cases``)."""
-    from studies.fault_cases import campaign_cases
+    (``hil.fault_cases.catalogue.campaign_cases``)."""
+    from hil.fault_cases.catalogue import campaign_cases
 
     return {case.name: case.table for case in campaign_cases()}
 

@@ -12,8 +12,8 @@ import threading
 import time
 from typing import Any
 
-from studies.fault_cases import SCENARIO, FaultCase
-from studies.fault_verdicts import LostBusProbe, Verdict, evaluate, jump_tasks_expect
+from hil.fault_cases.catalogue import SCENARIO, FaultCase
+from hil.fault_cases.verdicts import LostBusProbe, Verdict, evaluate, jump_tasks_expect
 
 
 class EcuLogCounter(logging.Handler):

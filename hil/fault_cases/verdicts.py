@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from can_defs.frames import CtrlMode, FrameId
-from studies.fault_cases import Expect, FaultCase
+from hil.fault_cases.catalogue import Expect, FaultCase
 
 #: Lateral deviation the vehicle must stay within (m) unless it comes to a safe stop.
 PATH_TOLERANCE_M = 1.0
@@ -248,8 +248,8 @@ def _keep_ey(verdict: Verdict, result: Any, path: Any) -> None:
 
 @dataclass
 class LostBusProbe:
-    """The lost-bus case's wall-clock measurements (``studies.fault_python_ecu._lose_bus``;
-    ``studies.fault_c_ecu._lose_c_bus`` for the C ECU, whose CPU time is its process's and
+    """The lost-bus case's wall-clock measurements (``hil.fault_cases.python_ecu._lose_bus``;
+    ``hil.fault_cases.c_ecu._lose_c_bus`` for the C ECU, whose CPU time is its process's and
     whose receive calls are not counted: None)."""
 
     noticed_ms: float | None = None

@@ -2,7 +2,7 @@
 which cases cannot reach a separate ECU process (`c_not_applicable`, reported as not
 applicable with the reason), and the ECU-level cases (`run_c_ecu_case`) against the
 process on a loopback socketcand hub of its own. The lost bus drops the process's
-connection at a relay (``studies.fault_relay.DroppingRelay``) and watches its output and
+connection at a relay (``hil.fault_cases.relay.DroppingRelay``) and watches its output and
 CPU time (`_lose_c_bus`). A crash of the C ECU is the run raising (the process exited or
 stopped ACKing); it has no Python exceptions to count.
 """
@@ -14,9 +14,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from studies.fault_cases import SCENARIO, FaultCase
-from studies.fault_relay import DroppingRelay
-from studies.fault_verdicts import LostBusProbe, Verdict, evaluate, jump_tasks_expect
+from hil.fault_cases.catalogue import SCENARIO, FaultCase
+from hil.fault_cases.relay import DroppingRelay
+from hil.fault_cases.verdicts import LostBusProbe, Verdict, evaluate, jump_tasks_expect
 
 #: Look-alike frame kinds the C ECU's loopback socketcand hub cannot carry as themselves.
 HUB_LOST_KINDS = ("fd", "remote", "error")
@@ -42,7 +42,7 @@ def _process_cpu_s(pid: int) -> float:
 
 
 def _lose_c_bus(ecu: Any, relay: DroppingRelay, outage_s: float) -> LostBusProbe:
-    """`_lose_bus` (``studies.fault_python_ecu``) for the C ECU process: its bus taken away
+    """`_lose_bus` (``hil.fault_cases.python_ecu``) for the C ECU process: its bus taken away
     at the relay for ``outage_s`` of wall clock, watched through its output (when it says
     the bus is lost, its log lines, when it says it reopened) and its process CPU time; its
     reopening tries are the connections the relay refused."""
