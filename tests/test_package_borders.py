@@ -332,10 +332,6 @@ def _c_module_graph(source_folder: Path) -> dict[str, set[str]]:
     return graph
 
 
-@pytest.mark.xfail(strict=False, reason="firmware/src still has an include circle (ecu_core.c includes "
-                   "ecu_internal.h, which includes ecu_core.h: the internals of ecu_path.c / ecu_qp.c / "
-                   "ecu_data.c that ecu_core.c calls); the restructuring of firmware/src that removes the "
-                   "ecu_core.c <-> ecu_path.c circle is under way; drop this mark when it passes")
 def test_no_c_module_includes_itself_in_a_circle() -> None:
     """The C ECU's modules form no include circle either (firmware/src)."""
     cycles = _cycles(_c_module_graph(C_SOURCES))

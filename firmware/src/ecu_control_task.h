@@ -7,7 +7,7 @@
 #ifndef ECU_CONTROL_TASK_H
 #define ECU_CONTROL_TASK_H
 
-#include "ecu_node.h"
+#include "ecu_node_state.h"
 
 /* The task released at now_ns (virtual time in lockstep); release_jitter_s NaN in
  * lockstep; started_s the wall time the task's cycle began (CYCLE_TIME_US). */
