@@ -46,7 +46,7 @@ static int implausible(const ecu_rx_state_t *rx, const ecu_measurement_t *s, ecu
   return hypot(s->x - last->x, s->y - last->y) > allowed;
 }
 
-/* SampleAssembler.add and what RxState does with a completed sample. */
+/* PlantSampleAssembler.add (models/plant_sample.py) and what RxState does with a completed sample. */
 static void add_plant_frame(ecu_rx_state_t *rx, int part, const double *values, int counter, ecu_when_t arrival) {
   if (counter != rx->set_counter) {
     if (rx->set_parts && !rx->set_completed) rx->torn = 1;

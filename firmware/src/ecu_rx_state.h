@@ -1,5 +1,5 @@
 /*
- * The node's inputs (firmware_sim/rx.py): RxState, the SampleAssembler of the three plant
+ * The node's inputs (firmware_sim/rx.py): RxState, the PlantSampleAssembler (models/plant_sample.py) of the three plant
  * frames and the plausibility checks, on the E2E monitor and codecs of ecu_rx.c.
  */
 #ifndef ECU_RX_STATE_H
@@ -27,7 +27,7 @@ typedef struct {
   /* This cycle's flags (the control task clears them). */
   int e2e_error, torn, stale, implausible, reference_restarted;
   ecu_when_t last_time;
-  /* SampleAssembler: set_counter -1: none; set_parts: a bit per frame of the set. */
+  /* PlantSampleAssembler: set_counter -1: none; set_parts: a bit per frame of the set. */
   int set_counter, set_parts, set_completed;
   double part[3][3];
   ecu_e2e_monitor_t e2e;
