@@ -378,3 +378,16 @@ def _write(root: Path, relative: str, source: str) -> Path:
     module.parent.mkdir(parents=True, exist_ok=True)
     module.write_text(source)
     return module
+
+
+#: The most lines a module of the product packages, the studies or the C ECU may have
+#: (about 400 is typical); a longer one does several jobs and is split by them.
+MODULE_MAX_LINES = 600
+
+
+def test_no_module_is_over_600_lines() -> None:
+    sources = [*_modules(), *sorted((ROOT / "firmware" / "src").glob("*.[ch]")),
+               *sorted((ROOT / "firmware" / "tools").glob("*.py"))]
+    long = {path.relative_to(ROOT).as_posix(): n for path in sources
+            if (n := path.read_text(errors="replace").count("\n")) > MODULE_MAX_LINES}
+    assert not long, f"modules over {MODULE_MAX_LINES} lines (split them by their jobs): {long}"

@@ -80,6 +80,7 @@ from typing import Any
 from hil.errors import HilError
 from hil.scenario import _DURATION_RANGE_S, _SPEED_RANGE_KMH
 from models.input_files import read_bounded
+from studies.campaign.toml_text import to_toml  # noqa: F401 - the cells' scenario text
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 #: Bytes of a grid file (read no further).
@@ -592,51 +593,3 @@ def _check_path_length(grid: Grid, cell: Cell, document: Mapping[str, Any], base
         raise GridError(f"{grid.source}: cell {cell.label}: the run may reach X = {reach:.0f} m "
                         f"with its horizon, the path ends at {path_end:.0f} m "
                         "(set [run] distance_m or lower the speed)")
-
-
-def to_toml(document: Mapping[str, Any]) -> str:
-    """A TOML text of ``document`` (scalars, arrays of scalars, tables, arrays of tables);
-    floats written with ``repr`` so they read back bit for bit."""
-    lines: list[str] = []
-    _write_table(lines, document, ())
-    return "\n".join(lines).lstrip("\n") + "\n"
-
-
-def _key(name: str) -> str:
-    return name if name.replace("_", "").replace("-", "").isalnum() else _scalar(name)
-
-
-def _scalar(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            return "inf" if value > 0 else "-inf" if value < 0 else "nan"
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_scalar(v) for v in value) + "]"
-    if isinstance(value, Mapping):
-        return "{ " + ", ".join(f"{_key(k)} = {_scalar(v)}" for k, v in value.items()) + " }"
-    raise GridError(f"cannot write {value!r} as TOML")
-
-
-def _write_table(lines: list[str], table: Mapping[str, Any], prefix: tuple[str, ...]) -> None:
-    tables = {k: v for k, v in table.items() if isinstance(v, Mapping)}
-    arrays = {k: v for k, v in table.items()
-              if isinstance(v, list) and v and all(isinstance(i, Mapping) for i in v)}
-    for key, value in table.items():
-        if key not in tables and key not in arrays:
-            lines.append(f"{_key(key)} = {_scalar(value)}")
-    for key, value in tables.items():
-        lines.append("")
-        lines.append("[" + ".".join(_key(k) for k in (*prefix, key)) + "]")
-        _write_table(lines, value, (*prefix, key))
-    for key, items in arrays.items():
-        for item in items:
-            lines.append("")
-            lines.append("[[" + ".".join(_key(k) for k in (*prefix, key)) + "]]")
-            _write_table(lines, item, (*prefix, key))
