@@ -18,10 +18,10 @@ FAULTS_ARGS ?=
 
 ## fault injection campaign, every fault in the high-mu lane change -> results/faults.*
 faults: setup
-	OPENBLAS_NUM_THREADS=1 $(PY) -m hil faults --campaign --workers 2 --out results --replace $(FAULTS_ARGS)
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.fault_campaign --workers 2 --out results --replace $(FAULTS_ARGS)
 	$(PROVENANCE_STAMP) results/faults.md results/faults.json results/faults_vehicle.png \
 		--command "$(call provenance_command,faults,FAULTS_ARGS)" \
-		--inputs $(PROVENANCE_HIL) --modules hil.commands.faults studies.fault_campaign
+		--inputs $(PROVENANCE_HIL) --modules studies.fault_campaign
 
 ## the fault campaign against the C ECU executable -> results/faults_c.*, compared with faults.*
 faults-c: setup firmware

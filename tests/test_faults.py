@@ -473,9 +473,10 @@ def test_lost_bus_case_fails_against_an_ecu_that_spins(monkeypatch):
     assert not verdict.passed()
 
 
-def test_campaign_checks_its_output_folder_before_running(tmp_path, capsys):
+def test_campaign_checks_its_output_folder_before_running(tmp_path, capfd):
     from hil.__main__ import main
 
+    capsys = capfd  # the campaign is the study's command, a process: its output at the fd
     assert main(["faults", "--campaign", "--out", str(tmp_path / "no" / "such")]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: --out ") and "does not exist" in err and "Traceback" not in err

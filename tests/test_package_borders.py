@@ -3,10 +3,8 @@
     can_defs <- models <- controller <- firmware_sim <- hil <- studies
 
 Each package may import only itself and the packages to its left; torch only in the
-training modules ``models/koopman_train*.py``. The one exception, named by file:
-``hil/commands/faults.py`` imports the fault campaign of ``studies`` lazily, inside the
-function that runs it (``python -m hil faults --campaign``), until the campaign moves.
-Every import statement counts, also those inside functions; the modules are parsed (ast),
+training modules ``models/koopman_train*.py``; no exception (``python -m hil faults
+--campaign`` runs the study's command as a process). Every import statement counts, also those inside functions; the modules are parsed (ast),
 never imported.
 
 Besides the layers: no module imports a command line (``cli.py``, another package's
@@ -27,9 +25,6 @@ from studies.provenance import module_sources
 ROOT = Path(__file__).resolve().parent.parent
 LAYERS = ("can_defs", "models", "controller", "firmware_sim", "hil", "studies")
 TORCH_ALLOWED = "models/koopman_train*.py"
-#: The one import up the layers still allowed, lazily (inside a function) only: the fault
-#: campaign that ``python -m hil faults --campaign`` runs, until it moves below hil.
-LAZY_STUDY_IMPORTS_ALLOWED = ("hil/commands/faults.py",)
 #: What runs in the ECU process and the lockstep loop around it.
 RUN_TIME_ENTRY_POINTS = ("firmware_sim.ecu", "hil.session")
 
@@ -65,8 +60,6 @@ def _violations(path: Path, root: Path = ROOT) -> list[str]:
         if package == "torch" and not fnmatch.fnmatch(relative, TORCH_ALLOWED):
             problems.append(f"{where} imports torch (only {TORCH_ALLOWED} may)")
         elif package in LAYERS and package not in allowed:
-            if package == "studies" and in_function and relative in LAZY_STUDY_IMPORTS_ALLOWED:
-                continue
             problems.append(f"{where}: {LAYERS[layer]} imports {package} (may import "
                             f"{', '.join(sorted(allowed))})")
     return problems
@@ -102,6 +95,7 @@ def test_the_ecu_run_time_reaches_no_training_code() -> None:
     ("hil/commands/x.py", "from studies import run_all\n", "hil imports studies"),
     ("hil/commands/x.py", "def main():\n    from studies import fault_campaign\n", "hil imports studies"),
     ("hil/commands/faults.py", "from studies import fault_campaign\n", "hil imports studies"),
+    ("hil/commands/faults.py", "def main():\n    from studies import fault_campaign\n", "hil imports studies"),
     ("hil/x.py", "def f():\n    import studies.run_all\n", "hil imports studies"),
     ("controller/x.py", "import torch.nn\n", "imports torch"),
 ])
@@ -112,7 +106,6 @@ def test_the_check_finds_an_import_up_the_layers(tmp_path: Path, relative: str, 
 
 
 @pytest.mark.parametrize(("relative", "source"), [
-    ("hil/commands/faults.py", "def main():\n    from studies import fault_campaign\n"),
     ("models/koopman_train_x.py", "import torch\n"),
     ("studies/x.py", "import can_defs, models, controller, firmware_sim, hil\n"),
     ("hil/x.py", "from . import bus\nimport numpy\n"),

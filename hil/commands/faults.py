@@ -10,8 +10,8 @@ One run: the scenario's ``[faults]`` table (hil/faults.py) plus faults from flag
 ``ids=0x100/0x101``, ``true`` / ``false``); repeatable. It prints the run's verdict
 (mode sequence, detection, max |e_Y|, invalid commands, crashes) as JSON.
 
-``--campaign``: every case of hil/fault_cases/catalogue.py (what ``make faults`` runs,
-studies/fault_campaign.py), writing ``results/faults.md``, ``faults.json`` and
+``--campaign``: every case of hil/fault_cases/catalogue.py (what ``make faults`` runs:
+``python -m studies.fault_campaign``, which this option runs with the same options), writing ``results/faults.md``, ``faults.json`` and
 ``faults_vehicle.png``. The output folder is checked before any run: its parent must
 exist, and results of an earlier campaign in it are an error unless ``--replace`` is given
 (``make faults`` gives it).
@@ -127,13 +127,12 @@ def main(args: argparse.Namespace) -> int:
     import dataclasses
     import json
 
-    from studies import fault_campaign
     from hil.fault_cases.catalogue import FaultCase
     from hil.fault_cases.runs import run_case
     from hil.scenario import load_scenario
 
     if args.campaign:
-        return fault_campaign.run_from_args(args)
+        return run_campaign_command(args)
     scenario = load_scenario(args.scenario)
     table = faults_table(args, dict(scenario.faults))
     group = "bus" if table.get("bus") else "vehicle"
@@ -146,3 +145,25 @@ def main(args: argparse.Namespace) -> int:
     row["passed"] = verdict.passed()
     print(json.dumps(row, indent=2))
     return 1 if verdict.crashes or verdict.invalid_commands else 0
+
+
+def campaign_argv(args: argparse.Namespace) -> list[str]:
+    """The options of ``python -m studies.fault_campaign`` that ``--campaign`` was given."""
+    argv = ["--out", str(args.out)]
+    argv += ["--replace"] if args.replace else []
+    argv += ["--only", *args.only] if args.only else []
+    argv += ["--controllers", *args.controllers] if args.controllers else []
+    argv += ["--duration", repr(args.duration)] if args.duration is not None else []
+    argv += ["--workers", str(args.workers)] if args.workers is not None else []
+    argv += ["--address", args.address] if args.address else []
+    argv += ["--serial"] if args.serial else []
+    return argv
+
+
+def run_campaign_command(args: argparse.Namespace) -> int:
+    """``--campaign``: the study's own command (``make faults``), run as a process so that
+    hil, below the studies, imports none of them; its exit status is this one's."""
+    import subprocess
+    import sys
+
+    return subprocess.call([sys.executable, "-m", "studies.fault_campaign", *campaign_argv(args)])
