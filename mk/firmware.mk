@@ -136,4 +136,3 @@ firmware-footprint: firmware
 		--out results/firmware_footprint.md
 	$(PROVENANCE_STAMP) results/firmware_footprint.md --command "make firmware-footprint" \
 		--inputs $(sort $(wildcard firmware/src/*.c firmware/src/*.h)) $(FW_GEN_INPUTS) firmware/tools/footprint.py mk/firmware.mk
-	@$(MAKE) --no-print-directory readme  # README.md includes its summary
