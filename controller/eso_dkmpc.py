@@ -64,10 +64,16 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
             gains = design_gains(local.A, tuning.eso_pole, second_pole=tuning.eso_second_pole, structure="matrix")
             params = observer_params(local if self._scheduled else self.model, gains.beta1, gains.beta2,
                                      innovation_bound(tuning, LATERAL_ROWS))
-            decayed = decayed_sums(local.A, tuning.prediction_horizon, tuning.disturbance_decay)
+            if tuning.disturbance_decay == 1.0:
+                # A held estimate enters as a constant input does: C_P S_i, the very product
+                # the maps already hold (same operands, same bits), so it is not built twice.
+                horizon_map = maps.free_from_drift
+            else:
+                decayed = decayed_sums(local.A, tuning.prediction_horizon, tuning.disturbance_decay)
+                horizon_map = local.C_P[:len(VEHICLE_STATES)] @ decayed
             if len(self._observer_cache) > 2048:
                 self._observer_cache.clear()
-            cached = self._observer_cache[id(local)] = (local, params, local.C_P[:len(VEHICLE_STATES)] @ decayed)
+            cached = self._observer_cache[id(local)] = (local, params, horizon_map)
         return cached[1], cached[2]
 
     def disturbance_response(self, lifted_state: np.ndarray, maps: PredictionMaps) -> np.ndarray:

@@ -20,15 +20,19 @@ from controller.steering_qp import SteeringQp
 from controller.tuning import LongitudinalTuning, QpMpcTuning
 
 
+def held_input_map(n_pred: int, n_ctrl: int) -> np.ndarray:
+    """Held-input map (Np, Nc): the input at step i is U[min(i, Nc - 1)] (eq. 15, i >= Nc)."""
+    hold = np.zeros((n_pred, n_ctrl))
+    hold[np.arange(n_pred), np.minimum(np.arange(n_pred), n_ctrl - 1)] = 1.0
+    return hold
+
+
 class QpSteeringMpc(SteeringMpc):
     """Steering MPC on an affine state prediction, one sparse OSQP QP per step."""
 
     def __init__(self, tuning: QpMpcTuning, longitudinal: LongitudinalTuning) -> None:
         self.qp = SteeringQp(tuning)
-        # Held-input map (Np, Nc): input at step i is U[min(i, Nc - 1)] (eq. 15, i >= Nc).
-        n_pred, n_ctrl = tuning.prediction_horizon, tuning.control_horizon
-        self.hold = np.zeros((n_pred, n_ctrl))
-        self.hold[np.arange(n_pred), np.minimum(np.arange(n_pred), n_ctrl - 1)] = 1.0
+        self.hold = held_input_map(tuning.prediction_horizon, tuning.control_horizon)
         super().__init__(tuning, longitudinal)
 
     @abstractmethod
