@@ -58,11 +58,12 @@ EXIT_USAGE = 2
 
 
 class _ArgumentParser(argparse.ArgumentParser):
-    """argparse with the project's ``error: ...`` line (after the usage line), exit 2."""
+    """argparse with the project's one ``error: ...`` line and exit 2: no usage text (its
+    options fill a screen); argparse's message names the option and, for a choice, the
+    valid ones."""
 
     def error(self, message: str) -> NoReturn:
-        self.print_usage(sys.stderr)
-        self.exit(EXIT_USAGE, f"error: {message}\n")
+        self.exit(EXIT_USAGE, f"error: {message}; eso-ecu --help lists the options\n")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -62,7 +62,11 @@ def test_unknown_controller_is_a_usage_error(capsys, path_csv):
     err = capsys.readouterr().err
     print(err)
     assert info.value.code == 2
-    assert err.splitlines()[-1].startswith("error: argument --controller: invalid choice: 'pid'")
+    # one line, no usage text (issue 39 item 7), naming every valid choice
+    assert len(err.splitlines()) == 1 and "usage" not in err
+    assert err.startswith("error: argument --controller: invalid choice: 'pid'")
+    from controller.registry import ALL_CONTROLLER_NAMES
+    assert all(f"'{name}'" in err for name in ALL_CONTROLLER_NAMES)
 
 
 def test_bus_that_cannot_be_opened_exits_1_with_error(capsys, path_csv):

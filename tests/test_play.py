@@ -122,7 +122,11 @@ def test_play_cli_bad_input(hil_cli, capsys) -> None:
     err = capsys.readouterr().err
     print(err)
     assert err.startswith("error: ") and "no frame left to play" in err
+    capsys.readouterr()  # the print above
     assert hil_cli(["play", str(LOGS / "lockstep_lmpc.log"), "--interface", "nosuchbus"]) == 1
-    err = capsys.readouterr().err
-    print(err)
-    assert err.startswith("error: ") and "cannot open CAN bus" in err
+    captured = capsys.readouterr()
+    assert captured.err.startswith("error: ") and "cannot open CAN bus" in captured.err, captured.err
+    assert captured.out == ""  # issue 39 item 7: no "playing N frames" before the error
+    assert hil_cli(["play", str(LOGS / "lockstep_lmpc.log"), "--interface", "nosuchbus",
+                    "--rewrite-e2e"]) == 1
+    assert capsys.readouterr().out == ""

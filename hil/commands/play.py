@@ -9,7 +9,9 @@ edited or spliced log drives another ECU. can.player's options keep their meanin
 A lockstep log is played as it was recorded, by time: its timestamps are the virtual
 time of the drive, so it plays at the drive's true speed; nothing waits for HIL_SYNC_ACK
 (use ``eso-hil replay`` for that). A progress bar shows on stderr for long logs
-(off with ``--quiet`` or when stderr is not a terminal).
+(off with ``--quiet`` or when stderr is not a terminal). The log and the options are
+checked and the bus is opened before anything is printed: a bus that cannot be opened is
+one ``error:`` line, exit 1.
 """
 from __future__ import annotations
 
@@ -72,22 +74,24 @@ def main(args: argparse.Namespace) -> int:
     messages = select_ids(contents.messages, ids)
     if not messages:
         raise PlayError(f"{args.log}: no frame left to play with --ids {args.ids}")
+    stats = None
     if args.rewrite_e2e:
         messages, stats = rewrite_e2e(messages)
-        print(f"rewrote E2E of {sum(stats.renumbered.values())} frames: "
-              f"{stats.counters_changed} counters changed, {stats.crcs_fixed} wrong CRCs fixed")
     messages = scale_timing(messages, args.speed)
-    duration = messages[-1].timestamp - messages[0].timestamp
-    for line in contents.summary_lines(database, dbc_name)[1:]:
-        print(line)
-    errors = sum(m.is_error_frame for m in messages)
-    left_out = f", {errors} error frames left out (--error-frames sends them)" \
-        if errors and not args.error_frames else ""
-    timing = "back to back" if args.ignore_timestamps else f"{duration:.3f} s"
-    print(f"playing {len(messages) - (0 if args.error_frames else errors)} frames ({timing}) "
-          f"on {config.describe()}{left_out}")
-    bus = open_bus(config)
+    bus = open_bus(config)  # a bus that cannot be opened is the error, before any "playing"
     try:
+        if stats is not None:
+            print(f"rewrote E2E of {sum(stats.renumbered.values())} frames: "
+                  f"{stats.counters_changed} counters changed, {stats.crcs_fixed} wrong CRCs fixed")
+        duration = messages[-1].timestamp - messages[0].timestamp
+        for line in contents.summary_lines(database, dbc_name)[1:]:
+            print(line)
+        errors = sum(m.is_error_frame for m in messages)
+        left_out = f", {errors} error frames left out (--error-frames sends them)" \
+            if errors and not args.error_frames else ""
+        timing = "back to back" if args.ignore_timestamps else f"{duration:.3f} s"
+        print(f"playing {len(messages) - (0 if args.error_frames else errors)} frames ({timing}) "
+              f"on {config.describe()}{left_out}")
         sent = play(progress(messages, len(messages), "play", args.quiet), bus,
                     max_gap_s=DEFAULT_MAX_GAP_S if args.max_gap is None else args.max_gap,
                     min_gap_s=DEFAULT_MIN_GAP_S if args.gap is None else args.gap,
