@@ -10,7 +10,7 @@ everything else SI; the attributes of :class:`Scenario` are SI)::
 
     [path]
     id = 1                       # PLANNER_REQ.PATH_ID, 0..255
-    file = "../paths/dlc.csv"    # relative to this file
+    file = "../paths/dlc.csv"    # relative to this file, else to the repository
 
     [road]
     mu = 0.85
@@ -310,6 +310,31 @@ class _Fields:
         return value
 
 
+#: The repository's root: a relative ``path.file`` not found beside the scenario file is
+#: looked up here, so that a copy of a shipped scenario in another folder can name
+#: ``hil/paths/...`` (docs/identification.md section 2).
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def resolve_path_file(scenario_file: Path, path_text: str) -> Path:
+    """The path file ``path_text`` of ``scenario_file``: relative to the scenario's folder,
+    else (a relative path only) to the repository's root.
+
+    Raises:
+        ScenarioError: a relative path found in neither place; names both places tried.
+    """
+    beside = (scenario_file.parent / path_text).resolve()
+    if beside.exists() or Path(path_text).is_absolute():
+        return beside  # an absolute path that does not exist: the reader names it
+    in_repository = (REPO_ROOT / path_text).resolve()
+    if in_repository.exists():
+        return in_repository
+    raise ScenarioError(
+        f"{scenario_file}: path.file = {path_text!r}: path file not found, neither relative to "
+        f"the scenario's folder ({beside}) nor to the repository ({in_repository}); give a path "
+        "relative to either, or an absolute one")
+
+
 def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
     top = _Fields(file, raw, "")
     name = top.text("name")
@@ -319,7 +344,7 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
     path = _Fields(file, top.table_of("path"), "path")
     path_id = path.integer("id", 0, 255)  # PLANNER_REQ.PATH_ID is 8 bits
     path_text = path.text("file")
-    path_file = (file.parent / path_text).resolve()
+    path_file = resolve_path_file(file, path_text)
     try:
         read_path_csv(path_file)
     except PathFileError as e:

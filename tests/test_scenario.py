@@ -242,6 +242,35 @@ def test_invalid_fields_are_named_with_their_value(tmp_path: Path, old: str, new
     assert str(file) in str(info.value)
 
 
+
+def test_a_copied_scenario_finds_its_path_file_relative_to_the_repository(tmp_path: Path) -> None:
+    """Issue 39 item 4: a shipped scenario copied into another folder names its path file
+    relative to the repository (docs/identification.md section 2); a path found in neither
+    place names both places tried."""
+    shipped = SCENARIO_DIR / "identification" / "drive.toml"
+    text = shipped.read_text()
+    assert "file = \"../../paths/identification.csv\"" in text
+    folder = tmp_path / "elsewhere"
+    folder.mkdir()
+    copy = folder / "drive.toml"
+    copy.write_text(text.replace("../../paths/identification.csv", "hil/paths/identification.csv")
+                    .replace("mu = 0.85", "mu = 0.5"))
+    scenario = load_scenario(copy)
+    assert scenario.path_file == load_scenario(shipped).path_file and scenario.mu == 0.5
+    copy.write_text(text)  # the shipped relative path, which only works beside the original
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(copy)
+    print(info.value)
+    message = str(info.value)
+    assert "path.file = '../../paths/identification.csv': path file not found" in message
+    assert str((folder / "../../paths/identification.csv").resolve()) in message
+    assert "nor to the repository" in message
+    # beside the scenario file comes first
+    (folder / "hil" / "paths").mkdir(parents=True)
+    write_path_csv(folder / "hil" / "paths" / "identification.csv", double_lane_change_points())
+    copy.write_text(text.replace("../../paths/identification.csv", "hil/paths/identification.csv"))
+    assert load_scenario(copy).path_file == (folder / "hil" / "paths" / "identification.csv").resolve()
+
 def test_faults_table_is_kept_raw_and_read_only(tmp_path: Path) -> None:
     text = VALID + '\n[faults]\nkind = "drop"\n[[faults.events]]\nframe = "VEH_DYN"\nat_s = 1.5\n'
     scenario = Scenario.load(_write(tmp_path, text))
