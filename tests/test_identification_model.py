@@ -46,9 +46,14 @@ def test_a_copied_artifact_loads_for_eso_dkmpc_and_a_bicycle_for_lmpc(tmp_path):
 
 @pytest.mark.parametrize("controller, make, message", [
     ("nmpc", lambda d: _copy_artifact(d), "takes no model file"),
-    ("lmpc", lambda d: _copy_artifact(d).with_suffix(".json"), "not a fitted bicycle file"),
-    ("dkmpc", lambda d: _bicycle_file(d).with_suffix(""), "not found"),
-    ("eso-dkmpc", lambda d: d / "missing", "not found"),
+    ("lmpc", lambda d: _copy_artifact(d).with_suffix(".json"), "a Koopman artefact, not a fitted bicycle"),
+    # the other kind of file is named as such, not as a file not found (issue 39 item 5)
+    ("lmpc", lambda d: _copy_artifact(d), "a Koopman artefact, not a fitted bicycle file; lmpc takes"),
+    ("lmpc-eso", lambda d: _copy_artifact(d).with_suffix(".npz"), "a Koopman artefact, not a fitted"),
+    ("eso-dkmpc", lambda d: _bicycle_file(d), "a fitted bicycle file, not a Koopman artefact; eso-dkmpc takes"),
+    ("dkmpc", lambda d: _bicycle_file(d).with_suffix(""), "bicycle.json is a fitted bicycle file, not a Koopman"),
+    ("eso-dkmpc", lambda d: d / "missing", "missing.npz not found"),
+    ("lmpc", lambda d: d / "missing.json", "missing.json not found"),
 ])
 def test_unusable_model_files_are_refused_before_the_bus(tmp_path, controller, make, message):
     with pytest.raises(ConfigError) as info:
@@ -103,3 +108,34 @@ def test_hil_run_passes_the_model_through(tmp_path):
     command = ecu_command(scenario, dataclasses.replace(default_options("lmpc"), model=bicycle,
                                                         excite="chirp"))
     assert command[-4:] == ["--model", str(bicycle), "--excite", "chirp"]
+
+
+@pytest.mark.parametrize("controller, make, message", [
+    ("nmpc", lambda d: _bicycle_file(d), "controller 'nmpc' takes no model file"),
+    ("eso-dkmpc", lambda d: _bicycle_file(d), "a fitted bicycle file, not a Koopman artefact"),
+    ("lmpc", lambda d: _copy_artifact(d), "a Koopman artefact, not a fitted bicycle file"),
+    ("dkmpc", lambda d: d / "missing", "not found"),
+])
+def test_hil_run_refuses_an_unusable_model_with_exit_2(tmp_path, capsys, controller, make, message):
+    """Issue 39 item 5: ``hil run --model`` exits 2 with one line, as ``eso-ecu`` does,
+    before the scenario is loaded or anything runs (the scenario here does not exist)."""
+    from hil.__main__ import main as hil_main
+
+    status = hil_main(["run", "--scenario", str(tmp_path / "no_such.toml"), "--controller",
+                       controller, "--model", str(make(tmp_path))])
+    err = capsys.readouterr().err
+    print(status, err)
+    assert status == 2 and err.startswith("error: --model") and message in err
+    assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_hil_run_refuses_a_bad_excitation_program_with_exit_2(tmp_path, capsys):
+    from hil.__main__ import main as hil_main
+
+    program = tmp_path / "ex.toml"
+    program.write_text('kind = "chirp"\nchirp_start_hz = 100.0\n')
+    status = hil_main(["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--excite",
+                       str(program)])
+    err = capsys.readouterr().err
+    print(status, err)
+    assert status == 2 and err.startswith("error: ") and "chirp_start_hz" in err

@@ -17,7 +17,9 @@ name (any case), the scenario and
 its path file (the contract's path checks), the DBC, and the outputs: ``--log`` and
 ``--out`` are never one of the run's inputs, their folders must exist, and an existing log
 or an ``--out`` folder holding another run's outputs is an error unless ``--replace`` is
-given. SIGTERM and SIGHUP end the run as SIGINT does (ECU stopped with its last
+given. ``--model`` and ``--excite`` get the ECU's own checks first: a file the ECU cannot
+use exits 2 with one ``error:`` line, as ``eso-ecu`` does (other errors exit 1). ``--out``
+is the one folder a run creates (its parent must exist). SIGTERM and SIGHUP end the run as SIGINT does (ECU stopped with its last
 CMD_VALID = 0 frame, log flushed, sidecar written; exit 143 / 129 / 130).
 """
 from __future__ import annotations
@@ -37,8 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True,
                         help="scenario TOML file, or the name of a shipped one (dlc_high_mu)")
     parser.add_argument("--controller", required=True,
-                        help="controller of the ECU: eso-dkmpc, dkmpc, lmpc or nmpc, or an ablation "
-                             "(lmpc-eso, dmdc-eso); any case")
+                        help="controller of the ECU: eso-dkmpc, dkmpc, lmpc or nmpc, an ablation "
+                             "(lmpc-eso, dmdc-eso) or the geometric baseline stanley; any case")
     parser.add_argument("--interface", default=None,
                         help="python-can interface (default: $CAN_INTERFACE, else virtual)")
     parser.add_argument("--channel", default=None,
@@ -52,8 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="record every frame to this file (.log candump, .asc, .blf, .csv, "
                              ".db, .trc; optionally .gz): the formats eso-hil reads back")
     parser.add_argument("--out", type=Path, default=None,
-                        help="folder for plant.csv, ecu.csv and summary.json (its parent must "
-                             "exist)")
+                        help="folder for plant.csv, ecu.csv and summary.json (created if missing; its "
+                             "parent must exist)")
     parser.add_argument("--replace", action="store_true",
                         help="overwrite an existing --log file (and its sidecar) and the outputs "
                              "of an earlier run in --out")
@@ -77,6 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the scenario; print the summary; 0 on success."""
+    from firmware_sim.errors import EcuError
     from hil.bus import resolve_bus_config
     from hil.errors import HilError
     from hil.faults import scenario_fault_spec
@@ -89,6 +92,13 @@ def main(args: argparse.Namespace) -> int:
         if value is not None and not value > 0:
             raise HilError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
     args.controller = controller_name(args.controller)
+    try:  # the ECU's own checks, before anything else: exit 2 as eso-ecu
+        check_ecu_configuration(args.controller, args.model, args.excite)
+    except EcuError as error:
+        if getattr(args, "debug", False):
+            raise
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_ECU_CONFIGURATION
     scenario = load_scenario(args.scenario)
     check_run_paths(scenario, args.log, args.out, args.replace, model=args.model, excite=args.excite)
     options = RunOptions(
@@ -121,6 +131,25 @@ def main(args: argparse.Namespace) -> int:
               f"their deadline ({share:.0%}): the plant ran slower than real time here",
               file=sys.stderr)
     return 0
+
+
+#: Exit status for a ``--model`` or ``--excite`` the ECU cannot use (``eso-ecu``'s, too).
+EXIT_ECU_CONFIGURATION = 2
+
+
+def check_ecu_configuration(controller: str, model: Path | None, excite: str | None) -> None:
+    """The ECU's checks of ``--model`` and ``--excite`` (``eso-ecu`` makes the same before
+    it opens the bus): a controller without model files, a missing file, the other kind of
+    model file, a model for study only, a bad excitation program.
+
+    Raises:
+        firmware_sim.errors.ConfigError: names the option, the file and what is wrong.
+    """
+    from firmware_sim.controller_factory import model_controller_factory
+    from firmware_sim.excitation import load_excitation
+
+    load_excitation(excite)
+    model_controller_factory(controller, model)
 
 
 #: Files ``hil run --out`` writes into its folder.
