@@ -82,6 +82,21 @@ def test_controller_choices_are_the_registrys():
     assert cli.CONTROLLER_CHOICES == ALL_CONTROLLER_NAMES
 
 
+def test_controller_lists_in_the_docs_are_the_registrys():
+    """Issue 39 item 6: every ``--controller {a,b,...}`` in README.md and docs/*.md names
+    exactly the registry's controllers, in its order."""
+    import re
+
+    from controller.registry import ALL_CONTROLLER_NAMES
+    root = Path(__file__).resolve().parents[1]
+    found = []
+    for doc in [root / "README.md", *sorted((root / "docs").rglob("*.md"))]:
+        for choices in re.findall(r"--controller \{([^}]*)\}", doc.read_text()):
+            found.append(doc.name)
+            assert tuple(choices.split(",")) == ALL_CONTROLLER_NAMES, f"{doc}: {{{choices}}}"
+    assert "ecu.md" in found
+
+
 def test_importing_the_ecu_never_imports_torch():
     code = ("import sys, firmware_sim, firmware_sim.cli, firmware_sim.ecu, hil.ecu_harness, "
             "controller.dead_reckoning; print(sorted(m for m in sys.modules if 'torch' in m))")
