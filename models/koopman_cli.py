@@ -38,8 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m models.koopman_train", description=DESCRIPTION)
     p.add_argument("--data", default="data/nominal", help="directory of named-column CSV runs")
     p.add_argument("--out", default=None,
-                   help="artefact path without extension (required; with --logs a folder); an existing "
-                        "output is refused without --replace")
+                   help="artefact path without extension (required; with --logs a folder, created if "
+                        "missing, whose parent must exist); an existing output is refused "
+                        "without --replace")
     p.add_argument("--replace", action="store_true",
                    help="overwrite an existing --out artefact (or the outputs in the --out folder)")
     p.add_argument("--states", type=_names, default=DEFAULT_STATES, help="state columns, comma-separated")
