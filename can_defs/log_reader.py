@@ -10,7 +10,9 @@ play; ``models.can_log_data`` for identification), so that both see the same fra
   counted and quoted, and only the good lines go to python-can's ``CanutilsLogReader``.
 - Damage never raises a parser's traceback: a truncated or corrupt gzip stream keeps the
   text before the damage; a last candump line without its line end (a recorder killed
-  mid-write) is dropped; a reader that fails in the middle of a file ends the read there.
+  mid-write) is dropped; a cut BLF (`blf_cut`: an object running past the end of the
+  file) or ASC (`asc_cut`: a last line without its end, no "End TriggerBlock") keeps the
+  frames before the cut; a reader that fails in the middle of a file ends the read there.
   Each case is a warning and marks the read incomplete. Only an unknown suffix
   (`LogFormatError`) or a missing, unreadable or frameless file (`LogReadError`) is an
   error.
@@ -26,6 +28,7 @@ from __future__ import annotations
 import enum
 import io
 import re
+import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
@@ -227,18 +230,23 @@ def is_python_can_csv(path: Path) -> bool:
     return csv_header(path).replace(" ", "") == PYTHON_CAN_CSV_HEADER
 
 
+def _text_of(frames: LogFrames) -> tuple[str, str | None]:
+    """`read_log_text` of the log, a damaged gzip stream told as a warning."""
+    try:
+        text, problem = read_log_text(frames.path)
+    except OSError as error:
+        raise LogReadError(f"{frames.path}: cannot read: {error}") from error
+    if problem is not None:
+        frames.damaged(f"{problem}: the frames before the damage are kept")
+    return text, problem
+
+
 def _read_candump(frames: LogFrames) -> None:
     """candump ``-L`` lines: keep the well-formed ones, count and quote the others, then
     parse the kept lines with python-can's ``CanutilsLogReader``."""
     import can
 
-    path = frames.path
-    try:
-        text, problem = read_log_text(path)
-    except OSError as error:
-        raise LogReadError(f"{path}: cannot read: {error}") from error
-    if problem is not None:
-        frames.damaged(f"{problem}: the frames before the damage are kept")
+    text, problem = _text_of(frames)
     lines = text.splitlines()
     if problem is None and lines and text and not text.endswith(("\n", "\r")):
         # candump and python-can end every line: a last line without its end was cut
@@ -269,6 +277,13 @@ def _read_with_python_can(frames: LogFrames) -> None:
     import can
 
     path = frames.path
+    suffix = log_suffix(path)
+    if suffix == ".blf":
+        _read_blf(frames)
+        return
+    if suffix == ".asc":
+        _read_asc(frames)
+        return
     try:
         reader = can.LogReader(path)
     except (OSError, ValueError, EOFError) as error:
@@ -298,3 +313,139 @@ def _drain(reader: Any, frames: LogFrames) -> None:
             reader.stop()
         except Exception:  # noqa: BLE001 - closing a damaged file is best effort
             pass
+
+
+# --- cut-off Vector logs ----------------------------------------------------------------
+# python-can's BLF and ASC readers end quietly at a cut: a BLF container that runs past the
+# end of the file yields the frames of its first part, an ASC file simply stops. The checks
+# below find the cut from the file's own structure, so the read is marked incomplete.
+
+#: BLF layout (python-can ``can.io.blf``): the file header's fields up to the object count,
+#: the header of every object, and the object type of a log container.
+_BLF_FILE_HEADER = struct.Struct("<4sLBBBBBBBBQQL")
+_BLF_OBJECT_HEADER = struct.Struct("<4sHHLL")
+_BLF_LOG_CONTAINER = 10
+#: Bytes of a log container before its data (object header, then method and sizes).
+_BLF_CONTAINER_DATA_OFFSET = _BLF_OBJECT_HEADER.size + 16
+
+#: ASC trigger blocks: every "Begin Triggerblock" is closed by an "End TriggerBlock".
+_ASC_BEGIN = re.compile(r"^\s*begin\s+triggerblock\b", re.IGNORECASE | re.MULTILINE)
+_ASC_END = re.compile(r"^\s*end\s+triggerblock\b", re.IGNORECASE | re.MULTILINE)
+
+
+@dataclass(frozen=True)
+class BlfCut:
+    """Where a BLF file is cut: the bytes the reader may take (``readable``: whole objects,
+    and the first part of a cut container, whose whole frames python-can yields), and what
+    is wrong (None for a whole file)."""
+
+    readable: int
+    problem: str | None
+
+
+def blf_cut(raw: bytes) -> BlfCut:
+    """Walk the objects of a BLF file (uncompressed bytes) and find a cut.
+
+    A file is cut when an object (a log container, usually) runs past the end of the file,
+    when the file ends inside an object header, or when the file header's size is larger
+    than the file. A header that was never finalised (size 144 bytes and no object count:
+    the writer was not closed) is told as well. A file that does not start like a BLF is
+    left to python-can's reader, which refuses it.
+    """
+    if len(raw) < _BLF_FILE_HEADER.size or raw[:4] != b"LOGG":
+        return BlfCut(len(raw), None)
+    header = _BLF_FILE_HEADER.unpack_from(raw)
+    header_size, file_size, object_count = header[1], header[10], header[12]
+    position = header_size
+    objects = 0
+    problem = None
+    readable = len(raw)
+    while position < len(raw):
+        remaining = len(raw) - position
+        if remaining < _BLF_OBJECT_HEADER.size:
+            problem = (f"the file ends inside the header of object {objects + 1} (at byte "
+                       f"{position})")
+            readable = position
+            break
+        signature, _, _, object_size, object_type = _BLF_OBJECT_HEADER.unpack_from(raw, position)
+        if signature != b"LOBJ" or object_size < _BLF_OBJECT_HEADER.size:
+            break  # corrupt, not cut: python-can's reader stops there with its own error
+        if object_size > remaining:
+            kind = "log container" if object_type == _BLF_LOG_CONTAINER else f"object (type {object_type})"
+            problem = (f"its last {kind} (at byte {position}) runs {object_size - remaining} "
+                       "bytes past the end of the file")
+            # a container's first part still holds whole frames; another object none
+            whole_head = object_type == _BLF_LOG_CONTAINER and remaining > _BLF_CONTAINER_DATA_OFFSET
+            readable = len(raw) if whole_head else position
+            break
+        objects += 1
+        position += object_size + object_size % 4  # objects are padded as python-can writes
+    if problem is None and file_size > len(raw):
+        problem = f"the file header says {file_size} bytes"
+    if problem is not None:
+        said = (f"; the file header says {file_size} bytes and {object_count} frame objects"
+                if file_size > header_size else "")
+        return BlfCut(readable, f"the BLF file is truncated ({len(raw)} bytes): {problem}{said}")
+    if file_size <= header_size and object_count == 0 and objects:
+        return BlfCut(len(raw), "the BLF file header was never completed (size and object "
+                                "count 0: the writer was not closed): the log may end early")
+    return BlfCut(len(raw), None)
+
+
+def _read_blf(frames: LogFrames) -> None:
+    """A BLF file (optionally gzip-compressed) through python-can's ``BLFReader``, after
+    `blf_cut` has looked for a cut."""
+    import can
+
+    path = frames.path
+    try:
+        raw = path.read_bytes()
+    except OSError as error:
+        raise LogReadError(f"{path}: cannot read: {error}") from error
+    if _is_gzip(path):
+        raw, problem = _inflate(raw)
+        if problem is not None:
+            frames.damaged(f"{problem}: the frames before the damage are kept")
+    cut = blf_cut(raw)
+    if cut.problem is not None:
+        frames.damaged(f"{cut.problem}: the frames before the cut are kept")
+    try:
+        reader = can.BLFReader(io.BytesIO(raw[:cut.readable]))
+    except Exception as error:  # noqa: BLE001 - the reader's own parse error on the header
+        raise LogReadError(f"{path}: not a readable .blf log: "
+                           f"{type(error).__name__}: {error}") from error
+    _drain(reader, frames)
+
+
+def asc_cut(text: str) -> tuple[str, list[str]]:
+    """The text of an ASC file python-can may read, and what shows it was cut: a last line
+    without its line end (dropped: it may still parse as a shorter frame) and a trigger
+    block without its "End TriggerBlock" line."""
+    problems = []
+    if text and not text.endswith(("\n", "\r")):
+        cut_at = max(text.rfind("\n"), text.rfind("\r")) + 1
+        line = text[:cut_at].count("\n") + 1
+        problems.append(f"the last line ({line}) is incomplete (no line end): dropped")
+        text = text[:cut_at]
+    begins, ends = len(_ASC_BEGIN.findall(text)), len(_ASC_END.findall(text))
+    if begins > ends:
+        problems.append("the last trigger block has no 'End TriggerBlock' line: the file ends "
+                        "early (cut, or the writer was not closed)")
+    return text, problems
+
+
+def _read_asc(frames: LogFrames) -> None:
+    """An ASC file (optionally gzip-compressed) through python-can's ``ASCReader``, after
+    `asc_cut` has looked for a cut."""
+    import can
+
+    text, problem = _text_of(frames)
+    text, problems = asc_cut(text)
+    for found in problems:
+        frames.damaged(f"{found}; the frames before the cut are kept")
+    try:
+        reader = can.ASCReader(io.StringIO(text))
+    except Exception as error:  # noqa: BLE001 - the reader's own parse error
+        raise LogReadError(f"{frames.path}: not a readable .asc log: "
+                           f"{type(error).__name__}: {error}") from error
+    _drain(reader, frames)

@@ -346,6 +346,14 @@ def load_program(spec: str) -> ExcitationProgram:
     return _toml_program(path, raw)
 
 
+def program_file(spec: str) -> Path | None:
+    """The file of an ``--excite`` argument (a ``.toml`` or ``.csv`` program), None for a
+    shipped program's name."""
+    if spec in SHIPPED_PROGRAMS or Path(spec).suffix.lower() not in (".toml", ".csv"):
+        return None
+    return Path(spec)
+
+
 def load_excitation(spec: str | None) -> ExcitationProgram | None:
     """The ``--excite`` program (None without it); ConfigError names the file and field."""
     return None if spec is None else load_program(spec)

@@ -13,19 +13,22 @@ their sidecar metadata.
   ECU frame to the TICK it answered (the HIL_SYNC before it). Other logs use their
   timestamps relative to the first frame. The recorder stamps lockstep logs with the
   same rule (wall-clock start + virtual time), so every tool sees the drive's true speed.
-- Sidecar ``<log>.json`` (`LogMetadata`): which controller and reference paths produced
-  a log, so `eso-hil replay` needs no flags for logs written by ``make run``.
+- Sidecar ``<log>.json`` (`LogMetadata`): what produced a log (the ECU, its controller,
+  reference paths, ``--model`` and ``--excite``, and a SHA-256 of every input file the
+  ECU's commands depend on, `InputFile`), so `eso-hil replay` rebuilds the same ECU
+  without flags, or refuses when a recorded file has changed (`check_input_files`).
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 from collections import Counter
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 import can
 
@@ -38,8 +41,9 @@ from hil.errors import HilError
 ECU_OUTPUT_IDS: frozenset[int] = frozenset(
     {FrameId.HIL_SYNC_ACK, FrameId.STEER_TORQUE_CMD, FrameId.CTRL_DIAG})
 
-#: Version of the sidecar JSON layout (2 added ``wall_start`` / ``wall_end``; 1 is read too).
-SIDECAR_VERSION = 2
+#: Version of the sidecar JSON layout (3 added ``ecu``, ``model``, ``excite`` and
+#: ``input_files``; 2 added ``wall_start`` / ``wall_end``; 1 and 2 are read too).
+SIDECAR_VERSION = 3
 
 #: Root of the checkout: relative paths in sidecars are relative to it.
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -299,12 +303,45 @@ def frame_times(messages: list[can.Message]) -> tuple[list[float], str]:
 
 
 @dataclass(frozen=True)
+class InputFile:
+    """A file the recorded ECU's commands depend on: its ``role`` ("path 1", "model",
+    "excite", "tuning"), its ``path`` and the SHA-256 of its bytes (hex)."""
+
+    role: str
+    path: str
+    sha256: str
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (hex).
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def describe_inputs(files: Iterable[tuple[str, str | Path]]) -> tuple[InputFile, ...]:
+    """`InputFile` of each (role, path) with its hash, as a recording starts or ends."""
+    return tuple(InputFile(role, str(path), file_sha256(path)) for role, path in files)
+
+
+@dataclass(frozen=True)
 class LogMetadata:
     """What produced a log: ``controller`` (registry name), ``mode`` ("lockstep" or
     "realtime"), reference ``paths`` (PATH_ID -> CSV file), optionally the scenario, and
     the wall clock of the recording (Unix time, s): ``wall_start`` (its first frame) and
     ``wall_end`` (its last). A lockstep log's frames are stamped ``wall_start`` + virtual
-    time, so these two are the only wall-clock record of such a run."""
+    time, so these two are the only wall-clock record of such a run.
+
+    Since layout 3: the ECU (``ecu``: "python" or "c"), its ``--model`` (a file or a
+    Koopman artefact's stem) and ``--excite`` (a shipped program's name or a program
+    file), and ``input_files``: every file the ECU's commands depend on (paths, model,
+    excitation program, tuning) with its hash. None / empty in older sidecars."""
 
     controller: str
     mode: str
@@ -312,6 +349,10 @@ class LogMetadata:
     scenario: str | None = None
     wall_start: float | None = None
     wall_end: float | None = None
+    ecu: str | None = None
+    model: str | None = None
+    excite: str | None = None
+    input_files: tuple[InputFile, ...] = ()
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready form (PATH_IDs as strings)."""
@@ -324,6 +365,11 @@ class LogMetadata:
             data["wall_end"] = self.wall_end
             data["timestamps"] = ("wall_start + virtual time of the tick"
                                   if self.mode == "lockstep" else "wall clock")
+        if self.ecu is not None:
+            data.update(ecu=self.ecu, model=self.model, excite=self.excite)
+        if self.input_files:
+            data["input_files"] = [{"role": f.role, "file": f.path, "sha256": f.sha256}
+                                   for f in self.input_files]
         return data
 
 
@@ -333,21 +379,40 @@ def sidecar_path(log_path: str | Path) -> Path:
     return log_path.with_name(log_path.name + ".json")
 
 
+def _stored_path(file: str | Path) -> str:
+    """A file as a sidecar stores it: relative to the repository root when inside it."""
+    resolved = Path(file).resolve()
+    try:
+        return resolved.relative_to(REPO_ROOT).as_posix()
+    except ValueError:
+        return str(resolved)
+
+
+def _read_path(target: Path, file: str) -> str:
+    """A file a sidecar names: relative ones against the sidecar's folder first, then the
+    repository root."""
+    candidate = Path(file)
+    if not candidate.is_absolute():
+        beside = target.parent / candidate
+        candidate = beside if beside.exists() else REPO_ROOT / candidate
+    return str(candidate)
+
+
 def write_sidecar(log_path: str | Path, metadata: LogMetadata) -> Path:
     """Write ``<log>.json`` next to the log; returns its path.
 
-    Path files inside the repository are stored relative to the repository root so the
+    Files inside the repository are stored relative to the repository root so the
     sidecar stays valid in another checkout.
     """
     target = sidecar_path(log_path)
-    stored = {}
-    for path_id, file in metadata.paths.items():
-        resolved = Path(file).resolve()
-        try:
-            stored[path_id] = resolved.relative_to(REPO_ROOT).as_posix()
-        except ValueError:
-            stored[path_id] = str(resolved)
-    data = dataclasses.replace(metadata, paths=stored).as_dict()
+    stored = {path_id: _stored_path(file) for path_id, file in metadata.paths.items()}
+    inputs = tuple(dataclasses.replace(f, path=_stored_path(f.path)) for f in metadata.input_files)
+    excite_file = any(f.role == "excite" for f in metadata.input_files)
+    data = dataclasses.replace(
+        metadata, paths=stored, input_files=inputs,
+        model=None if metadata.model is None else _stored_path(metadata.model),
+        excite=_stored_path(metadata.excite) if excite_file and metadata.excite else metadata.excite,
+    ).as_dict()
     try:
         target.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     except OSError as error:
@@ -358,8 +423,8 @@ def write_sidecar(log_path: str | Path, metadata: LogMetadata) -> Path:
 def read_sidecar(log_path: str | Path) -> LogMetadata | None:
     """Metadata of a log from its sidecar, None when there is none.
 
-    Relative path files are resolved against the sidecar's folder first, then the
-    repository root.
+    Relative files are resolved against the sidecar's folder first, then the repository
+    root.
 
     Raises:
         SidecarError: the sidecar exists but is not valid JSON or a field is wrong.
@@ -393,11 +458,7 @@ def read_sidecar(log_path: str | Path) -> LogMetadata | None:
             raise SidecarError(f"{target}: PATH_ID {key!r} in 'paths' is not an integer") from None
         if not isinstance(file, str):
             raise SidecarError(f"{target}: paths[{key}] must be a file name, got {file!r}")
-        candidate = Path(file)
-        if not candidate.is_absolute():
-            beside = target.parent / candidate
-            candidate = beside if beside.exists() else REPO_ROOT / candidate
-        paths[path_id] = str(candidate)
+        paths[path_id] = _read_path(target, file)
     scenario = data.get("scenario")
     wall = {}
     for name in ("wall_start", "wall_end"):
@@ -406,5 +467,61 @@ def read_sidecar(log_path: str | Path) -> LogMetadata | None:
             raise SidecarError(f"{target}: field {name!r} must be a number (Unix time, s), "
                                f"got {value!r}")
         wall[name] = None if value is None else float(value)
+    texts = {}
+    for name in ("ecu", "model", "excite"):
+        value = data.get(name)
+        if value is not None and (not isinstance(value, str) or not value):
+            raise SidecarError(f"{target}: field {name!r} must be a non-empty string or null, "
+                               f"got {value!r}")
+        texts[name] = value
+    if texts["ecu"] not in (None, "python", "c"):
+        raise SidecarError(f"{target}: field 'ecu' must be 'python' or 'c', got {texts['ecu']!r}")
+    input_files = _read_input_files(target, data.get("input_files", []))
+    if texts["model"] is not None:
+        texts["model"] = _read_path(target, texts["model"])
+    if texts["excite"] is not None and any(f.role == "excite" for f in input_files):
+        texts["excite"] = _read_path(target, texts["excite"])
     return LogMetadata(controller=controller, mode=mode, paths=paths,
-                       scenario=scenario if isinstance(scenario, str) else None, **wall)
+                       scenario=scenario if isinstance(scenario, str) else None, **wall,
+                       **texts, input_files=input_files)
+
+
+def _read_input_files(target: Path, raw: Any) -> tuple[InputFile, ...]:
+    if not isinstance(raw, list):
+        raise SidecarError(f"{target}: field 'input_files' must be a list, got {raw!r}")
+    files = []
+    for index, entry in enumerate(raw):
+        if not (isinstance(entry, dict)
+                and all(isinstance(entry.get(k), str) and entry.get(k)
+                        for k in ("role", "file", "sha256"))):
+            raise SidecarError(f"{target}: input_files[{index}] must be an object with the "
+                               f"strings role, file and sha256, got {entry!r}")
+        files.append(InputFile(entry["role"], _read_path(target, entry["file"]), entry["sha256"]))
+    return tuple(files)
+
+
+def check_input_files(files: Iterable[InputFile],
+                      skip_roles: Iterable[str] = ()) -> list[tuple[InputFile, str]]:
+    """The recorded input files that are missing or whose bytes changed since the
+    recording, each with a sentence saying so (its role, path and both hashes); empty when
+    each is as recorded. Files of ``skip_roles`` are not looked at (the replay was given
+    another file for them)."""
+    skipped = set(skip_roles)
+    problems = []
+    for recorded in files:
+        if recorded.role in skipped:
+            continue
+        path = Path(recorded.path)
+        if not path.is_file():
+            problems.append((recorded, f"the {recorded.role} file {path} is missing"))
+            continue
+        try:
+            now = file_sha256(path)
+        except OSError as error:
+            problems.append((recorded, f"the {recorded.role} file {path} cannot be read ({error})"))
+            continue
+        if now != recorded.sha256:
+            problems.append((recorded, f"the {recorded.role} file {path} changed since the "
+                             f"recording (SHA-256 {recorded.sha256[:12]}... recorded, "
+                             f"{now[:12]}... now)"))
+    return problems

@@ -56,6 +56,8 @@ class ReplayReport:
     comparison: Comparison
     log_contents: LogContents
     notes: list[str] = field(default_factory=list)
+    #: The ECU's other inputs and where they came from ("model: FILE (from the sidecar)").
+    setup: list[str] = field(default_factory=list)
     #: How the report counts and names the log's frames (``--dbc``): a cantools database
     #: and its name, None for the contract's DBC. Never what the replayed ECU uses.
     display_database: Any = None
@@ -74,6 +76,7 @@ class ReplayReport:
                  f"  controller: {self.controller} ({self.controller_source})",
                  "  paths: " + ", ".join(f"{k}={v}" for k, v in sorted(self.paths.items()))
                  + f" ({self.paths_source})",
+                 *(f"  {line}" for line in self.setup),
                  f"  time base: {self.time_base}",
                  f"  fed {self.run.frames_fed} frames"
                  + (f", {self.run.acks} HIL_SYNC acknowledged" if self.run.lockstep
@@ -109,6 +112,8 @@ class ReplayReport:
             lines.append(f"  log: {sum(self.log_contents.unknown_ids.values())} frame(s) with IDs "
                          "outside the contract's DBC were fed as they are")
         result = "MATCH" if self.match else "DIFFERENT"
+        if not self.log_contents.complete:
+            result += " (the log is incomplete: compared up to where it ends)"
         if writing:
             lines.append(f"  result: reference outputs written; compared with "
                          f"{self.expected_source}: {result} (for information)")
@@ -121,7 +126,8 @@ class ReplayReport:
         c = self.comparison
         first = c.first_divergence
         return {
-            "log": self.log, "controller": self.controller, "time_base": self.time_base,
+            "log": self.log, "controller": self.controller, "setup": list(self.setup),
+            "time_base": self.time_base,
             "compared_with": self.expected_source, "mode": c.mode, "match": self.match,
             "frames": {"expected": c.expected, "replayed": c.replayed, "paired": c.paired,
                        "missing": c.missing, "extra": c.extra,
@@ -131,6 +137,7 @@ class ReplayReport:
                 "time_s": first.time_s, "frame": first.frame, "signal": first.signal,
                 "expected": str(first.expected), "replayed": str(first.actual)},
             "aborted": self.run.aborted, "wall_time_s": self.run.wall_time_s,
+            "log_complete": self.log_contents.complete,
             "log_warnings": list(self.log_contents.warnings),
             "notes": self.run.notes + self.notes,
         }
@@ -180,13 +187,14 @@ def run_replay(contents: LogContents, controller: str, paths: Mapping[int, Path]
                reference: str | Path | None = None, mode: str | None = None,
                tolerances: Mapping[str, float] | None = None, realtime: bool = False,
                ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
-               controller_factory: Callable[[str], Any] | None = None,
+               controller_factory: Callable[[str], Any] | None = None, excitation: Any = None,
                allow_no_expected: bool = False, display_database: Any = None,
                dbc_name: str = "", wrap_inputs: InputWrapper | None = None) -> ReplayReport:
     """Replay a log and compare: with ``reference`` (a file of `write_reference`) when
     given, else with the ECU frames recorded in the log. ``display_database`` /
     ``dbc_name``: how the report counts the log's frames (``--dbc``); ``wrap_inputs``:
-    wraps the frames as they are fed (a progress bar).
+    wraps the frames as they are fed (a progress bar); ``controller_factory`` and
+    ``excitation``: the ECU's ``--model`` and ``--excite`` (`replay_log`).
 
     Raises:
         ReplayError: the log holds none of the ECU's inputs (nothing to replay), nothing
@@ -219,6 +227,7 @@ def run_replay(contents: LogContents, controller: str, paths: Mapping[int, Path]
     expected_end = max((f.time_s for f in expected), default=None)
     run = replay_log(contents, controller, paths, realtime=realtime, ack_timeout_s=ack_timeout_s,
                      expected_end_s=expected_end, controller_factory=controller_factory,
+                     excitation=excitation,
                      wrap_inputs=wrap_inputs)
     cut_short = not contents.complete or run.aborted is not None
     if reference is None and not contents.is_lockstep:

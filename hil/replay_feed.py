@@ -92,12 +92,11 @@ def expected_from_log(contents: LogContents) -> list[OutputFrame]:
 
 
 def _make_ecu(bus: can.BusABC, controller: str, paths: Mapping[int, Path], lockstep: bool,
-              clock: Callable[[], float], controller_factory: Any) -> Any:
+              clock: Callable[[], float], ecu_options: Mapping[str, Any]) -> Any:
     from firmware_sim.ecu import Ecu  # the ECU package, only needed to replay
 
-    kwargs = {} if controller_factory is None else {"controller_factory": controller_factory}
     try:
-        ecu = Ecu(bus, controller, dict(paths), lockstep=lockstep, clock=clock, **kwargs)
+        ecu = Ecu(bus, controller, dict(paths), lockstep=lockstep, clock=clock, **ecu_options)
     except Exception as error:
         raise ReplayError(f"cannot start the ECU with controller {controller!r}: {error}") from error
     if ecu.load_error:
@@ -110,6 +109,7 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
                realtime: bool = False, ack_timeout_s: float = DEFAULT_ACK_TIMEOUT_S,
                expected_end_s: float | None = None,
                controller_factory: Callable[[str], Any] | None = None,
+               excitation: Any = None,
                wrap_inputs: InputWrapper | None = None) -> ReplayRun:
     """Feed the log's inputs into a fresh ECU and collect its frames (module docstring).
 
@@ -121,7 +121,10 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
         ack_timeout_s: lockstep: wall-clock wait for each HIL_SYNC_ACK.
         expected_end_s: time-stamped logs: run the control releases up to this time (the
             last recorded ECU frame) after the last input, then stop the ECU there.
-        controller_factory: replaces the controller registry (tests).
+        controller_factory: replaces the controller registry (another model file,
+            ``firmware_sim.controller_factory.model_controller_factory``; tests).
+        excitation: the ECU's identification excitation program
+            (``firmware_sim.excitation.load_excitation``), None for none.
         wrap_inputs: wraps the sequence of input frames as it is fed (a progress bar).
 
     Raises:
@@ -132,13 +135,15 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
     started = time.perf_counter()
     ecu_bus = can.Bus(interface="virtual", channel=channel)
     feeder = can.Bus(interface="virtual", channel=channel)
+    ecu_options = {name: value for name, value in (("controller_factory", controller_factory),
+                                                   ("excitation", excitation)) if value is not None}
     try:
         if contents.is_lockstep:
             run = _replay_lockstep(contents, controller, paths, ecu_bus, feeder, realtime,
-                                   ack_timeout_s, controller_factory, wrap_inputs or _as_is)
+                                   ack_timeout_s, ecu_options, wrap_inputs or _as_is)
         else:
             run = _replay_timestamped(contents, controller, paths, ecu_bus, feeder, realtime,
-                                      expected_end_s, controller_factory, wrap_inputs or _as_is)
+                                      expected_end_s, ecu_options, wrap_inputs or _as_is)
         run.wall_time_s = time.perf_counter() - started
         return run
     finally:
@@ -171,11 +176,11 @@ class _Pacer:
 
 def _replay_lockstep(contents: LogContents, controller: str, paths: Mapping[int, Path],
                      ecu_bus: can.BusABC, feeder: can.BusABC, realtime: bool,
-                     ack_timeout_s: float, controller_factory: Any,
+                     ack_timeout_s: float, ecu_options: Mapping[str, Any],
                      wrap_inputs: InputWrapper) -> ReplayRun:
     inputs, _ = _input_frames(contents)
     run = ReplayRun(outputs=[], lockstep=True)
-    ecu = _make_ecu(ecu_bus, controller, paths, True, time.monotonic, controller_factory)
+    ecu = _make_ecu(ecu_bus, controller, paths, True, time.monotonic, ecu_options)
     stop = threading.Event()
     thread = threading.Thread(target=ecu.run, args=(stop,), name="replay-ecu", daemon=True)
     thread.start()
@@ -260,12 +265,12 @@ def _collect(run: ReplayRun, message: can.Message, time_s: float) -> int | None:
 
 def _replay_timestamped(contents: LogContents, controller: str, paths: Mapping[int, Path],
                         ecu_bus: can.BusABC, feeder: can.BusABC, realtime: bool,
-                        expected_end_s: float | None, controller_factory: Any,
+                        expected_end_s: float | None, ecu_options: Mapping[str, Any],
                         wrap_inputs: InputWrapper) -> ReplayRun:
     inputs, input_times = _input_frames(contents)
     run = ReplayRun(outputs=[], lockstep=False)
     clock = ReplayClock()
-    ecu = _make_ecu(ecu_bus, controller, paths, False, clock, controller_factory)
+    ecu = _make_ecu(ecu_bus, controller, paths, False, clock, ecu_options)
     recorded_commands = [t for m, t in zip(contents.messages, frame_times(contents.messages)[0])
                          if is_contract_data_frame(m) and m.arbitration_id == FrameId.STEER_TORQUE_CMD]
     # The recorded ECU ran its first control task just before its first command: phase the

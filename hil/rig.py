@@ -28,7 +28,7 @@ import can
 
 from hil.bus import BusConfig, open_bus
 from hil.ecu_runners import EcuProcess, EcuRunner, InProcessEcu, c_ecu_command
-from hil.logio import LogMetadata, write_sidecar
+from hil.logio import LogMetadata, describe_inputs, write_sidecar
 from hil.metrics import control_instant_metrics, reference_path
 from hil.plant_node import PlantNode
 from hil.planner_node import PlannerNode
@@ -223,13 +223,7 @@ class Rig:
                 # a longer quiet spell so the log keeps it (and on an interrupted run the
                 # recorder may still be catching up)
                 recorder.stop(settle_s=0.1 if isinstance(self.ecu, InProcessEcu) else 0.3, max_wait_s=5.0)
-                # Sidecar so `eso-hil replay LOG` needs no flags.
-                write_sidecar(self.options.log_path, LogMetadata(
-                    controller=self.options.controller,
-                    mode="lockstep" if self.options.lockstep else "realtime",
-                    paths={self.scenario.path_id: str(self.scenario.path_file)},
-                    scenario=self.scenario.name, wall_start=recorder.wall_start,
-                    wall_end=recorder.wall_end))
+                self._write_sidecar(recorder)
                 self._frames_logged = recorder.count
             if self.master_bus is not None:
                 self.master_bus.shutdown()
@@ -239,6 +233,30 @@ class Rig:
                 self.hub = None
             if self._started:
                 self._wall_s = time.monotonic() - self._started
+
+    def _write_sidecar(self, recorder: BusRecorder) -> None:
+        """The log's sidecar, so `eso-hil replay LOG` rebuilds this ECU without flags: the
+        ECU, controller, paths, ``--model`` and ``--excite``, and a hash of every file they
+        read (with the tuning), so a replay refuses once one has changed."""
+        from controller.tuning import DEFAULT_TUNING_PATH
+        from firmware_sim.controller_factory import model_files
+        from firmware_sim.excitation import program_file
+
+        options = self.options
+        files: list[tuple[str, Any]] = [(f"path {self.scenario.path_id}", self.scenario.path_file)]
+        if options.model is not None:
+            files += [("model", file) for file in model_files(options.controller, options.model)]
+        excite_file = None if options.excite is None else program_file(options.excite)
+        if excite_file is not None:
+            files.append(("excite", excite_file))
+        files.append(("tuning", DEFAULT_TUNING_PATH))
+        write_sidecar(options.log_path, LogMetadata(
+            controller=options.controller, mode="lockstep" if options.lockstep else "realtime",
+            paths={self.scenario.path_id: str(self.scenario.path_file)},
+            scenario=self.scenario.name, wall_start=recorder.wall_start,
+            wall_end=recorder.wall_end, ecu=options.ecu,
+            model=None if options.model is None else str(options.model),
+            excite=options.excite, input_files=describe_inputs(files)))
 
     def result(self) -> HilRunResult:
         """The run's result (after :meth:`run`; the wall time counts to :meth:`close`)."""

@@ -140,3 +140,53 @@ def test_can_fd_frames_are_no_contract_frames_for_either_user(tmp_path: Path) ->
     counts = can_log_data.LogCounts()
     can_log_data._decode_streams(can_log_data.read_frames(path)[0], counts)
     assert (counts.frames, counts.not_contract, counts.plant_frames) == (5, 4, 1)
+
+
+def _vector_copy(path: Path) -> Path:
+    """The lockstep test log written by python-can's writer of ``path``'s suffix."""
+    with can.Logger(path) as writer:
+        for message in read_log_frames(LOCKSTEP).messages:
+            writer.on_message_received(message)
+    return path
+
+
+@pytest.mark.parametrize("suffix, keep", [(".blf", 3000), (".blf", 100_000), (".asc", 9000),
+                                          (".blf.gz", 3000), (".asc.gz", 9000)])
+def test_a_cut_blf_or_asc_is_incomplete_and_keeps_the_frames_before_the_cut(
+        tmp_path: Path, suffix: str, keep: int) -> None:
+    whole = _vector_copy(tmp_path / f"whole{suffix.removesuffix('.gz')}")
+    raw = whole.read_bytes()
+    raw = raw[:keep] if keep < len(raw) else raw[:len(raw) - 100]
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(gzip.compress(raw) if suffix.endswith(".gz") else raw)
+    frames = read_log_frames(cut)
+    print(frames.warnings)
+    assert not frames.complete and len(frames.warnings) >= 1
+    assert "BLF file is truncated" in frames.warnings[0] or "line" in frames.warnings[0]
+    full = read_log_frames(whole).messages
+    assert 0 < len(frames.messages) < len(full)
+    assert _frames(frames.messages) == _frames(full[:len(frames.messages)])
+
+
+def test_the_blf_cut_names_the_header_size_and_object_count(tmp_path: Path) -> None:
+    from can_defs.log_reader import blf_cut
+
+    raw = _vector_copy(tmp_path / "whole.blf").read_bytes()
+    assert blf_cut(raw).problem is None
+    cut = blf_cut(raw[:3000])
+    print(cut.problem)
+    assert cut.readable == 3000
+    assert f"the file header says {len(raw)} bytes" in cut.problem
+    assert blf_cut(raw[:150]).readable == 144  # inside an object header: the reader stops there
+
+
+def test_an_asc_without_end_triggerblock_is_incomplete(tmp_path: Path) -> None:
+    from can_defs.log_reader import asc_cut
+
+    whole = _vector_copy(tmp_path / "whole.asc").read_text()
+    assert asc_cut(whole) == (whole, [])
+    without_end = whole[:whole.rindex("End TriggerBlock")]
+    text, problems = asc_cut(without_end)
+    assert text == without_end and len(problems) == 1 and "End TriggerBlock" in problems[0]
+    text, problems = asc_cut(without_end[:-10])
+    assert text.endswith("\n") and len(problems) == 2 and "no line end" in problems[0]

@@ -198,3 +198,41 @@ def test_malformed_sidecar_names_the_field(tmp_path: Path, content: str, field: 
     (tmp_path / "run.log.json").write_text(content)
     with pytest.raises(SidecarError, match=field):
         read_sidecar(tmp_path / "run.log")
+
+
+def test_sidecar_records_the_ecu_its_model_excitation_and_input_hashes(tmp_path: Path) -> None:
+    from hil.logio import check_input_files, describe_inputs
+
+    root = Path(__file__).resolve().parent.parent
+    model = tmp_path / "bicycle.json"
+    model.write_text("{}")
+    program = tmp_path / "program.toml"
+    program.write_text("kind = 'prbs'\n")
+    inputs = describe_inputs([("path 1", root / "hil" / "paths" / "dlc.csv"), ("model", model),
+                              ("excite", program)])
+    log = tmp_path / "run.log"
+    write_sidecar(log, LogMetadata("lmpc", "lockstep", {1: str(root / "hil/paths/dlc.csv")},
+                                   ecu="python", model=str(model), excite=str(program),
+                                   input_files=inputs))
+    stored = json.loads(sidecar_path(log).read_text())
+    assert stored["version"] == 3 and stored["ecu"] == "python"
+    assert stored["input_files"][0] == {"role": "path 1", "file": "hil/paths/dlc.csv",
+                                        "sha256": inputs[0].sha256}
+    metadata = read_sidecar(log)
+    assert metadata is not None and metadata.model == str(model) and metadata.excite == str(program)
+    assert check_input_files(metadata.input_files) == []
+    model.write_text("{ }")
+    program.unlink()
+    problems = [sentence for _, sentence in check_input_files(metadata.input_files)]
+    assert len(problems) == 2
+    assert f"the model file {model} changed since the recording" in problems[0]
+    assert problems[1] == f"the excite file {program} is missing"
+    assert check_input_files(metadata.input_files, skip_roles=("model", "excite")) == []
+
+
+def test_an_old_sidecar_has_no_ecu_inputs(tmp_path: Path) -> None:
+    (tmp_path / "run.log.json").write_text(
+        '{"version": 2, "controller": "lmpc", "paths": {"1": "hil/paths/dlc.csv"}}')
+    metadata = read_sidecar(tmp_path / "run.log")
+    assert metadata is not None and (metadata.ecu, metadata.model, metadata.excite) == (None,) * 3
+    assert metadata.input_files == ()

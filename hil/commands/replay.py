@@ -7,7 +7,11 @@ Exit status, in every mode (exact or tolerance comparison, ``--ref``, ``--realti
 - 3 (:data:`EXIT_DIFFERENT`): they differ, or the ECU stopped answering (replay aborted);
 - 1 (:data:`EXIT_ERROR`): bad input, one ``error: ...`` line: no such log, a log without
   the ECU's inputs (nothing to replay), nothing to compare with, unknown controller, an
-  output file that exists without ``--replace``; 2: a bad option (argparse).
+  output file that exists without ``--replace``, a path, model or excitation file the
+  sidecar recorded that is missing or changed; 2: a bad option (argparse).
+
+The ECU is rebuilt as the sidecar recorded it (controller, paths, ``--model``,
+``--excite``); the options of the same names replace the sidecar's.
 
 ``--write-ref [FILE]`` writes the replay's frames as reference outputs: 0 once written
 (the comparison with the log's own frames is then shown for information), 1 when
@@ -25,6 +29,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from hil.commands import (add_dbc_option, add_quiet_option, controller_name, display_database,
                           progress, warn)
@@ -54,6 +59,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--path", action="append", default=[], metavar="ID=FILE",
                         help="reference path of a PATH_ID (repeatable); default: the sidecar's, "
                         "else hil/paths/dlc.csv for every PATH_ID the log's planner requested")
+    parser.add_argument("--model", type=Path, default=None, metavar="PATH",
+                        help="the ECU's --model (a Koopman artefact or a fitted bicycle); "
+                        "default: the sidecar's")
+    parser.add_argument("--excite", default=None, metavar="PROGRAM",
+                        help="the ECU's --excite (a shipped program's name or a program file); "
+                        "default: the sidecar's")
     parser.add_argument("--realtime", action="store_true",
                         help="pace the frames by the log's timestamps (default: as fast as possible)")
     parser.add_argument("--ref", type=Path, default=None, metavar="FILE",
@@ -154,6 +165,7 @@ def main(args: argparse.Namespace) -> int:
         paths_source = "default: hil/paths/dlc.csv for the PATH_IDs the log requested"
     for warning in contents.warnings:
         warn(f"{args.log}: {warning}")
+    controller_factory, excitation, setup, notes = _recorded_ecu(args, metadata, controller)
 
     report = run_replay(
         contents, controller, paths, controller_source=controller_source,
@@ -161,7 +173,10 @@ def main(args: argparse.Namespace) -> int:
         mode=args.compare, tolerances=tolerances, realtime=args.realtime,
         ack_timeout_s=args.ack_timeout or DEFAULT_ACK_TIMEOUT_S,
         allow_no_expected=writing, display_database=database, dbc_name=dbc_name,
-        wrap_inputs=lambda frames: progress(frames, len(frames), "replay", args.quiet))
+        wrap_inputs=lambda frames: progress(frames, len(frames), "replay", args.quiet),
+        controller_factory=controller_factory, excitation=excitation)
+    report.setup.extend(setup)
+    report.notes.extend(notes)
     as_json = json.dumps(report.as_dict(), indent=2)
     text_stream = sys.stderr if args.json == "-" else sys.stdout
     if writing:
@@ -178,3 +193,57 @@ def main(args: argparse.Namespace) -> int:
         print(f"wrote {target} ({len(report.run.outputs)} frames)", file=sys.stderr)
         return EXIT_MATCH
     return EXIT_MATCH if report.match else EXIT_DIFFERENT
+
+
+def _recorded_ecu(args: argparse.Namespace, metadata: Any,
+                  controller: str) -> tuple[Any, Any, list[str], list[str]]:
+    """The ECU's ``--model`` and ``--excite`` (the options, else the sidecar's), checked
+    against the hashes the sidecar recorded: the controller factory, the excitation
+    program, the report's lines about them and its notes.
+
+    Raises:
+        ReplayError: a recorded input file the replay would read is missing or changed
+            (one sentence per file; the options that replace each are named).
+    """
+    from firmware_sim.controller_factory import model_controller_factory
+    from firmware_sim.excitation import load_excitation
+    from hil.logio import check_input_files, sidecar_path
+    from hil.replay import ReplayError
+
+    recorded_model = None if metadata is None else metadata.model
+    recorded_excite = None if metadata is None else metadata.excite
+    model = args.model if args.model is not None else \
+        (Path(recorded_model) if recorded_model is not None else None)
+    excite = args.excite if args.excite is not None else recorded_excite
+    setup = [f"{name}: {value} ({'--' + option if given else 'from the sidecar'})"
+             for name, option, value, given in (
+                 ("model", "model", model, args.model is not None),
+                 ("excitation", "excite", excite, args.excite is not None)) if value is not None]
+    notes: list[str] = []
+    if metadata is not None:
+        # the files the replay takes from elsewhere are not the sidecar's business
+        given = {"model"} if args.model is not None else set()
+        given |= {"excite"} if args.excite is not None else set()
+        given |= {f.role for f in metadata.input_files if f.role.startswith("path ") and args.path}
+        problems = check_input_files(metadata.input_files, skip_roles=given)
+        # The tuning is part of the build, like the code: a replay against a changed build
+        # is what finds a regression, so it runs and says why it may differ.
+        notes.extend(f"{sentence}: the replayed ECU is not the recorded build, a divergence "
+                     "is expected" for recorded, sentence in problems if recorded.role == "tuning")
+        refused = [(recorded, sentence) for recorded, sentence in problems
+                   if recorded.role != "tuning"]
+        if refused:
+            options = sorted({"--path ID=FILE" if f.role.startswith("path ") else f"--{f.role}"
+                              for f, _ in refused})
+            raise ReplayError(
+                f"{args.log}: cannot rebuild the recorded ECU: "
+                + "; ".join(sentence for _, sentence in refused)
+                + f" (hashes in {sidecar_path(args.log)}); restore the file, or replay with "
+                f"another through {' / '.join(options)}")
+        if metadata.ecu == "c":
+            notes.append("the log was recorded with the C ECU (firmware/); the replay runs the "
+                         "Python ECU (firmware_sim)")
+    for note in notes:
+        warn(f"{args.log}: {note}")
+    factory = None if model is None else model_controller_factory(controller, model)
+    return factory, load_excitation(excite), setup, notes
