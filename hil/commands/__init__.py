@@ -35,6 +35,17 @@ def add_dbc_option(parser: argparse.ArgumentParser, what: str) -> None:
                              "can_defs/vehicle.dbc; any format cantools reads)")
 
 
+def add_ecu_input_options(parser: argparse.ArgumentParser, default: str = "") -> None:
+    """``--model`` and ``--excite``: the ECU's own options of the same names (``eso-ecu``),
+    which decide its commands; ``default`` says what a run without them uses."""
+    parser.add_argument("--model", type=Path, default=None, metavar="PATH",
+                        help="the ECU's --model: another Koopman artefact (eso-dkmpc, dkmpc) or a "
+                             f"fitted bicycle (lmpc, lmpc-eso){default}")
+    parser.add_argument("--excite", default=None, metavar="PROGRAM",
+                        help="the ECU's --excite: identification excitation (chirp, prbs, steps, "
+                             f"prbs-torque or a program file; docs/identification.md){default}")
+
+
 def add_quiet_option(parser: argparse.ArgumentParser) -> None:
     """``--quiet``: no progress bar (it is off anyway when stderr is not a terminal)."""
     parser.add_argument("--quiet", action="store_true",

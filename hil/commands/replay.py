@@ -31,7 +31,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from hil.commands import (add_dbc_option, add_quiet_option, controller_name, display_database,
+from hil.commands import (add_dbc_option, add_ecu_input_options, add_quiet_option, controller_name,
+                          display_database,
                           progress, warn)
 
 HELP = "re-run the ECU on a recorded CAN log and compare its output frames with the log's"
@@ -59,12 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--path", action="append", default=[], metavar="ID=FILE",
                         help="reference path of a PATH_ID (repeatable); default: the sidecar's, "
                         "else hil/paths/dlc.csv for every PATH_ID the log's planner requested")
-    parser.add_argument("--model", type=Path, default=None, metavar="PATH",
-                        help="the ECU's --model (a Koopman artefact or a fitted bicycle); "
-                        "default: the sidecar's")
-    parser.add_argument("--excite", default=None, metavar="PROGRAM",
-                        help="the ECU's --excite (a shipped program's name or a program file); "
-                        "default: the sidecar's")
+    add_ecu_input_options(parser, "; default: the sidecar's")
     parser.add_argument("--realtime", action="store_true",
                         help="pace the frames by the log's timestamps (default: as fast as possible)")
     parser.add_argument("--ref", type=Path, default=None, metavar="FILE",

@@ -29,7 +29,7 @@ import json
 import sys
 from pathlib import Path
 
-from hil.commands import controller_name
+from hil.commands import add_ecu_input_options, controller_name
 
 HELP = "run one scenario with one controller over CAN (plant, planner, time master, ECU)"
 
@@ -62,12 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--faults", action="store_true",
                         help="inject the scenario's [faults] table (bus, vehicle, sensor faults of "
                              "hil/faults.py; without it only its mu_step acts)")
-    parser.add_argument("--model", type=Path, default=None, metavar="PATH",
-                        help="the ECU's --model: another Koopman artefact (eso-dkmpc, dkmpc) or a "
-                             "fitted bicycle (lmpc, lmpc-eso)")
-    parser.add_argument("--excite", default=None, metavar="PROGRAM",
-                        help="the ECU's --excite: identification excitation (chirp, prbs, steps, "
-                             "prbs-torque or a program file; docs/identification.md)")
+    add_ecu_input_options(parser)
     parser.add_argument("--ecu", choices=("python", "c"), default="python", type=str.lower,
                         help="the ECU: python (firmware_sim, default) or c (the C executable "
                              "build/firmware/ecu of make firmware; eso-dkmpc, dkmpc, lmpc)")
