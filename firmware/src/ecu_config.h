@@ -48,7 +48,17 @@ typedef struct {
 #endif
   int state_fields[ECU_NX];      /* index into ecu_sample_t viewed as double[9] */
   int dictionary[ECU_NDICT_MAX]; /* codes of ecu_data.py DICTIONARY_CODES */
-  double weights[ECU_ENCODER_MAX];
+  /* Layer l's weights at weight_at[l], input-major: value[weight_at[l] + i * layer_out[l] + o]
+   * multiplies input i into output o (the transpose of the file's (out, in) record), so that
+   * the lift's sums for neighbouring outputs read neighbouring weights. Where every weight of
+   * layer l is a float exactly (weights_single[l]; a float32-trained encoder's are), the layer's
+   * storage holds them as floats from single[2 * weight_at[l]] on, in the same order: the same
+   * numbers in half the bytes. */
+  union {
+    double value[ECU_ENCODER_MAX];
+    float single[2 * ECU_ENCODER_MAX];
+  } weights;
+  int weights_single[ECU_N_LAYERS];
   double biases[ECU_N_LAYERS * ECU_HIDDEN_MAX];
   int layer_in[ECU_N_LAYERS], layer_out[ECU_N_LAYERS];
   int weight_at[ECU_N_LAYERS], bias_at[ECU_N_LAYERS];

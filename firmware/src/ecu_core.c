@@ -65,6 +65,7 @@ int ecu_core_load(ecu_core_t *core, const char *data_path, const char *name, cha
   core->n_pred = t->n_pred;
   core->n_ctrl = t->n_ctrl;
   for (int i = 0; i < core->n_pred; i++) core->decay_power[i] = pow(t->disturbance_decay, (double)i);
+  core->model.valid = 0; /* the per-speed matrices of this data file from the first step */
   core->path_n = 0;
   core->loaded = 1;
   ecu_core_reset(core);

@@ -3,6 +3,7 @@
  * against the shape this build was generated for (ecu_build.h): a model or tuning of
  * another shape is refused with both shapes named, never silently truncated.
  */
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -191,7 +192,20 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
     if (rec_name[8] == 'w') {
       const uint32_t d[2] = {width_out, width_in};
       if (check_shape(path, 2, d, err, err_len)) return -1;
-      memcpy(cfg->weights + cfg->weight_at[layer], rec_values, width_out * width_in * sizeof(double));
+      /* Stored input-major (transposed, see ecu_config.h): the lift's sums over outputs; as
+       * floats where every weight is one exactly (the same numbers once converted back). */
+      const uint32_t n = width_out * width_in;
+      int single = 1;
+      for (uint32_t k = 0; k < n && single; k++)
+        single = fabs(rec_values[k]) <= FLT_MAX && (double)(float)rec_values[k] == rec_values[k];
+      cfg->weights_single[layer] = single;
+      double *w = cfg->weights.value + cfg->weight_at[layer];
+      float *w_single = cfg->weights.single + 2 * cfg->weight_at[layer];
+      for (uint32_t o = 0; o < width_out; o++)
+        for (uint32_t i = 0; i < width_in; i++) {
+          if (single) w_single[i * width_out + o] = (float)rec_values[o * width_in + i];
+          else w[i * width_out + o] = rec_values[o * width_in + i];
+        }
       *seen |= 1ul << (13 + layer);
     } else {
       const uint32_t d[1] = {width_out};

@@ -46,11 +46,13 @@ void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ec
   for (int x = 0; x < 3; x++) free[0][x] = f[x];
   for (int i = 0; i < n_pred; i++) {
     double decay = observed ? decay_power[i] : 0.0;
-    for (int a = 0; a < NZ; a++) {
-      double sum = drift[a];
-      for (int b = 0; b < NZ; b++) sum += model->A[a][b] * f[b];
-      next[a] = observed ? sum + decay * w[a] : sum;
-    }
+    /* next[a] = drift[a] + sum over b in order of A[a][b] f[b], all a at once (At's rows):
+     * each a's sum in the same order as one a at a time, the a side by side in vectors. */
+    memcpy(next, drift, sizeof next);
+    for (int b = 0; b < NZ; b++)
+      for (int a = 0; a < NZ; a++) next[a] += model->At[b][a] * f[b];
+    if (observed)
+      for (int a = 0; a < NZ; a++) next[a] += decay * w[a];
     memcpy(f, next, sizeof f);
     for (int x = 0; x < 3; x++) free[i + 1][x] = f[x];
   }
@@ -63,11 +65,9 @@ void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ec
 #endif
   for (int k = 0; k < n_pred; k++) {
     for (int x = 0; x < 3; x++) markov[k][x] = m[x];
-    for (int a = 0; a < NZ; a++) {
-      double sum = 0.0;
-      for (int b = 0; b < NZ; b++) sum += model->A[a][b] * m[b];
-      next[a] = sum;
-    }
+    for (int a = 0; a < NZ; a++) next[a] = 0.0;
+    for (int b = 0; b < NZ; b++)
+      for (int a = 0; a < NZ; a++) next[a] += model->At[b][a] * m[b];
     memcpy(m, next, sizeof m);
   }
   held_gain(n_pred, tuning->n_ctrl, markov, gain);
