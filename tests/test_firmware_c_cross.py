@@ -29,18 +29,30 @@ def test_arm_build_replays_bit_for_bit(native, tmp_path: Path) -> None:
                             "FW_DIR=build/firmware-aarch64", "build/firmware-aarch64/ecu"],
                            cwd=ROOT, capture_output=True, text=True, check=False)
     assert build.returncode == 0, build.stdout + build.stderr
+    samples_csv = write_replay_samples(tmp_path)
+    for name in ("eso-dkmpc", "dkmpc", "lmpc"):
+        host = replay_rows(["build/firmware/ecu"], name, samples_csv)
+        arm = replay_rows(["qemu-aarch64", "-L", SYSROOT, "build/firmware-aarch64/ecu"], name, samples_csv,
+                          timeout=300)
+        assert arm == host, name
+        print(f"{name}: {len(host) - 1} steps, aarch64 replay identical to the host's")
+
+
+def write_replay_samples(folder: Path) -> Path:
+    """dlc_smoke's samples as LMPC saw them, as the CSV of ``ecu --replay`` in ``folder``."""
     from studies.bench import record_samples
 
     samples, _, _ = record_samples(scenario_name="dlc_smoke", driver="lmpc")
     rows = [",".join(repr(float(getattr(s, f))) for f in SAMPLE_FIELDS) for s in samples]
-    (tmp_path / "samples.csv").write_text(",".join(SAMPLE_FIELDS) + "\n" + "\n".join(rows) + "\n")
-    for name in ("eso-dkmpc", "dkmpc", "lmpc"):
-        args = ["--controller", name, "--path", "1=hil/paths/dlc.csv", "--data", "build/firmware/ecu_data.bin",
-                "--replay", str(tmp_path / "samples.csv")]
-        host = subprocess.run(["build/firmware/ecu", *args], cwd=ROOT, capture_output=True, text=True, check=True)
-        arm = subprocess.run(["qemu-aarch64", "-L", SYSROOT, "build/firmware-aarch64/ecu", *args], cwd=ROOT,
-                             capture_output=True, text=True, check=True, timeout=300)
-        # Every column but the last (the step's wall time).
-        strip = lambda text: [line.rsplit(",", 1)[0] for line in text.splitlines()]  # noqa: E731
-        assert strip(arm.stdout) == strip(host.stdout), name
-        print(f"{name}: {len(samples)} steps, aarch64 replay identical to the host's")
+    (folder / "samples.csv").write_text(",".join(SAMPLE_FIELDS) + "\n" + "\n".join(rows) + "\n")
+    return folder / "samples.csv"
+
+
+def replay_rows(command: list[str], name: str, samples_csv: Path, timeout: float | None = None) -> list[str]:
+    """``command`` (an ``ecu`` executable) replaying ``samples_csv`` with controller ``name`` on
+    dlc.csv and the host build's data file: its output lines, each without its last column
+    (the step's wall time)."""
+    args = ["--controller", name, "--path", "1=hil/paths/dlc.csv", "--data", "build/firmware/ecu_data.bin",
+            "--replay", str(samples_csv)]
+    result = subprocess.run([*command, *args], cwd=ROOT, capture_output=True, text=True, check=True, timeout=timeout)
+    return [line.rsplit(",", 1)[0] for line in result.stdout.splitlines()]
