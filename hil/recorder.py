@@ -6,6 +6,13 @@
   follows the file suffix as in python-can: ``.log`` candump (the default, readable by
   can-utils' ``canplayer``), ``.asc``, ``.blf``, ``.csv``, ``.trc`` and ``.gz``
   compressed variants (only the suffixes `hil.logio` reads back: `hil.logio.check_log_suffix`).
+  Every frame is marked with its direction from the ECU's point of view, as a logger on
+  the ECU's own interface would mark it: the frames the ECU transmits per the DBC
+  (`transmitted_ids`: HIL_SYNC_ACK, STEER_TORQUE_CMD, CTRL_DIAG) are Tx
+  (``is_rx = False``), every other frame Rx. The recorder's own bus object hears every
+  frame as received, so the direction is set here; candump, ASC, BLF and TRC carry it,
+  CSV and SQLite do not. The project's readers find the ECU's frames by ID, never by
+  direction, so logs recorded before (every frame Rx) read the same.
   In lockstep (``virtual_time=True``) every frame is stamped with the wall-clock start
   of the recording plus the virtual time of the tick it belongs to
   (`hil.logio.TickStamper`), so ``cantools plot``, ``can.player``, ``canplayer`` and
@@ -19,13 +26,16 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Iterable
 
 import can
 import numpy as np
 
 from can_defs.codec import decode
+from can_defs.dbc import load_database
 from can_defs.errors import CanDefsError
 from can_defs.frames import CtrlDiag, FrameId, SteerTorqueCmd
+from can_defs.log_reader import is_contract_data_frame
 from hil.errors import HilError
 from hil.logio import TickStamper, check_log_suffix
 
@@ -36,6 +46,17 @@ DEFAULT_LOG_SUFFIX = ".log"
 ECU_TRACE_COLUMNS = ("time", "ctrl_mode", "cmd_valid", "steer_angle_cmd", "drive_torque_cmd",
                      "qp_status", "solve_time_us", "cycle_time_us", "qp_iter", "overruns",
                      "faults")
+
+
+#: The node from whose point of view logs mark direction: the device under test.
+DEVICE_UNDER_TEST = "ECU"
+
+
+def transmitted_ids(node: str = DEVICE_UNDER_TEST) -> frozenset[int]:
+    """IDs of the frames ``node`` transmits per the contract's DBC (its transmitter node;
+    for the ECU: HIL_SYNC_ACK, STEER_TORQUE_CMD and CTRL_DIAG)."""
+    return frozenset(message.frame_id for message in load_database().messages
+                     if node in message.senders)
 
 
 class RecorderError(HilError):
@@ -50,16 +71,20 @@ class BusRecorder:
         path: the log file; its folder must exist (checked by the commands beforehand).
         virtual_time: stamp frames with the wall-clock start + their lockstep tick
             (module docstring) instead of the bus timestamps.
+        tx_ids: IDs of the data frames marked transmitted (Tx); default the ECU's
+            (`transmitted_ids`). Every other frame is marked received (Rx).
 
     Raises:
         RecorderError: a suffix the project's log readers do not read, or the file cannot
             be created.
     """
 
-    def __init__(self, bus: can.BusABC, path: str | Path, virtual_time: bool = False) -> None:
+    def __init__(self, bus: can.BusABC, path: str | Path, virtual_time: bool = False,
+                 tx_ids: Iterable[int] | None = None) -> None:
         self.path = Path(path)
         self.bus = bus
         self.count = 0
+        self._tx_ids = frozenset(transmitted_ids() if tx_ids is None else tx_ids)
         #: Wall clock (Unix time, s) of the first and the last frame received.
         self.wall_start: float | None = None
         self.wall_end: float | None = None
@@ -74,8 +99,12 @@ class BusRecorder:
         self._stopped = False
 
     def _receive(self, message: can.Message) -> None:
-        """Notifier callback (its thread): count, then write now or once the tick is known."""
+        """Notifier callback (its thread): count, mark the direction, then write now or
+        once the tick is known."""
         self.count += 1
+        # every bus object gets its own copy of a frame: marking it changes nobody else's
+        message.is_rx = not (is_contract_data_frame(message)
+                             and message.arbitration_id in self._tx_ids)
         if self.wall_start is None:
             self.wall_start = message.timestamp
         self.wall_end = message.timestamp
