@@ -5,9 +5,12 @@ play; ``models.can_log_data`` for identification), so that both see the same fra
 
 - `read_log_frames(path)`: the frames in file order (`LogFrames`) through python-can's
   readers (``can.LogReader`` picks one by suffix: ``.asc``, ``.blf``, ``.csv``, ``.db``,
-  ``.trc`` and their ``.gz`` forms). Candump ``-L`` files (``.log``, ``.log.gz``) are
-  checked line by line first (`CANDUMP_LINE`): a line that is not a frame is skipped,
-  counted and quoted, and only the good lines go to python-can's ``CanutilsLogReader``.
+  ``.trc`` and their ``.gz`` forms, and ``.mf4``, ASAM MDF 4 through asammdf, which is
+  compressed inside and has no ``.gz`` form). Candump ``-L`` files (``.log``,
+  ``.log.gz``) are checked line by line first (`CANDUMP_LINE`): a line that is not a
+  frame is skipped, counted and quoted, and only the good lines go to python-can's
+  ``CanutilsLogReader``. Each frame keeps the direction its format records
+  (``is_rx``; CSV and SQLite record none: Rx); no user here selects frames by it.
 - Damage never raises a parser's traceback: a truncated or corrupt gzip stream keeps the
   text before the damage; a last candump line without its line end (a recorder killed
   mid-write) is dropped; a cut BLF (`blf_cut`: an object running past the end of the
@@ -15,7 +18,8 @@ play; ``models.can_log_data`` for identification), so that both see the same fra
   frames before the cut; a reader that fails in the middle of a file ends the read there.
   Each case is a warning and marks the read incomplete. Only an unknown suffix
   (`LogFormatError`) or a missing, unreadable or frameless file (`LogReadError`) is an
-  error.
+  error; a cut MF4 is one: its blocks are written when the recording stops, and asammdf
+  opens only a whole file.
 - `frame_kind(message)`: data / CAN FD / remote / error, the one test of what a frame is;
   `is_contract_data_frame`: the only kind the contract's frames are (classic CAN data
   frame, 11-bit ID).
@@ -26,22 +30,32 @@ the packages that use it keep python-can out of their run time.
 from __future__ import annotations
 
 import enum
+import gc
 import io
 import re
 import struct
+import sys
 import zlib
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 from can_defs.errors import CanDefsError
 
 if TYPE_CHECKING:
     import can
 
-#: Suffixes python-can reads without optional packages (``.mf4`` needs asammdf), each also
-#: gzip-compressed (``.log.gz``).
-SUPPORTED_SUFFIXES: tuple[str, ...] = (".log", ".asc", ".blf", ".csv", ".db", ".trc")
+#: Suffixes of the log formats read (and recorded), all through python-can (``.mf4`` through
+#: asammdf, a dependency of the project).
+SUPPORTED_SUFFIXES: tuple[str, ...] = (".log", ".asc", ".blf", ".csv", ".db", ".trc", ".mf4")
+
+#: Formats without a ``.gz`` form: MF4 compresses its own data blocks, and python-can's
+#: MF4 writer and reader need a file they can seek in.
+NO_GZIP_SUFFIXES: tuple[str, ...] = (".mf4",)
+
+#: The formats in words, for help texts.
+FORMATS_TEXT = ".log candump, .asc, .blf, .csv, .db, .trc (optionally .gz), .mf4"
 
 #: The header python-can writes to a CSV log (``can.CSVWriter``).
 PYTHON_CAN_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
@@ -136,7 +150,10 @@ def check_log_suffix(path: str | Path) -> str:
     if suffix not in SUPPORTED_SUFFIXES:
         raise LogFormatError(
             f"{path}: unknown log format {suffix or '(no suffix)'!r}; supported: "
-            f"{', '.join(SUPPORTED_SUFFIXES)} (optionally .gz compressed)")
+            f"{FORMATS_TEXT}")
+    if suffix in NO_GZIP_SUFFIXES and _is_gzip(PurePath(path)):
+        raise LogFormatError(f"{path}: a {suffix} log is compressed inside and has no .gz "
+                             f"form; use {suffix}")
     return suffix
 
 
@@ -189,7 +206,7 @@ def _inflate(raw: bytes) -> tuple[bytes, str | None]:
     return b"".join(chunks), problem
 
 
-def _is_gzip(path: Path) -> bool:
+def _is_gzip(path: PurePath) -> bool:
     return path.suffix.lower() == ".gz"
 
 
@@ -283,6 +300,9 @@ def _read_with_python_can(frames: LogFrames) -> None:
         return
     if suffix == ".asc":
         _read_asc(frames)
+        return
+    if suffix == ".mf4":
+        _read_mf4(frames)
         return
     try:
         reader = can.LogReader(path)
@@ -448,4 +468,49 @@ def _read_asc(frames: LogFrames) -> None:
     except Exception as error:  # noqa: BLE001 - the reader's own parse error
         raise LogReadError(f"{frames.path}: not a readable .asc log: "
                            f"{type(error).__name__}: {error}") from error
+    _drain(reader, frames)
+
+
+# --- MF4 (ASAM MDF 4) -------------------------------------------------------------------
+
+@contextmanager
+def _quiet_mdf_finalizer() -> Iterator[None]:
+    """asammdf's ``MDF4.__del__`` fails on an object whose opening failed and prints an
+    "Exception ignored" traceback when it is collected; an unreadable file is one error
+    line here, so only that report is dropped while the reader is opened."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:
+        if getattr(unraisable.object, "__qualname__", "") != "MDF4.__del__":
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
+def _read_mf4(frames: LogFrames) -> None:
+    """An MF4 file through python-can's ``MF4Reader`` (asammdf). asammdf refuses a cut or
+    unfinished file whole (its blocks are written when the recording stops): an error."""
+    import can
+
+    path = frames.path
+    failure: Exception | None = None
+    with _quiet_mdf_finalizer():
+        try:
+            reader = can.MF4Reader(path)
+        except NotImplementedError as error:  # python-can without asammdf
+            raise LogReadError(f"{path}: reading .mf4 needs the asammdf package "
+                               "(pip install asammdf)") from error
+        except Exception as error:  # noqa: BLE001 - asammdf's own errors on a bad file
+            failure = error.with_traceback(None)
+        if failure is not None:
+            gc.collect()  # the half-opened MDF4 (in a reference cycle) goes now, quietly
+    if failure is not None:
+        raise LogReadError(
+            f"{path}: not a readable .mf4 log (cut, or not closed by its writer: an MF4 is "
+            f"complete only once the recording stopped): {type(failure).__name__}: "
+            f"{failure}") from failure
     _drain(reader, frames)

@@ -5,13 +5,15 @@
   SocketCAN all other sockets) and a `can.Notifier` feeding `can.Logger`. The format
   follows the file suffix as in python-can: ``.log`` candump (the default, readable by
   can-utils' ``canplayer``), ``.asc``, ``.blf``, ``.csv``, ``.trc`` and ``.gz``
-  compressed variants (only the suffixes `hil.logio` reads back: `hil.logio.check_log_suffix`).
+  compressed variants, and ``.mf4`` (ASAM MDF 4 through asammdf, the contract's DBC
+  attached to the file): only the suffixes `hil.logio` reads back
+  (`hil.logio.check_log_suffix`). An MF4 is written whole when the recording stops.
   Every frame is marked with its direction from the ECU's point of view, as a logger on
   the ECU's own interface would mark it: the frames the ECU transmits per the DBC
   (`transmitted_ids`: HIL_SYNC_ACK, STEER_TORQUE_CMD, CTRL_DIAG) are Tx
   (``is_rx = False``), every other frame Rx. The recorder's own bus object hears every
-  frame as received, so the direction is set here; candump, ASC, BLF and TRC carry it,
-  CSV and SQLite do not. The project's readers find the ECU's frames by ID, never by
+  frame as received, so the direction is set here; candump, ASC, BLF, TRC and MF4 carry
+  it, CSV and SQLite do not. The project's readers find the ECU's frames by ID, never by
   direction, so logs recorded before (every frame Rx) read the same.
   In lockstep (``virtual_time=True``) every frame is stamped with the wall-clock start
   of the recording plus the virtual time of the tick it belongs to
@@ -32,7 +34,7 @@ import can
 import numpy as np
 
 from can_defs.codec import decode
-from can_defs.dbc import load_database
+from can_defs.dbc import DBC_PATH, load_database
 from can_defs.errors import CanDefsError
 from can_defs.frames import CtrlDiag, FrameId, SteerTorqueCmd
 from can_defs.log_reader import is_contract_data_frame
@@ -90,9 +92,11 @@ class BusRecorder:
         self.wall_end: float | None = None
         self._stamper = TickStamper() if virtual_time else None
         try:
-            check_log_suffix(self.path)
-            self._writer = can.Logger(self.path)
-        except (HilError, ValueError, OSError) as e:
+            suffix = check_log_suffix(self.path)
+            # an MF4 carries its DBC, so tools decode its signals without looking for it
+            options = {"database": DBC_PATH} if suffix == ".mf4" else {}
+            self._writer = can.Logger(self.path, **options)
+        except (HilError, ValueError, OSError, NotImplementedError) as e:  # MF4 without asammdf
             bus.shutdown()
             raise RecorderError(f"cannot record to {self.path}: {e}") from e
         self._notifier = can.Notifier(bus, [self._receive], timeout=0.05)

@@ -228,7 +228,7 @@ def test_unusable_logs_are_errors_naming_the_file_and_what_is_missing(sim70, tmp
         path = tmp_path / "export.csv"
         path.write_text("t,speed\n0,1\n")
     elif case == "suffix":
-        path = tmp_path / "drive.mf4"
+        path = tmp_path / "drive.mdf"
         path.write_text("x")
     with pytest.raises(LogDataError) as info:
         load_logs([path])

@@ -25,7 +25,7 @@ LOCKSTEP = LOGS / "lockstep_lmpc.log"
 DBC = Path(__file__).parent.parent / "can_defs" / "vehicle.dbc"
 
 #: Formats that record a direction (python-can's writers and readers), and those that do not.
-WITH_DIRECTION = [".log", ".log.gz", ".asc", ".blf", ".trc"]
+WITH_DIRECTION = [".log", ".log.gz", ".asc", ".blf", ".trc", ".mf4"]
 WITHOUT_DIRECTION = [".csv", ".db"]
 
 _SENDER = FrameSender()

@@ -86,8 +86,8 @@ def test_a_truncated_gzip_keeps_the_whole_lines_before_the_cut(tmp_path: Path) -
 
 
 def test_errors_name_the_file(tmp_path: Path) -> None:
-    with pytest.raises(LogFormatError, match=r"run\.mf4: unknown log format '\.mf4'"):
-        read_log_frames(tmp_path / "run.mf4")
+    with pytest.raises(LogFormatError, match=r"run\.mdf: unknown log format '\.mdf'"):
+        read_log_frames(tmp_path / "run.mdf")
     with pytest.raises(LogReadError, match=r"absent\.log: no such log file"):
         read_log_frames(tmp_path / "absent.log")
     (tmp_path / "noise.log").write_text("hello\n")

@@ -24,7 +24,7 @@ HELP = "decode a recorded CAN log to a CSV table (one row per frame) and an over
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``eso-hil decode``."""
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
-                        ".db, .trc; optionally .gz)")
+                        ".db, .trc; optionally .gz; .mf4)")
     parser.add_argument("--csv", type=Path, default=None, metavar="OUT.csv",
                         help="write the decoded frames, one row per frame")
     parser.add_argument("--plot", type=Path, default=None, metavar="OUT.png",

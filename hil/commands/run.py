@@ -9,8 +9,8 @@ virtual interface through a socketcand hub of the run's own on loopback (hil/ses
 JSON, alone on stdout (``wrote`` lines and notes go to stderr); ``--out`` writes
 the time series (``plant.csv``, ``ecu.csv``) and ``summary.json``; ``--log`` records every
 frame (format by suffix: ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ``.db``, ``.trc``,
-optionally ``.gz``: the formats `hil.logio` reads back; any other suffix is refused before
-the run). A lockstep log is stamped with virtual time (`hil.recorder`).
+optionally ``.gz``, and ``.mf4``: the formats `hil.logio` reads back; any other suffix is
+refused before the run). A lockstep log is stamped with virtual time (`hil.recorder`).
 
 Every input and output is checked before anything runs or is written: the controller
 name (any case), the scenario and
@@ -30,6 +30,9 @@ import sys
 from pathlib import Path
 
 from hil.commands import add_ecu_input_options, controller_name
+
+#: ``--plot`` given without a file: a window only.
+SHOW_ONLY = Path("")
 
 HELP = "run one scenario with one controller over CAN (plant, planner, time master, ECU)"
 
@@ -52,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="every node on its own wall clock")
     parser.add_argument("--log", type=Path, default=None,
                         help="record every frame to this file (.log candump, .asc, .blf, .csv, "
-                             ".db, .trc; optionally .gz): the formats eso-hil reads back")
+                             ".db, .trc; optionally .gz; .mf4): the formats eso-hil reads back")
     parser.add_argument("--out", type=Path, default=None,
                         help="folder for plant.csv, ecu.csv and summary.json (created if missing; its "
                              "parent must exist)")
@@ -62,6 +65,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--faults", action="store_true",
                         help="inject the scenario's [faults] table (bus, vehicle, sensor faults of "
                              "hil/faults.py; without it only its mu_step acts)")
+    parser.add_argument("--plot", nargs="?", type=Path, const=SHOW_ONLY, default=None,
+                        metavar="FILE.png",
+                        help="a live view of the run (path and vehicle, e_Y, steering, mode and "
+                             "task time) in a window when a display exists; with FILE, its last "
+                             "frame is written there too (png, pdf, svg, ...). Without a display "
+                             "only FILE is written (--plot alone: a note, the run goes on)")
     add_ecu_input_options(parser)
     parser.add_argument("--ecu", choices=("python", "c"), default="python", type=str.lower,
                         help="the ECU: python (firmware_sim, default) or c (the C executable "
@@ -95,7 +104,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_ECU_CONFIGURATION
     scenario = load_scenario(args.scenario)
-    check_run_paths(scenario, args.log, args.out, args.replace, model=args.model, excite=args.excite)
+    plot_file = None if args.plot in (None, SHOW_ONLY) else args.plot
+    check_run_paths(scenario, args.log, args.out, args.replace, model=args.model, excite=args.excite,
+                    plot=plot_file)
     options = RunOptions(
         controller=args.controller,
         bus=resolve_bus_config(args.interface, args.channel),
@@ -111,12 +122,33 @@ def main(args: argparse.Namespace) -> int:
         check_c_ecu(options)  # an executable not built, NMPC, --excite: before --out is made
     if args.out is not None:
         args.out.mkdir(exist_ok=True)
-    result = run_hil(scenario, options)
+    view = None
+    if args.plot is None:
+        result = run_hil(scenario, options)
+    else:
+        from hil.live_view import display_available, run_with_live_view
+
+        interactive = display_available()
+        if not interactive and plot_file is None:
+            print("note: --plot: no display here (no DISPLAY, or MPLBACKEND is not interactive): "
+                  "the run goes on without the live view; --plot FILE.png writes its last frame",
+                  file=sys.stderr)
+            result = run_hil(scenario, options)
+        else:
+            result, view = run_with_live_view(scenario, options, interactive)
     summary = result.summary()
     if args.out is not None:
         for path in result.write(args.out):
             print(f"wrote {path}", file=sys.stderr)  # stdout: the JSON summary alone
+    if view is not None and plot_file is not None:
+        print(f"wrote {view.save(plot_file)}", file=sys.stderr)
     print(json.dumps(summary, indent=2))
+    if view is not None:
+        if view.interactive:
+            print("note: --plot: close the live view's window to end", file=sys.stderr)
+            sys.stdout.flush()
+        view.hold()
+        view.close()
     if summary["active_cycles"] == 0:
         raise HilError(f"the ECU never went ACTIVE in {summary['control_cycles']} control "
                        "cycles (see CTRL_MODE in the log / ecu.csv)")
@@ -152,7 +184,8 @@ OUT_FILES = ("plant.csv", "ecu.csv", "summary.json", "ecu_output.txt")
 
 
 def check_run_paths(scenario: object, log: Path | None, out: Path | None, replace: bool, *,
-                    model: Path | None = None, excite: str | None = None) -> None:
+                    model: Path | None = None, excite: str | None = None,
+                    plot: Path | None = None) -> None:
     """Refuse unusable outputs before the run (issue 17, defects 5 and 6).
 
     Raises:
@@ -185,3 +218,9 @@ def check_run_paths(scenario: object, log: Path | None, out: Path | None, replac
         if log is not None and any(Path(log).resolve() == (out / name).resolve()
                                    for name in OUT_FILES):
             raise OutputPathError(f"--log {log}: is one of the files --out writes")
+    if plot is not None:
+        from hil.live_view import check_image_path
+
+        check_not_input(plot, "--plot", inputs)
+        check_image_path(plot)
+        check_output_file(plot, "--plot", replace=replace, inputs=inputs)
