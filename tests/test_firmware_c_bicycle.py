@@ -120,11 +120,12 @@ def test_ecu_data_writes_the_fitted_bicycle_and_refuses_a_bad_one(native, tmp_pa
 
 
 @pytest.mark.parametrize("controller, model, message", [
-    ("eso-dkmpc", "bicycle", "error: the C ECU's data file: --model {model}: {npz} not found (a koopman model "
-                             "file for eso-dkmpc)"),
-    ("lmpc", "models/artifacts/dk_d5.json", "error: the C ECU's data file: --model {model}: not a fitted bicycle "
-                                            "file (kind None); lmpc takes the bicycle JSON of python -m "
-                                            "models.koopman_train --logs"),
+    ("eso-dkmpc", "bicycle", "error: --model {model}: a fitted bicycle file, not a Koopman artefact; eso-dkmpc "
+                             "takes a Koopman artefact (PATH.npz + PATH.json, given as PATH: e.g. DIR/koopman of "
+                             "python -m models.koopman_train)"),
+    ("lmpc", "models/artifacts/dk_d5.json", "error: --model {model}: a Koopman artefact, not a fitted bicycle "
+                                            "file; lmpc takes a fitted bicycle file (JSON: e.g. DIR/bicycle.json "
+                                            "of python -m models.koopman_train --logs)"),
 ])
 def test_hil_run_refuses_the_other_kind_of_model_file(native, controller: str, model: str, message: str,
                                                       tmp_path: Path, capsys) -> None:

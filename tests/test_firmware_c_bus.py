@@ -434,8 +434,9 @@ def test_hil_run_converts_the_model_for_the_c_ecu_and_refuses_another_shape(nati
                  "--model", "models/artifacts/dk_paper_nominal.npz"]) != 0
     error = capsys.readouterr().err.strip().splitlines()[-1]
     # lmpc takes a fitted bicycle (tests/test_firmware_c_bicycle.py): a Koopman artefact is the wrong kind
-    assert error.startswith("error: the C ECU's data file: --model models/artifacts/dk_paper_nominal.npz: "
-                            "models/artifacts/dk_paper_nominal.npz is not readable JSON")
+    assert error == ("error: --model models/artifacts/dk_paper_nominal.npz: a Koopman artefact, not a fitted "
+                     "bicycle file; lmpc takes a fitted bicycle file (JSON: e.g. DIR/bicycle.json of python -m "
+                     "models.koopman_train --logs)")
     assert main(["run", "--scenario", "dlc_smoke", "--controller", "eso-dkmpc", "--ecu", "c",
                  "--model", "models/artifacts/dk_paper_nominal.npz"]) != 0
     error = capsys.readouterr().err.strip().splitlines()[-1]

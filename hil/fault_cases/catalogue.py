@@ -44,7 +44,7 @@ class Expect:
         return f"{what} <= {self.bound_ms} ms"
 
 
-# Contract bounds (can-contract.md, fault reaction), counted from the first frame the
+# Contract bounds (docs/can-contract.md, fault reaction), counted from the first frame the
 # fault hit (t0, a plant instant): the last good sample is then t0 - 10 ms, its age passes
 # 20 ms after t0 + 10 ms and the next control task is at most 25 ms later.
 DEGRADED = Expect(35, "sample > 20 ms old at a task", mode=CtrlMode.DEGRADED)
