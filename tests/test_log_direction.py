@@ -147,3 +147,15 @@ def test_a_log_with_directions_replays_as_match(tmp_path: Path) -> None:
     report = run_replay(read_log(marked), metadata.controller, dict(metadata.paths))
     print(report.text())
     assert report.match and report.comparison.paired == report.comparison.expected > 100
+
+
+def test_an_mf4_keeps_frames_whose_channel_name_ends_in_a_large_number(tmp_path: Path) -> None:
+    """MF4 stores the bus channel in one byte, taken by python-can from the trailing digits
+    of the channel name: a name ending in 8454 once made the writer drop the frame."""
+    log = tmp_path / "run.mf4"
+    channel = f"direction-{uuid.uuid4().hex}-8454"
+    recorder = BusRecorder(can.Bus(interface="virtual", channel=channel), log)
+    with recorder, can.Bus(interface="virtual", channel=channel) as others:
+        others.send(TRAFFIC[0][1])
+        assert recorder.wait_for(1)
+    assert [m.arbitration_id for m in can.LogReader(log)] == [FrameId.VEH_DYN]
