@@ -128,6 +128,9 @@ class EsoDkmpcTuning(QpMpcTuning):
     step (``models.eso.InnovationSaturation`` on the vy and yaw-rate entries, m/s and
     rad/s; 0: no bound). ``yaw_rate_bias_pole`` is the pole of the yaw-rate sensor bias
     estimate from the heading (``models.yaw_rate_bias``; 1: no estimate).
+    ``slip_target_limit`` (rad; 0: off) bounds the steady side slip by which the estimate
+    moves the heading target, ``slip_target_gate`` (rad) is the bend of the horizon's
+    reference at which that target has faded to zero (``controller.steady_slip``).
     """
 
     eso_pole: float
@@ -135,6 +138,8 @@ class EsoDkmpcTuning(QpMpcTuning):
     disturbance_decay: float
     eso_innovation_limit: float
     yaw_rate_bias_pole: float
+    slip_target_limit: float
+    slip_target_gate: float
 
 
 #: The same fields for every QP MPC with the eq. 13 observer: ESO-DKMPC and the ablations
@@ -239,6 +244,8 @@ _RULES: dict[str, _Rule] = {
     "disturbance_decay": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
     "eso_innovation_limit": (lambda v: 0.0 <= v <= 10.0, "must be in [0, 10] (0: no bound)"),
     "yaw_rate_bias_pole": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1] (1: no estimate)"),
+    "slip_target_limit": (lambda v: 0.0 <= v <= 0.2, "must be in [0, 0.2] rad (0: off)"),
+    "slip_target_gate": (lambda v: 0.0 < v <= 1.0, "must be in (0, 1] rad"),
     "cross_track_gain": _POSITIVE,
     "softening_speed": _POSITIVE,
     "yaw_rate_gain": _NON_NEGATIVE,

@@ -22,3 +22,17 @@ observer-variants: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_variants --out results
 	$(PROVENANCE_STAMP) results/observer_variants.md --command "make observer-variants" \
 		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.observer_variants
+
+# The second observer stage (studies/observer_tuning.py --stage slip-target): the bound and
+# the fade of the heading target's steady side slip (controller/steady_slip.py) for the same
+# three controllers on the same 16 runs, every other field at the tuning file's value (so
+# after tune-observer). About 5 min with 2 workers on 2 cores.
+.PHONY: tune-slip-target
+TUNE_SLIP_TARGET_ARGS ?=
+## tune the heading target's side slip on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning_slip_target.* (~5 min)
+tune-slip-target: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_tuning --stage slip-target --out results --workers 2 $(TUNE_SLIP_TARGET_ARGS)
+	$(PROVENANCE_STAMP) $(addprefix results/observer_tuning_slip_target.,md json) \
+		--command "$(call provenance_command,tune-slip-target,TUNE_SLIP_TARGET_ARGS)" \
+		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) $(PROVENANCE_DMDC) \
+		$(PROVENANCE_TUNING_SET) --modules studies.observer_tuning models.disturbance

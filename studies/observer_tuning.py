@@ -19,8 +19,14 @@ into ``controller/tuning.toml`` (its observer fields only, each table's other fi
 untouched) unless ``--no-write``; ``results/observer_tuning.md`` and ``.json`` list every
 evaluation.
 
-Usage: ``python -m studies.observer_tuning [--controllers ...] [--workers N] [--out DIR]
-[--no-write] [--no-progress]``.
+A second stage, ``--stage slip-target`` (``make tune-slip-target``, after this one), runs
+the same procedure over :data:`SLIP_TARGET_GRID`: the bound and the fade of the heading
+target's steady side slip (``controller.steady_slip``), every other field (the observer
+fields just chosen included) at the tuning file's value. It writes
+``observer_tuning_slip_target.md`` and ``.json``.
+
+Usage: ``python -m studies.observer_tuning [--stage observer|slip-target] [--controllers ...]
+[--workers N] [--out DIR] [--no-write] [--no-progress]``.
 """
 from __future__ import annotations
 
@@ -55,6 +61,27 @@ OBSERVER_GRID = SweepGrid((
     ("eso_innovation_limit", (0.0, 0.003, 0.01)),
     ("yaw_rate_bias_pole", (1.0, 0.99)),
 ))
+#: The second stage: the heading target's steady side slip, bounded (0: off) and faded
+#: with the reference's bend.
+SLIP_TARGET_GRID = SweepGrid((
+    ("slip_target_limit", (0.0, 0.01, 0.02)),
+    ("slip_target_gate", (0.003, 0.01)),
+))
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of the observer tuning: its grid, report name and make target."""
+
+    grid: SweepGrid
+    report: str
+    target: str
+
+
+STAGES = {
+    "observer": Stage(OBSERVER_GRID, "observer_tuning", "tune-observer"),
+    "slip-target": Stage(SLIP_TARGET_GRID, "observer_tuning_slip_target", "tune-slip-target"),
+}
 #: One constant disturbance per tuning manoeuvre (``[disturbances]`` keys of
 #: ``models.disturbance``), acting from the start.
 TUNING_DISTURBANCES: dict[str, dict[str, Any]] = {
@@ -68,7 +95,7 @@ TUNING_DISTURBANCES: dict[str, dict[str, Any]] = {
     "tuning_slowdown_mu04": {"crosswind_force_n": -500.0, "crosswind_cp_m": 0.5},
 }
 #: The comment the written observer fields carry in the tuning file.
-TUNING_COMMENT = "chosen by make tune-observer on the tuning set with disturbances, results/observer_tuning.md"
+TUNING_COMMENT = "chosen by make {target} on the tuning set with disturbances, results/{report}.md"
 
 
 def disturbed_tuning_set() -> list[Scenario]:
@@ -115,7 +142,8 @@ def tune(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any,
 
 
 def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[str, Setting],
-                    scenarios: Sequence[Scenario], *, command: str, seconds: float) -> str:
+                    scenarios: Sequence[Scenario], *, command: str, seconds: float,
+                    grid: SweepGrid = OBSERVER_GRID) -> str:
     """The report: per controller the previous and the chosen observer setting with their
     objectives (nominal half, disturbed half, all), and the five best settings."""
     nominal = [s.name for s in scenarios if not s.name.endswith("+disturbed")]
@@ -135,7 +163,7 @@ def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[s
              "controller's table stays as `controller/tuning.toml` has it (weights from `make tune`).", "",
              "Disturbances: " + "; ".join(f"{n}: " + ", ".join(f"{k} {v}" for k, v in d.items())
                                           for n, d in TUNING_DISTURBANCES.items()) + ".", "",
-             f"Grid: {', '.join(f'{f} {list(v)}' for f, v in OBSERVER_GRID.levels)}.", ""]
+             f"Grid: {', '.join(f'{f} {list(v)}' for f, v in grid.levels)}.", ""]
     for name, evaluations in results.items():
         chosen = best(evaluations)
         before = next((e for e in evaluations if dict(e.setting) == dict(previous[name])), None)
@@ -155,13 +183,16 @@ def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[s
     return "\n".join(lines)
 
 
-def _previous(tuning: Any, name: str) -> Setting:
+def _previous(tuning: Any, name: str, grid: SweepGrid) -> Setting:
     table = getattr(tuning, tuning_table_attribute(tuning, name))
-    return tuple((field, float(getattr(table, field))) for field, _ in OBSERVER_GRID.levels)
+    return tuple((field, float(getattr(table, field))) for field, _ in grid.levels)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m studies.observer_tuning", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--stage", choices=sorted(STAGES), default="observer",
+                        help="observer: the poles, decay, bound and bias (default); slip-target: the heading "
+                             "target's side slip, after it")
     parser.add_argument("--controllers", nargs="+", default=list(OBSERVED_CONTROLLERS),
                         choices=OBSERVED_CONTROLLERS, help="controllers to tune (default: all with an observer)")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (Ray)")
@@ -173,23 +204,26 @@ def main(argv: list[str] | None = None) -> int:
     if not args.out.is_dir():
         print(f"error: --out {args.out}: no such folder", file=sys.stderr)
         return 1
+    stage = STAGES[args.stage]
     started = time.perf_counter()
     try:
         tuning = load_tuning(args.tuning)
         scenarios = disturbed_tuning_set()
-        previous = {name: _previous(tuning, name) for name in args.controllers}
-        results = tune(args.controllers, scenarios, tuning, workers=args.workers, progress=not args.no_progress)
+        previous = {name: _previous(tuning, name, stage.grid) for name in args.controllers}
+        results = tune(args.controllers, scenarios, tuning, workers=args.workers, progress=not args.no_progress,
+                       grid=stage.grid)
     except HilError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     seconds = time.perf_counter() - started
-    command = "make tune-observer"
-    (args.out / "observer_tuning.md").write_text(
-        report_markdown(results, previous, scenarios, command=command, seconds=seconds), encoding="utf-8")
-    document = {"command": command, "seconds": seconds, "grid": {f: list(v) for f, v in OBSERVER_GRID.levels},
+    command = f"make {stage.target}"
+    (args.out / f"{stage.report}.md").write_text(
+        report_markdown(results, previous, scenarios, command=command, seconds=seconds, grid=stage.grid),
+        encoding="utf-8")
+    document = {"command": command, "seconds": seconds, "grid": {f: list(v) for f, v in stage.grid.levels},
                 "disturbances": TUNING_DISTURBANCES,
                 "evaluations": [e.as_dict() for evaluations in results.values() for e in evaluations]}
-    (args.out / "observer_tuning.json").write_text(json.dumps(document, indent=1, sort_keys=True) + "\n",
+    (args.out / f"{stage.report}.json").write_text(json.dumps(document, indent=1, sort_keys=True) + "\n",
                                                   encoding="utf-8")
     chosen = {name: best(evaluations).setting for name, evaluations in results.items()}
     for name, setting in chosen.items():
@@ -197,9 +231,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         text = args.tuning.read_text(encoding="utf-8")
         temporary = args.tuning.with_name(args.tuning.name + ".tmp")
-        temporary.write_text(update_tuning_text(text, chosen, comment=TUNING_COMMENT), encoding="utf-8")
+        temporary.write_text(update_tuning_text(text, chosen, comment=TUNING_COMMENT.format(target=stage.target,
+                                                                                         report=stage.report)), encoding="utf-8")
         os.replace(temporary, args.tuning)
-        print(f"wrote the observer fields into {args.tuning}")
+        print(f"wrote the {args.stage} fields into {args.tuning}")
     return 0
 
 

@@ -125,6 +125,9 @@ def eso_dkmpc(**observer: float) -> "object":
 @pytest.mark.parametrize("disturbance, observer", [
     ("steer_offset_rad = 0.02", {}),  # the shipped tuning
     ("yaw_rate_bias_rad_s = 0.01", {"yaw_rate_bias_pole": 0.99}),  # with the bias estimate on
+    # the car must crab: with the heading target moved by the steady side slip
+    ("crosswind_force_n = 800.0\ncrosswind_cp_m = 0.6", {"slip_target_limit": 0.02, "slip_target_gate": 0.003}),
+    ("bank_angle_rad = 0.06", {"slip_target_limit": 0.02, "slip_target_gate": 0.003}),
 ])
 def test_eso_dkmpc_settles_without_a_standing_offset(tmp_path: Path, disturbance: str,
                                                      observer: dict[str, float]) -> None:
