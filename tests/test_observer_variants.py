@@ -22,6 +22,7 @@ def test_every_variant_builds_and_steps_within_the_limits() -> None:
     assert built["no innovation bound"].tuning.eso_innovation_limit == 0.0
     assert built["bias estimate on"].tuning.yaw_rate_bias_pole == 0.99
     assert built["ESO-DKMPC (shipped)"].tuning.eso_innovation_limit > 0.0
+    assert built["slip target 0.02 / 0.003"].tuning.slip_target_limit == 0.02
 
 
 def test_lateral_rows_only_drops_the_estimate_on_every_other_row() -> None:
