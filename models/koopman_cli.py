@@ -16,10 +16,12 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
 from models.koopman import DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, KoopmanError
 from models.koopman_data import dataset_hash, load_trajectories
 from models.koopman_metrics import OPEN_LOOP_STEPS
-from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings
+from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings, knots_in_range, missing_columns
 from models.local_lateral_fit import friction_of_runs
 
 #: The description ``--help`` shows (the first line of ``models/koopman_train.py``'s docstring).
@@ -60,7 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
                    default=defaults.dictionary,
                    help=f"fixed lifting functions, comma-separated, '' for none (known: {','.join(DICTIONARY)})")
     p.add_argument("--speed-knots", type=lambda t: tuple(float(v) for v in t.split(",")),
-                   default=defaults.speed_knots, help="speed knots in m/s of the scheduled form, comma-separated")
+                   default=None, help="speed knots in m/s of the scheduled form, comma-separated (default: "
+                                      f"those of {list(defaults.speed_knots)} inside the data's speed range, "
+                                      "or the range's ends where fewer than two are)")
     p.add_argument("--small-signal-accel", type=float, default=defaults.small_signal_accel, metavar="A0",
                    help="weigh windows by 1 / (1 + (peak |vx r| / A0)^2), A0 in m/s^2; 0 (default) for off")
     p.add_argument("--unscheduled-states", type=lambda t: tuple(n for n in t.split(",") if n),
@@ -80,6 +84,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gain-anchor", type=float, default=defaults.gain_anchor, metavar="W",
                    help="weight of the gain anchor: the small-signal steer response held to local fits of the "
                         "training runs' gentle samples (scheduled form); 0 (default) for off")
+    p.add_argument("--val-runs", type=_names, default=(), metavar="RUN,...",
+                   help="runs (file names without .csv) for validation (default: --val-fraction of the runs)")
+    p.add_argument("--test-runs", type=_names, default=(), metavar="RUN,...",
+                   help="runs held out for the test (default: --test-fraction of the runs)")
+    p.add_argument("--val-fraction", type=float, default=defaults.val_fraction,
+                   help="share of the runs for validation when --val-runs is not given (0-0.5)")
+    p.add_argument("--test-fraction", type=float, default=defaults.test_fraction,
+                   help="share of the runs for the test when --test-runs is not given (0-0.5)")
     p.add_argument("--patience", type=int, default=defaults.patience, help="epochs without improvement before stopping")
     p.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
     p.add_argument("--lr-decay", type=float, default=defaults.lr_decay, help="learning-rate factor per epoch")
@@ -113,7 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
             max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,
             form=args.form, dictionary=args.dictionary, patience=args.patience,
-            speed_knots=args.speed_knots, small_signal_accel=args.small_signal_accel,
+            speed_knots=args.speed_knots or defaults.speed_knots, val_runs=args.val_runs,
+            test_runs=args.test_runs, val_fraction=args.val_fraction, test_fraction=args.test_fraction, small_signal_accel=args.small_signal_accel,
             unscheduled_states=args.unscheduled_states,
             mirror_symmetric=args.mirror_symmetric, even_features=args.even_features,
             servo_lag=args.servo_lag, lateral_per_step=args.lateral_per_step,
@@ -138,7 +151,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
                 print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
                 settings = dataclasses.replace(settings, dictionary=())
+            problems = missing_columns(settings, args.states, args.inputs)
+            if problems:
+                raise KoopmanError("; ".join(problems))
             runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
+            if args.speed_knots is None and settings.form == "scheduled":
+                speeds = np.concatenate([run.states[:, 0] for run in runs])
+                knots = knots_in_range(settings.speed_knots, float(speeds.min()), float(speeds.max()))
+                if knots != settings.speed_knots:
+                    print(f"note: speed knots {list(knots)} (the data's {args.states[0]} spans "
+                          f"{speeds.min():.2f}-{speeds.max():.2f}; --speed-knots to choose others)")
+                settings = dataclasses.replace(settings, speed_knots=knots)
             meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
             result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta,
                            friction=friction_of_runs(data_dir))
@@ -149,6 +172,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     meta = result.model.metadata
+    for role in ("train", "validation", "test"):
+        print(f"{role} runs ({len(meta['split'][role])}): {', '.join(meta['split'][role])}")
     print(f"wrote {npz_path} and {json_path} in {result.seconds:.0f} s "
           f"(best epoch {result.best_epoch}, spectral radius of A {meta['spectral_radius_A']:.4f})")
     for name, figures in meta["test_errors"].items():

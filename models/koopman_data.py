@@ -23,19 +23,51 @@ from models.koopman_settings import DEFAULT_INPUTS, TrainingSettings
 def split_runs(
     runs: Sequence[Trajectory], settings: TrainingSettings
 ) -> tuple[list[Trajectory], list[Trajectory], list[Trajectory]]:
-    """Train / validation / test split by run (never by sample), shuffled by the seed."""
+    """Train / validation / test split by run (never by sample).
+
+    Runs named in ``settings.test_runs`` / ``val_runs`` go there; a set not named is drawn
+    from the other runs by its fraction of all runs (at least one), shuffled by the seed;
+    the rest train. Without names the split is the one of every artefact so far.
+
+    Raises:
+        KoopmanError: fewer than 3 runs, a named run that is not in the data, or no run
+            left to train on.
+    """
     if len(runs) < 3:
         raise KoopmanError(
             f"need at least 3 runs to split train / validation / test by run, got {len(runs)}"
         )
     ordered = sorted(runs, key=lambda r: r.name)
-    order = np.random.default_rng(settings.seed).permutation(len(ordered))
-    n_test = max(1, round(settings.test_fraction * len(runs)))
-    n_val = max(1, round(settings.val_fraction * len(runs)))
-    test = [ordered[i] for i in order[:n_test]]
-    val = [ordered[i] for i in order[n_test : n_test + n_val]]
-    train = [ordered[i] for i in order[n_test + n_val :]]
-    return train, val, test
+    names = [r.name for r in ordered]
+    unknown = sorted(n for n in set(settings.val_runs) | set(settings.test_runs) if n not in names)
+    if unknown:
+        raise KoopmanError(f"--val-runs / --test-runs name run(s) not in the data: {unknown} (runs: {names})")
+    if not settings.val_runs and not settings.test_runs:
+        order = np.random.default_rng(settings.seed).permutation(len(ordered))
+        n_test = max(1, round(settings.test_fraction * len(runs)))
+        n_val = max(1, round(settings.val_fraction * len(runs)))
+        test = [ordered[i] for i in order[:n_test]]
+        val = [ordered[i] for i in order[n_test : n_test + n_val]]
+        train = [ordered[i] for i in order[n_test + n_val :]]
+        return train, val, test
+    named = set(settings.val_runs) | set(settings.test_runs)
+    free = [r for r in ordered if r.name not in named]
+    order = list(np.random.default_rng(settings.seed).permutation(len(free)))
+    picked: dict[str, list[Trajectory]] = {}
+    for role, chosen, fraction in (("test", settings.test_runs, settings.test_fraction),
+                                   ("validation", settings.val_runs, settings.val_fraction)):
+        if chosen:
+            picked[role] = [r for r in ordered if r.name in chosen]
+        else:
+            count = max(1, round(fraction * len(runs)))
+            picked[role] = [free[i] for i in order[:count]]
+            order = order[count:]
+    used = {r.name for group in picked.values() for r in group}
+    train = [r for r in ordered if r.name not in used]
+    if not train:
+        raise KoopmanError(f"no run left to train on: validation {[r.name for r in picked['validation']]}, "
+                           f"test {[r.name for r in picked['test']]}")
+    return train, picked["validation"], picked["test"]
 
 
 def fit_scaling(runs: Sequence[Trajectory]) -> tuple[MinMaxScaling, MinMaxScaling]:

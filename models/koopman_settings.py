@@ -8,6 +8,7 @@ is ``models/koopman_train.py``.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 from models.koopman import DEFAULT_SPEED_KNOTS, DICTIONARY, MODEL_FORMS, KoopmanError
@@ -74,6 +75,8 @@ class TrainingSettings:
     gain_anchor: float = 0.0
     val_fraction: float = 0.15
     test_fraction: float = 0.15
+    val_runs: tuple[str, ...] = ()
+    test_runs: tuple[str, ...] = ()
     val_windows: int = 4096
     seed: int = 0
     threads: int = 1
@@ -108,6 +111,7 @@ class TrainingSettings:
             "gain_anchor": self.gain_anchor >= 0 and (self.gain_anchor == 0 or (self.form == "scheduled"
                                                                                 and not self.dictionary)),
             "val_fraction": 0 < self.val_fraction < 0.5,
+            "val_runs": not set(self.val_runs) & set(self.test_runs),
             "test_fraction": 0 < self.test_fraction < 0.5,
             "device": self.device in ("auto", "cpu", "cuda"),
         }
@@ -123,7 +127,8 @@ def settings_json(settings: TrainingSettings) -> dict:
     out["speed_knots"] = list(settings.speed_knots)
     out["unscheduled_states"] = list(settings.unscheduled_states)
     # Options added after artefacts were committed: recorded only when on (see the class).
-    for name in ("small_signal_accel", "unscheduled_states"):
+    out["val_runs"], out["test_runs"] = list(settings.val_runs), list(settings.test_runs)
+    for name in ("small_signal_accel", "unscheduled_states", "val_runs", "test_runs"):
         if not out[name]:
             del out[name]
     if not settings.mirror_symmetric:
@@ -134,3 +139,38 @@ def settings_json(settings: TrainingSettings) -> dict:
     if not settings.gain_anchor:
         del out["gain_anchor"]
     return out
+
+
+#: Columns an option needs: option -> (states, inputs) that must be among the data's.
+OPTION_COLUMNS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "servo_lag": (("steer_measured",), ("steer",)),
+    "gain_anchor": (("vx", "vy", "yaw_rate", "steer_measured"), ("torque", "steer")),
+}
+
+
+def missing_columns(settings: TrainingSettings, states: Sequence[str], inputs: Sequence[str]) -> list[str]:
+    """One line per option that is on although the data lack a column it needs: the servo
+    lag and the gain anchor (the mirror symmetry names a column without a parity itself,
+    ``models.koopman_train_symmetric.parities``). Empty when every option on can run."""
+    problems = []
+    for option, (needed_states, needed_inputs) in OPTION_COLUMNS.items():
+        if not getattr(settings, option):
+            continue
+        lacking = [n for n in needed_states if n not in states] + [n for n in needed_inputs if n not in inputs]
+        if lacking:
+            problems.append(f"--{option.replace('_', '-')} needs the column(s) {lacking}, which the data "
+                            f"(states {list(states)}, inputs {list(inputs)}) do not have")
+    return problems
+
+
+def knots_in_range(knots: Sequence[float], low: float, high: float) -> tuple[float, ...]:
+    """The speed knots for data whose first state (the speed) spans [low, high] m/s: the
+    given knots inside the range; where fewer than two are, the range's two ends (a
+    scheduled model holds its end knots' models beyond them, so knots the data never reach
+    would be fitted on nothing)."""
+    inside = tuple(float(k) for k in knots if low <= k <= high)
+    if len(inside) >= 2:
+        return inside
+    if not high > low:
+        raise KoopmanError(f"the data's speed spans [{low:g}, {high:g}] m/s: a scheduled model needs a range")
+    return (float(low), float(high))

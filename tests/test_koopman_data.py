@@ -70,3 +70,46 @@ def test_dataset_too_short_for_p_is_a_clear_error(tmp_path: Path, capsys) -> Non
     err = capsys.readouterr().err
     print(err.strip())
     assert code == 2 and "too short for sequences of length p=500" in err
+
+
+def test_the_split_is_explicit_and_reported_and_the_knots_follow_the_data(tmp_path: Path, capsys) -> None:
+    """--val-runs / --test-runs put those runs there and the rest trains; the report lists
+    every run's set; the default speed knots are those inside the data's speed range."""
+    write_external_dataset(tmp_path / "ext")
+    names = sorted(p.stem for p in (tmp_path / "ext").glob("*.csv"))
+    out = tmp_path / "model"
+    code = main(["--data", str(tmp_path / "ext"), "--out", str(out), "--states", "speed,lat_vel,yaw_rate",
+                 "--inputs", "throttle,brake,steer", "--val-runs", names[0], "--test-runs", f"{names[1]},{names[2]}",
+                 *TINY_ARGS])
+    assert code == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["split"] == {"train": [names[3]], "validation": [names[0]], "test": [names[1], names[2]]}
+    printed = capsys.readouterr().out
+    assert f"test runs (2): {names[1]}, {names[2]}" in printed
+    speeds = np.concatenate([np.loadtxt(p, delimiter=",", skiprows=1)[:, 1] for p in (tmp_path / "ext").glob("*.csv")])
+    knots = meta["settings"]["speed_knots"]
+    assert speeds.min() <= knots[0] and knots[-1] <= speeds.max() and len(knots) >= 2
+
+
+def test_a_run_named_twice_or_unknown_and_an_option_without_its_columns_are_one_line(tmp_path: Path, capsys) -> None:
+    write_external_dataset(tmp_path / "ext")
+    names = sorted(p.stem for p in (tmp_path / "ext").glob("*.csv"))
+    base = ["--data", str(tmp_path / "ext"), "--out", str(tmp_path / "m"), "--states", "speed,lat_vel,yaw_rate",
+            "--inputs", "throttle,brake,steer", *TINY_ARGS]
+    assert main([*base, "--test-runs", "nosuchrun"]) == 2
+    assert "not in the data: ['nosuchrun']" in capsys.readouterr().err
+    assert main([*base, "--val-runs", names[0], "--test-runs", names[0]]) == 2
+    assert "val_runs" in capsys.readouterr().err
+    assert main([*base, "--form", "scheduled", "--mirror-symmetric", "--servo-lag"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--servo-lag needs the column(s) ['steer_measured']" in err
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_knots_in_range_keeps_the_inner_knots_or_takes_the_ends() -> None:
+    from models.koopman_settings import knots_in_range
+
+    assert knots_in_range((3.0, 6.0, 10.0, 15.0, 20.0, 27.0, 35.0), 2.0, 36.6) == (3.0, 6.0, 10.0, 15.0, 20.0,
+                                                                                  27.0, 35.0)
+    assert knots_in_range((3.0, 6.0, 10.0, 15.0, 20.0, 27.0, 35.0), 0.5, 17.6) == (3.0, 6.0, 10.0, 15.0)
+    assert knots_in_range((3.0, 6.0, 10.0), 3.5, 5.0) == (3.5, 5.0)
