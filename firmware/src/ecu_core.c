@@ -15,6 +15,8 @@
 #include "ecu_core.h"
 #include "ecu_path_search.h"
 #include "ecu_predict.h"
+#include "ecu_pyfloat.h"
+#include "ecu_steady_slip.h"
 #include "os.h"
 
 #define NP ECU_NP_MAX
@@ -38,6 +40,26 @@ const char *ecu_build_shapes(void) {
 }
 
 /* ------------------------------------------------------------------ start-up */
+/* The heading target's fields, with controller.tuning's rules and message: 0, or -1 with
+ * the field named in err. */
+static int check_slip_fields(const char *data_path, const ecu_tuning_t *t, char *err, size_t err_len) {
+  const double limit = t->slip_target_limit, gate = t->slip_target_gate;
+  const struct {
+    const char *name, *rule;
+    double value;
+    int ok;
+  } fields[2] = {{"slip_target_limit", "must be in [0, 0.2] rad (0: off)", limit, limit >= 0.0 && limit <= 0.2},
+                 {"slip_target_gate", "must be in (0, 1] rad", gate, gate > 0.0 && gate <= 1.0}};
+  for (int i = 0; i < 2; i++) {
+    if (fields[i].ok) continue;
+    char got[32];
+    py_repr(got, sizeof got, fields[i].value);
+    snprintf(err, err_len, "%s: [eso-dkmpc] %s %s, got %s", data_path, fields[i].name, fields[i].rule, got);
+    return -1;
+  }
+  return 0;
+}
+
 int ecu_core_load(ecu_core_t *core, const char *data_path, const char *name, char *err, size_t err_len) {
   static const char *const NAMES[ECU_N_CONTROLLERS] = {"eso-dkmpc", "dkmpc", "lmpc"};
   int id = -1;
@@ -59,6 +81,7 @@ int ecu_core_load(ecu_core_t *core, const char *data_path, const char *name, cha
              data_path);
     return -1;
   }
+  if (id == ECU_ESO_DKMPC && check_slip_fields(data_path, t, err, err_len) != 0) return -1;
   if (ecu_qp_init(&core->qp, id, t, err, err_len) != 0) return -1;
   core->controller = id;
   core->tun = t;
@@ -186,6 +209,16 @@ static void shifted_plan(const ecu_core_t *core, const ecu_sample_t *sample, dou
   }
 }
 
+/* ObservedMpc.target_reference: the reference's heading (Np,) moved by the steady side slip
+ * of the step's estimate, bounded and faded out as the horizon's reference bends. */
+static void target_reference(const ecu_core_t *core, double reference[][3]) {
+  const ecu_tuning_t *t = core->tun;
+  double bend = ecu_reference_bend(&reference[0][2], core->n_pred, 3);
+  double target = ecu_slip_target(core->observer.steady_slip, bend, t->slip_target_limit, t->slip_target_gate);
+  if (target != 0.0)
+    for (int i = 0; i < core->n_pred; i++) reference[i][2] -= target;
+}
+
 /* QpSteeringMpc._plan; fills the predictions of out. */
 static void make_plan(ecu_core_t *core, const ecu_sample_t *sample, double torque, plan_t *plan, ecu_output_t *out) {
   double (*free)[3] = core->free, (*gain)[3][NC] = core->gain, (*nominal_states)[3] = core->nominal_states;
@@ -201,6 +234,7 @@ static void make_plan(ecu_core_t *core, const ecu_sample_t *sample, double torqu
     ecu_observer_t *observer = core->controller == ECU_ESO_DKMPC ? &core->observer : NULL;
     ecu_predict_koopman(&core->cfg, core->tun, observer, core->decay_power, sample, torque, &core->model,
                         core->lifted, free, gain);
+    if (observer != NULL) target_reference(core, reference); /* after the prediction: it sets the estimate */
   }
   shifted_plan(core, sample, nominal);
   for (int i = 0; i <= n_pred; i++)

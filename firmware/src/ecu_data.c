@@ -12,7 +12,7 @@
 #include "ecu_config.h"
 
 #define NAME_BYTES 48
-#define N_TUNING_VALUES 27
+#define N_TUNING_VALUES 29
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
 /* The bit of record koopman.N in ecu_read_data's `seen` (after the encoder's records). */
@@ -78,6 +78,8 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->schedule_high = v[24];
   t->eso_innovation_limit = v[25];
   t->yaw_rate_bias_pole = v[26];
+  t->slip_target_limit = v[27];
+  t->slip_target_gate = v[28];
   for (int i = 2; i < N_TUNING_VALUES; i++) {
     if ((i >= 17 && i < 20) || i >= 25) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {

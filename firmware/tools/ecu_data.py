@@ -58,7 +58,8 @@ TUNING_FIELDS = ("prediction_horizon", "control_horizon", "q_position", "q_yaw",
                  "p_steer_rate", "state_min", "state_max", "slack_l1", "slack_l2",
                  "osqp_max_iter", "osqp_eps_abs", "osqp_eps_rel", "eso_pole", "eso_second_pole",
                  "disturbance_decay", "low_speed_q_position", "low_speed_q_yaw", "low_speed_r_steer",
-                 "weight_schedule_speeds", "eso_innovation_limit", "yaw_rate_bias_pole")
+                 "weight_schedule_speeds", "eso_innovation_limit", "yaw_rate_bias_pole",
+                 "slip_target_limit", "slip_target_gate")
 
 
 class EcuDataError(Exception):
@@ -66,7 +67,7 @@ class EcuDataError(Exception):
 
 
 def tuning_vector(tuning: ControllerTuning, name: str) -> np.ndarray:
-    """The 27 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
+    """The 29 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
     table = tuning.for_controller(name)
     values: list[float] = []
     for field in TUNING_FIELDS:
