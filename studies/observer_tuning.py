@@ -7,13 +7,15 @@ poles and decay of the controllers with an observer, on the tuning set
 disturbances, so on that set the sweep could only learn that it costs something: it chose
 the slowest pole on its grid. This module reruns the sweep's observer stage (stage 2: the
 observer fields over a grid, every other field at the tuning file's value) for each
-controller with an observer, on the tuning set plus the same eight manoeuvres each with one
-constant disturbance (:data:`TUNING_DISTURBANCES`). Sizes and paths differ from those the
+controller with an observer, on the tuning set and two steady drives
+(``studies.steady_drives``: long straights around one gentle curve, where a constant
+disturbance leaves a standing offset), plus the same ten each with one constant disturbance
+(:data:`TUNING_DISTURBANCES`). Sizes and paths differ from those the
 disturbance study reports (``make disturbances``): the study's two sizes per disturbance and
 its lane change and straight-curve-straight path never enter here.
 
 Objective, runs and failure penalty: the sweep's
-(``studies.tuning_sweep_executor.objective``, the mean e_Y RMSE over the 16 runs, a run
+(``studies.tuning_sweep_executor.objective``, the mean e_Y RMSE over the 20 runs, a run
 that does not complete counts 10 m). The setting with the smallest objective is written
 into ``controller/tuning.toml`` (its observer fields only, each table's other fields
 untouched) unless ``--no-write``; ``results/observer_tuning.md`` and ``.json`` list every
@@ -46,6 +48,7 @@ from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
 from hil.errors import HilError
 from hil.scenario import Scenario
 from studies.closed_loop import run_closed_loop
+from studies.steady_drives import steady_scenarios
 from studies.tuning_set import tuning_scenarios
 from studies.tuning_file import update_tuning_text
 from studies.tuning_sweep_executor import Evaluation, SweepExecutor, best
@@ -93,17 +96,20 @@ TUNING_DISTURBANCES: dict[str, dict[str, Any]] = {
     "tuning_80kmh_mu03": {"bank_angle_rad": -0.04},
     "tuning_speedup_mu06": {"steer_offset_rad": -0.015},
     "tuning_slowdown_mu04": {"crosswind_force_n": -500.0, "crosswind_cp_m": 0.5},
+    # the steady drives (studies.steady_drives): where a disturbance leaves a standing offset
+    "steady_70kmh_mu085": {"crosswind_force_n": 600.0, "crosswind_cp_m": 0.4},
+    "steady_40kmh_mu05": {"bank_angle_rad": -0.05},
 }
 #: The comment the written observer fields carry in the tuning file.
 TUNING_COMMENT = "chosen by make {target} on the tuning set with disturbances, results/{report}.md"
 
 
 def disturbed_tuning_set() -> list[Scenario]:
-    """The tuning set, then each manoeuvre again with its disturbance (named
-    ``<manoeuvre>+disturbed``): 16 scenarios."""
+    """The tuning set and the two steady drives (``studies.steady_drives``), then each again
+    with its disturbance (named ``<manoeuvre>+disturbed``): 20 scenarios."""
     from models.disturbance import Disturbances
 
-    nominal = tuning_scenarios()
+    nominal = tuning_scenarios() + steady_scenarios()
     missing = sorted(set(TUNING_DISTURBANCES) - {s.name for s in nominal})
     if missing:
         raise HilError(f"TUNING_DISTURBANCES names manoeuvres not in the tuning set: {missing}")
@@ -156,10 +162,11 @@ def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[s
         return f"{mean:.4f}" + (f" ({failed} failed)" if failed else "")
 
     lines = ["# Observer tuning on the tuning set with disturbances", "",
-             f"Written by `{command}` ({seconds / 60:.1f} min). Each setting runs the 8 manoeuvres "
-             "of the tuning set and the same 8 with one constant disturbance each "
+             f"Written by `{command}` ({seconds / 60:.1f} min). Each setting runs the {len(nominal)} "
+             "manoeuvres of the tuning set and the steady drives (`studies.steady_drives`) and the same "
+             f"{len(disturbed)} with one constant disturbance each "
              "(`studies.observer_tuning.TUNING_DISTURBANCES`); the objective is the mean e_Y RMSE (m) "
-             "over the 16 runs, 10 m for a run that does not complete. Every other field of the "
+             f"over the {len(scenarios)} runs, 10 m for a run that does not complete. Every other field of the "
              "controller's table stays as `controller/tuning.toml` has it (weights from `make tune`).", "",
              "Disturbances: " + "; ".join(f"{n}: " + ", ".join(f"{k} {v}" for k, v in d.items())
                                           for n, d in TUNING_DISTURBANCES.items()) + ".", "",
@@ -167,7 +174,7 @@ def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[s
     for name, evaluations in results.items():
         chosen = best(evaluations)
         before = next((e for e in evaluations if dict(e.setting) == dict(previous[name])), None)
-        lines += [f"## {name}", "", "| setting | objective (m) | nominal 8 | disturbed 8 |", "|---|---|---|---|"]
+        lines += [f"## {name}", "", f"| setting | objective (m) | nominal {len(nominal)} | disturbed {len(disturbed)} |", "|---|---|---|---|"]
         if before is not None:
             lines.append(f"| before: {setting_text(before.setting)} | {before.objective_m:.4f} | "
                          f"{half(before, nominal)} | {half(before, disturbed)} |")
@@ -176,7 +183,7 @@ def report_markdown(results: Mapping[str, list[Evaluation]], previous: Mapping[s
         lines.append(f"| **chosen: {setting_text(chosen.setting)}** | {chosen.objective_m:.4f} | "
                      f"{half(chosen, nominal)} | {half(chosen, disturbed)} |")
         ranked = sorted(evaluations, key=lambda e: e.objective_m)[:5]
-        lines += ["", "Best five:", "", "| setting | objective (m) | nominal 8 | disturbed 8 |", "|---|---|---|---|"]
+        lines += ["", "Best five:", "", f"| setting | objective (m) | nominal {len(nominal)} | disturbed {len(disturbed)} |", "|---|---|---|---|"]
         lines += [f"| {setting_text(e.setting)} | {e.objective_m:.4f} | {half(e, nominal)} | {half(e, disturbed)} |"
                   for e in ranked]
         lines.append("")
