@@ -10,18 +10,21 @@ command runs; ``models.koopman_train`` re-exports ``main`` and ``build_parser``.
 from __future__ import annotations
 
 import argparse
+import functools
 import dataclasses
 import json
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from models.koopman import DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, KoopmanError
+from models.koopman_artifact import save_artifact
 from models.koopman_data import dataset_hash, load_trajectories
 from models.koopman_metrics import OPEN_LOOP_STEPS
 from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings, knots_in_range, missing_columns
+from models.lifted_least_squares import LEAST_SQUARES_FORMS, fit_least_squares
 from models.local_lateral_fit import friction_of_runs
 
 #: The description ``--help`` shows (the first line of ``models/koopman_train.py``'s docstring).
@@ -56,8 +59,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", type=lambda s: tuple(int(v) for v in s.split(",")), default=defaults.hidden,
                    help="hidden layer widths, comma-separated")
     p.add_argument("--lifted-weight", type=float, default=defaults.lifted_weight)
-    p.add_argument("--form", choices=MODEL_FORMS, default=defaults.form,
-                   help="model form: the paper's linear eq. 5 or bilinear (input matrix depends on z)")
+    p.add_argument("--form", choices=(*MODEL_FORMS, *LEAST_SQUARES_FORMS), default=defaults.form,
+                   help="model form: the paper's linear eq. 5, bilinear (input matrix depends on z), "
+                        "scheduled over speed (default); or a least-squares lift fitted in closed form "
+                        "(edmdc-linear, edmdc-bilinear: the physics dictionary, no learned features, "
+                        "models/lifted_least_squares.py)")
     p.add_argument("--dictionary", type=lambda t: tuple(n for n in t.split(",") if n),
                    default=defaults.dictionary,
                    help=f"fixed lifting functions, comma-separated, '' for none (known: {','.join(DICTIONARY)})")
@@ -116,15 +122,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from models.koopman_train import train, write_artifact  # torch: only when the command runs
-
     args = build_parser().parse_args(argv)
     defaults = TrainingSettings()
+    least_squares = args.form in LEAST_SQUARES_FORMS
+    if least_squares:
+        fit = functools.partial(_fit_least_squares, form=args.form,
+                                dictionary=None if args.dictionary == defaults.dictionary else args.dictionary)
+    else:
+        from models.koopman_train import train as fit  # torch: only when a network is trained
     try:
         settings = TrainingSettings(
             n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
             max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,
-            form=args.form, dictionary=args.dictionary, patience=args.patience,
+            form=defaults.form if least_squares else args.form, dictionary=args.dictionary, patience=args.patience,
             speed_knots=args.speed_knots or defaults.speed_knots, val_runs=args.val_runs,
             test_runs=args.test_runs, val_fraction=args.val_fraction, test_fraction=args.test_fraction, small_signal_accel=args.small_signal_accel,
             unscheduled_states=args.unscheduled_states,
@@ -138,8 +148,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             from models.log_identification import load_log_runs, write_log_products
             out_folder = _log_out_folder(args.out)
             runs, meta, warnings, ts = load_log_runs(args.logs, args.ts, args.log_inputs, args.mapping, args.dbc)
-            result = train(runs, ts, settings, progress=not args.no_progress, metadata=meta)
-            npz_path, json_path = write_artifact(result, out_folder / "koopman")
+            result = fit(runs, ts, settings, progress=not args.no_progress, metadata=meta)
+            npz_path, json_path = save_artifact(out_folder / "koopman", result.learned, result.model.metadata)
             for path in write_log_products(out_folder, result.model, runs, result.test_runs, ts,
                                            args.vehicle, meta, warnings):
                 print(f"wrote {path}")
@@ -147,7 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             data_dir = Path(args.data)
             if not data_dir.is_dir():
                 raise KoopmanError(f"data directory not found: {data_dir}")
-            if tuple(args.states)[:3] != DICTIONARY_STATES and args.dictionary == defaults.dictionary:
+            if (tuple(args.states)[:3] != DICTIONARY_STATES and args.dictionary == defaults.dictionary
+                    and not least_squares):
                 # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
                 print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
                 settings = dataclasses.replace(settings, dictionary=())
@@ -155,7 +166,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if problems:
                 raise KoopmanError("; ".join(problems))
             runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
-            if args.speed_knots is None and settings.form == "scheduled":
+            if args.speed_knots is None and settings.form == "scheduled" and not least_squares:
                 speeds = np.concatenate([run.states[:, 0] for run in runs])
                 knots = knots_in_range(settings.speed_knots, float(speeds.min()), float(speeds.max()))
                 if knots != settings.speed_knots:
@@ -163,9 +174,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                           f"{speeds.min():.2f}-{speeds.max():.2f}; --speed-knots to choose others)")
                 settings = dataclasses.replace(settings, speed_knots=knots)
             meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
-            result = train(runs, args.ts, settings, progress=not args.no_progress, metadata=meta,
-                           friction=friction_of_runs(data_dir))
-            npz_path, json_path = write_artifact(result, args.out)
+            result = fit(runs, args.ts, settings, progress=not args.no_progress, metadata=meta,
+                         friction=friction_of_runs(data_dir))
+            npz_path, json_path = save_artifact(args.out, result.learned, result.model.metadata)
     except Exception as e:  # noqa: BLE001 - CLI boundary: one line unless --debug
         if args.debug or not _is_input_error(e):
             raise
@@ -174,8 +185,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     meta = result.model.metadata
     for role in ("train", "validation", "test"):
         print(f"{role} runs ({len(meta['split'][role])}): {', '.join(meta['split'][role])}")
-    print(f"wrote {npz_path} and {json_path} in {result.seconds:.0f} s "
-          f"(best epoch {result.best_epoch}, spectral radius of A {meta['spectral_radius_A']:.4f})")
+    fitted = "fitted in closed form" if least_squares else f"best epoch {result.best_epoch}"
+    print(f"wrote {npz_path} and {json_path} in {result.seconds:.1f} s "
+          f"({fitted}, spectral radius of A {meta['spectral_radius_A']:.4f})")
     for name, figures in meta["test_errors"].items():
         print(f"  test {name:>10}: one-step max/avg/rmse {figures['one_step_max']:.4f} / "
               f"{figures['one_step_avg']:.4f} / {figures['one_step_rmse']:.4f}, "
@@ -190,6 +202,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         return 0 if compare_test_errors(meta["test_errors"], args.compare_with) else 3
     return 0
+
+
+def _fit_least_squares(runs: Sequence[Any], ts: float, settings: TrainingSettings, *, form: str,
+                       dictionary: tuple[str, ...] | None, progress: bool = True,
+                       metadata: dict[str, Any] | None = None, friction: Any = None) -> Any:
+    """``train``'s signature for the closed-form fit (progress and friction unused: it takes
+    seconds and fits no gain anchor)."""
+    return fit_least_squares(runs, ts, form, settings, dictionary=dictionary, metadata=metadata)
 
 
 #: Files ``--logs --out DIR`` writes into its folder.
