@@ -194,3 +194,24 @@ def test_dbc_that_disagrees_with_the_frame_classes_is_refused(tmp_path):
         print(f"{name}: DbcLoadError({error.value})")
     with pytest.raises(DbcLoadError, match="missing.dbc"):
         load_database(tmp_path / "missing.dbc")
+
+
+def test_interaction_layer_attributes_for_canoe(database):
+    """Every frame a standard CAN frame that an interaction layer sends, but the lockstep
+    handshakes; QP_STATUS starts at NOT_RUN, every other signal at raw 0."""
+    definitions = database.dbc.attribute_definitions
+
+    def attribute(message, name: str) -> str:
+        """The message's value of an ENUM attribute by name, its default where not set."""
+        definition = definitions[name]
+        if name in message.dbc.attributes:
+            return definition.choices[message.dbc.attributes[name].value]
+        return definition.default_value
+
+    for message in database.messages:
+        assert attribute(message, "VFrameFormat") == "StandardCAN", message.name
+        handshake = message.name in ("HIL_SYNC", "HIL_SYNC_ACK")
+        assert attribute(message, "GenMsgILSupport") == ("No" if handshake else "Yes"), message.name
+        for signal in message.signals:
+            expected = 15 if (message.name, signal.name) == ("CTRL_DIAG", "QP_STATUS") else 0
+            assert (signal.raw_initial or 0) == expected, (message.name, signal.name)
