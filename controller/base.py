@@ -91,3 +91,9 @@ class Controller(ABC):
     def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
         """One control step at Ts = 0.025 s. Never raises for finite samples; the
         returned command is always within the limits (fallback on solver failure)."""
+
+    def set_time_budget(self, seconds: float | None) -> None:
+        """Wall-clock budget of one step's solver (s), None for none. The ECU sets it in real
+        time only: a step that runs out falls back as on any solver failure. A lockstep run
+        never sets it, so its commands stay independent of the machine's speed. Only a
+        solver whose time varies widely needs it (NMPC); the default ignores it."""

@@ -8,6 +8,11 @@ torque is the P controller's value held over the horizon; the steer is held afte
 cost and soft state bounds as the QP controllers. The NLP is built once (SX, expanded);
 each step passes parameters and warm-starts from the shifted previous solution and
 multipliers. The solve time reported is IPOPT's wall time from the solver statistics.
+
+Real time: the ECU gives a wall-clock budget per step (``set_time_budget``, real-time mode
+only); IPOPT stops at it (``max_wall_time``, status MAX_ITERATIONS) and the step falls back
+to the shifted previous solution, the last one that converged, as on any solver failure.
+The warm start is kept from that solution, so the next step starts from it again.
 """
 from __future__ import annotations
 
@@ -108,11 +113,9 @@ class Nmpc(SteeringMpc):
 
         variables = ca.vertcat(ca.vec(states), steer, slack)
         parameters = ca.vertcat(initial, ca.vec(reference), torque, previous_steer, q_position, q_yaw, r_steer)
-        options = {"expand": True, "print_time": False, "record_time": True,
-                   "ipopt": {"print_level": 0, "sb": "yes", "max_iter": tuning.ipopt_max_iter,
-                             "tol": tuning.ipopt_tol, "warm_start_init_point": "yes"}}
-        self._solver = ca.nlpsol("nmpc", "ipopt", {"x": variables, "p": parameters, "f": cost,
-                                                   "g": ca.vertcat(*constraints)}, options)
+        self._problem = {"x": variables, "p": parameters, "f": cost, "g": ca.vertcat(*constraints)}
+        self._ipopt_limits = (tuning.ipopt_max_iter, tuning.ipopt_tol)
+        self._solver = self._solver_with_budget(None)
         n_soft = 2 * 3 * n_pred
         lower_g = np.zeros(n_equal + n_soft)
         upper_g = np.zeros(n_equal + n_soft)
@@ -131,6 +134,21 @@ class Nmpc(SteeringMpc):
         self._rollout = ca.Function("rollout", [state0, steer0, torque0], [ca.hcat(trajectory)])
         self._n_states = n_states
         self._warm: dict[str, np.ndarray] | None = None
+
+    def _solver_with_budget(self, seconds: float | None) -> Any:
+        """IPOPT on the built NLP, stopped after ``seconds`` of wall clock (None: no limit)."""
+        max_iter, tol = self._ipopt_limits
+        ipopt = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol, "warm_start_init_point": "yes"}
+        if seconds is not None:
+            ipopt["max_wall_time"] = float(seconds)
+        options = {"expand": True, "print_time": False, "record_time": True, "ipopt": ipopt}
+        return ca.nlpsol("nmpc", "ipopt", self._problem, options)
+
+    def set_time_budget(self, seconds: float | None) -> None:
+        """Stop IPOPT after ``seconds`` of wall clock per step (None: converge); real time only."""
+        if seconds is not None and not (math.isfinite(seconds) and seconds > 0.0):
+            raise ValueError(f"NMPC time budget must be a positive number of seconds, got {seconds!r}")
+        self._solver = self._solver_with_budget(seconds)
 
     def reset(self) -> None:
         """Forget plans, warm starts and progress."""
@@ -170,8 +188,8 @@ class Nmpc(SteeringMpc):
         if status in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE) and np.all(np.isfinite(solution)):
             self._warm = {"states": states, "lam_x": np.asarray(result["lam_x"]).ravel(),
                           "lam_g": np.asarray(result["lam_g"]).ravel()}
-        else:
-            self._warm = None
+        elif stats.get("return_status") != "Maximum_WallTime_Exceeded":
+            self._warm = None  # a budget run out keeps the last converged solution's warm start
         return Plan(status=status, steer=steer, iterations=int(stats.get("iter_count", 0)),
                     solve_time_s=float(stats.get("t_wall_total", 0.0)), cost=float(result["f"]),
                     predicted_pose=states[3:6, 1:].T.copy(), predicted_state=states[0:3, 1:].T.copy(),

@@ -73,6 +73,11 @@ class EcuConfig:
             skips ticks (the newest ones are run, older ones are skipped and counted as
             overruns) - bounds the work of one TICK.
         timing_capacity: cycles kept by the timing ring buffer.
+        solver_budget_ms: wall-clock budget of one control step's solver in real time
+            (``Controller.set_time_budget``; only NMPC's varies enough to need it): 15 ms
+            leaves the rest of the 25 ms period to the lift, the observer, the frames and a
+            busy machine. Never applied in lockstep, whose commands must not depend on the
+            machine.
     """
 
     control_period_ms: int = 25
@@ -87,10 +92,11 @@ class EcuConfig:
     standstill_speed_mps: float = 0.1
     max_catch_up_tasks: int = 40
     timing_capacity: int = 1 << 16
+    solver_budget_ms: int = 15
 
     def __post_init__(self) -> None:
         for name in ("control_period_ms", "tick_ms", "sample_stale_ms", "sample_lost_ms",
-                     "planner_timeout_ms", "max_catch_up_tasks", "timing_capacity"):
+                     "planner_timeout_ms", "max_catch_up_tasks", "timing_capacity", "solver_budget_ms"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ConfigError(f"EcuConfig.{name} must be a positive integer, got {value!r}")
@@ -105,6 +111,9 @@ class EcuConfig:
         if self.drive_torque_limit_nm > DBC_DRIVE_TORQUE_MAX_NM:
             raise ConfigError(f"EcuConfig.drive_torque_limit_nm {self.drive_torque_limit_nm} exceeds "
                               f"the DBC range {DBC_DRIVE_TORQUE_MAX_NM}")
+        if self.solver_budget_ms >= self.control_period_ms:
+            raise ConfigError(f"EcuConfig.solver_budget_ms {self.solver_budget_ms} must be below the control "
+                              f"period {self.control_period_ms} ms")
         if self.safe_stop_brake_torque_nm > self.drive_torque_limit_nm:
             raise ConfigError(f"EcuConfig.safe_stop_brake_torque_nm {self.safe_stop_brake_torque_nm} "
                               f"exceeds drive_torque_limit_nm {self.drive_torque_limit_nm}")

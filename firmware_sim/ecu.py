@@ -141,6 +141,9 @@ class Ecu(ControlTask, BusLoop):
         self._paths: dict[int, Any] = {}
         try:
             self._controller = (controller_factory or _default_controller_factory)(controller_name)
+            budget = getattr(self._controller, "set_time_budget", None)  # test doubles may lack it
+            if not lockstep and budget is not None:  # real time: a long solve falls back, no overrun
+                budget(self._config.solver_budget_ms / 1000.0)
         except Exception as error:  # any failure to build the model is a latched FAULT
             self.load_error = f"controller {controller_name!r} failed to load: {error}"
         loader = path_loader or _default_path_loader
