@@ -96,7 +96,8 @@ class BusRecorder:
             # an MF4 carries its DBC, so tools decode its signals without looking for it
             options = {"database": DBC_PATH} if suffix == ".mf4" else {}
             self._writer = can.Logger(self.path, **options)
-            self._mf4 = suffix == ".mf4"
+            # binary formats keep the channel as a small integer (MF4 one byte, BLF two)
+            self._integer_channel = suffix in (".mf4", ".blf")
         except (HilError, ValueError, OSError, NotImplementedError) as e:  # MF4 without asammdf
             bus.shutdown()
             raise RecorderError(f"cannot record to {self.path}: {e}") from e
@@ -110,10 +111,10 @@ class BusRecorder:
         # every bus object gets its own copy of a frame: marking it changes nobody else's
         message.is_rx = not (is_contract_data_frame(message)
                              and message.arbitration_id in self._tx_ids)
-        if self._mf4 and not 0 <= (can.util.channel2int(message.channel) or 0) <= 255:
-            # MF4 keeps the bus channel as one byte, taken from the name's trailing digits
-            # (python-can): a name such as 'hil-...8454' would fail the write and lose the
-            # frame, so such a channel is recorded as unknown
+        if self._integer_channel and not 0 <= (can.util.channel2int(message.channel) or 0) <= 255:
+            # MF4 and BLF keep the bus channel as a small integer, taken from the name's
+            # trailing digits (python-can): a name such as 'hil-...8454' would fail the write
+            # and lose the frame, so such a channel is recorded as unknown
             message.channel = None
         if self.wall_start is None:
             self.wall_start = message.timestamp

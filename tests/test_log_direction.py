@@ -149,11 +149,13 @@ def test_a_log_with_directions_replays_as_match(tmp_path: Path) -> None:
     assert report.match and report.comparison.paired == report.comparison.expected > 100
 
 
-def test_an_mf4_keeps_frames_whose_channel_name_ends_in_a_large_number(tmp_path: Path) -> None:
-    """MF4 stores the bus channel in one byte, taken by python-can from the trailing digits
-    of the channel name: a name ending in 8454 once made the writer drop the frame."""
-    log = tmp_path / "run.mf4"
-    channel = f"direction-{uuid.uuid4().hex}-8454"
+@pytest.mark.parametrize("suffix", [".mf4", ".blf"])
+def test_a_binary_log_keeps_frames_whose_channel_name_ends_in_a_large_number(tmp_path: Path, suffix: str) -> None:
+    """MF4 and BLF store the bus channel in one and two bytes, taken by python-can from the
+    trailing digits of the channel name: names ending in 8454 and 409955 once made the
+    writers drop the frame."""
+    log = tmp_path / f"run{suffix}"
+    channel = f"direction-{uuid.uuid4().hex}-409955"
     recorder = BusRecorder(can.Bus(interface="virtual", channel=channel), log)
     with recorder, can.Bus(interface="virtual", channel=channel) as others:
         others.send(TRAFFIC[0][1])
