@@ -91,7 +91,10 @@ class ObservedMpc(SteeringMpc):
     def note_steady_slip(self, slip_map: np.ndarray, estimate: np.ndarray, vx: float) -> None:
         """Keep the steady side slip (rad) that ``estimate`` (n,) implies at speed ``vx``:
         slip_map @ estimate / vx, with ``slip_map`` (n,) the model's steady vy per unit of
-        w (``controller.steady_slip.steady_slip_map``)."""
+        w (``controller.steady_slip.steady_slip_map``). With the target off
+        (``slip_target_limit`` 0) it stays 0 and costs nothing per step."""
+        if self._eso_tuning.slip_target_limit == 0.0:
+            return
         self._steady_slip = float(slip_map @ estimate) / max(vx, SLIP_MIN_SPEED)
 
     def target_reference(self, reference: np.ndarray) -> np.ndarray:
@@ -99,6 +102,8 @@ class ObservedMpc(SteeringMpc):
         side slip (``controller.steady_slip.slip_target``): the cost then holds the course,
         heading plus slip, on the path's heading."""
         tuning = self._eso_tuning
+        if tuning.slip_target_limit == 0.0:  # off: no bend to measure (slip_target would be 0)
+            return reference
         self.slip_target = slip_target(self._steady_slip, reference_bend(reference[:, 2]),
                                        tuning.slip_target_limit, tuning.slip_target_gate)
         if self.slip_target == 0.0:

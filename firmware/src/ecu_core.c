@@ -213,6 +213,7 @@ static void shifted_plan(const ecu_core_t *core, const ecu_sample_t *sample, dou
  * of the step's estimate, bounded and faded out as the horizon's reference bends. */
 static void target_reference(const ecu_core_t *core, double reference[][3]) {
   const ecu_tuning_t *t = core->tun;
+  if (t->slip_target_limit == 0.0) return; /* off: no bend to measure (the target would be 0) */
   double bend = ecu_reference_bend(&reference[0][2], core->n_pred, 3);
   double target = ecu_slip_target(core->observer.steady_slip, bend, t->slip_target_limit, t->slip_target_gate);
   if (target != 0.0)

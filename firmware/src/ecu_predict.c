@@ -51,11 +51,14 @@ void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ec
     ecu_observer_disturbance(observer, tuning, lifted, w);
     /* EsoDkmpc.disturbance_response's note_steady_slip; the map of the model's base B (the
      * steady state holds vx and the yaw rate, the torque and the steer free) */
-    if (!model->slip_valid) {
-      ecu_steady_slip_map(NZ, ECU_NU, &model->A[0][0], &model->B[0][0], ROW_VY, ROW_YAW_RATE, ROW_VX, model->slip_map);
-      model->slip_valid = 1;
+    if (tuning->slip_target_limit != 0.0) { /* off: the slip stays 0 and costs nothing */
+      if (!model->slip_valid) {
+        ecu_steady_slip_map(NZ, ECU_NU, &model->A[0][0], &model->B[0][0], ROW_VY, ROW_YAW_RATE, ROW_VX,
+                            model->slip_map);
+        model->slip_valid = 1;
+      }
+      observer->steady_slip = ecu_dot(model->slip_map, w, NZ) / fmax(lifted[ROW_VX], SLIP_MIN_SPEED);
     }
-    observer->steady_slip = ecu_dot(model->slip_map, w, NZ) / fmax(lifted[ROW_VX], SLIP_MIN_SPEED);
   }
   memcpy(f, lifted, sizeof f);
   for (int x = 0; x < 3; x++) free[0][x] = f[x];
