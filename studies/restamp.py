@@ -1,0 +1,318 @@
+"""Restamp results after a change that keeps behaviour, on the proof of a smoke subset.
+
+A refactor or a speed-up of the product code changes the sources that
+``results/PROVENANCE.json`` records for every study, so each study's files go stale although
+none of their figures can move. This command checks that claim and, when it holds, moves
+the stamps to the current commit instead of rerunning hours of studies:
+
+    python -m studies.restamp --base REV [--dry-run] [--workdir build/restamp]
+
+1. **Candidates.** Every stamped results file that ``python -m studies.provenance check``
+   finds stale because its inputs changed (not because the file itself changed), whose stamp
+   was current at ``REV`` (its inputs and sources as committed at ``REV`` give the recorded
+   digest), where every file that changed since then is product code (``.py`` of can_defs,
+   models, controller, firmware_sim, hil; ``.c`` / ``.h`` of firmware/src) and whose command
+   does not measure the machine or the build (``make timing``, ``make bench``, ``make
+   can-bench``, ``make firmware-footprint``: their figures are what a code change moves).
+   A changed data file (tuning, artefact, scenario, path, DBC) or study module always
+   needs the rerun.
+2. **The smoke subset** of the closed-loop studies, run at ``REV`` (a git worktree under
+   ``--workdir``, its C ECU built there) and on this checkout: a lockstep run over CAN
+   (``eso-hil run``) of every controller of the Python ECU and of the C ECU under the
+   shipped tuning, on ``dlc_smoke`` and on the same lane change under a steering offset, a
+   crosswind and a yaw-rate bias (:data:`DISTURBED_SMOKE`).
+3. **The check.** Each frame log must equal its twin frame for frame: identifier, payload and
+   time since the first frame, with CTRL_DIAG's wall-clock signals (SOLVE_TIME_US,
+   CYCLE_TIME_US, OVERRUNS and the CRC over them) left out. One difference anywhere and
+   nothing is restamped (exit 1, the first differing frame named).
+4. **Restamp.** Each candidate's stamp gets this checkout's sources and commit, its output
+   digest unchanged (the file is not rewritten), and a ``restamped`` record naming ``REV``
+   and this command. A ``results/KNOWN_STALE.md`` row whose files are all restamped goes.
+
+The smoke runs the shipped settings: a study that runs other settings (the tuning sweeps,
+the trade-off, the observer variants) is covered where those settings take the same code
+paths. Exit status: 0 restamped (or nothing to do), 1 the smoke differs, 2 bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import cantools
+
+from studies import provenance
+
+#: Product code: a change here is covered by the smoke runs (studies/ and data are not).
+PRODUCT_CODE = re.compile(r"(can_defs|models|controller|firmware_sim|hil)/.*\.py|firmware/src/[^/]+\.[ch]")
+#: Commands whose files measure the machine or the build: a code change is what they measure.
+MACHINE_COMMANDS = ("make timing", "make bench", "make can-bench", "make firmware-footprint")
+#: The controllers of each ECU (``eso-hil run --ecu``).
+SMOKE_CONTROLLERS = {
+    "python": ("eso-dkmpc", "dkmpc", "lmpc", "nmpc", "lmpc-eso", "dmdc-eso", "stanley"),
+    "c": ("eso-dkmpc", "dkmpc", "lmpc"),
+}
+#: dlc_smoke with a constant disturbance of each kind the observer is for (docs/plant.md).
+DISTURBED_SMOKE = """name = "dlc_smoke_disturbed"
+description = "dlc_smoke under a steering offset, a crosswind and a yaw-rate bias (restamp smoke)"
+duration_s = 4.0
+
+[path]
+id = 1
+file = "{path}"
+
+[road]
+mu = 0.85
+
+[start]
+x_m = 10.0
+y_m = 0.0135
+yaw_rad = 0.0026
+speed_kmh = 35.0
+
+[speed_profile]
+time_s = [0.0]
+target_speed_kmh = [35.0]
+
+[disturbances]
+steer_offset_rad = 0.01
+crosswind_force_n = 400.0
+yaw_rate_bias_rad_s = 0.005
+"""
+#: CTRL_DIAG's signals that the host's clock decides, not the control law.
+WALL_CLOCK_SIGNALS = {"CTRL_DIAG": ("CRC", "SOLVE_TIME_US", "CYCLE_TIME_US", "OVERRUNS")}
+RUN_TIMEOUT_S = 600
+
+
+class RestampError(Exception):
+    """The check cannot run (no such revision, a smoke run failed, a log missing)."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A stale results file that a behaviour-keeping change may restamp."""
+
+    path: str
+    command: str
+    changed: tuple[str, ...]
+
+
+# ---------------------------------------------------------------------------- candidates
+
+def candidates(base_root: Path, root: Path = provenance.ROOT) -> tuple[list[Candidate], dict[str, str]]:
+    """The stale results files of ``root`` that a check against the tree ``base_root`` (the
+    base revision's checkout) may restamp, and the others with the reason for each."""
+    manifest = provenance.load_manifest(root)
+    eligible: list[Candidate] = []
+    refused: dict[str, str] = {}
+    for entry in provenance.check(root):
+        stamp = manifest.get(entry.path)
+        if stamp is None or any(not r.startswith("inputs changed") for r in entry.reasons):
+            refused[entry.path] = "; ".join(entry.reasons)
+            continue
+        if stamp["command"].startswith(MACHINE_COMMANDS):
+            refused[entry.path] = f"`{stamp['command']}` measures the machine or the build: rerun it"
+            continue
+        try:
+            at_base = provenance.input_digests(stamp["inputs"], stamp["modules"], base_root)
+        except provenance.ProvenanceError as exc:
+            refused[entry.path] = f"cannot be traced at the base revision: {exc}"
+            continue
+        if provenance.combined_digest(at_base) != stamp["sha256"]:
+            refused[entry.path] = "its stamp was not current at the base revision"
+            continue
+        now = provenance.input_digests(stamp["inputs"], stamp["modules"], root)
+        changed = tuple(sorted(name for name in set(now) | set(at_base)
+                               if now.get(name) != at_base.get(name)))
+        other = [name for name in changed if not PRODUCT_CODE.fullmatch(name)]
+        if other:
+            refused[entry.path] = f"changed beyond product code: {', '.join(other[:4])}: rerun it"
+            continue
+        eligible.append(Candidate(entry.path, stamp["command"], changed))
+    return eligible, refused
+
+
+# ---------------------------------------------------------------------------- smoke
+
+def base_checkout(revision: str, workdir: Path, root: Path = provenance.ROOT) -> Path:
+    """A detached git worktree of ``revision`` at ``workdir``/base, sharing this checkout's
+    virtual environment, with its C ECU built. Raises RestampError for an unknown revision."""
+    resolved = subprocess.run(["git", "rev-parse", "--verify", f"{revision}^{{commit}}"], cwd=root,
+                              capture_output=True, text=True)
+    if resolved.returncode != 0:
+        raise RestampError(f"--base {revision}: not a commit of this repository")
+    base = workdir / "base"
+    if base.exists():
+        subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=root, capture_output=True)
+        shutil.rmtree(base, ignore_errors=True)
+    subprocess.run(["git", "worktree", "prune"], cwd=root, check=True, capture_output=True)
+    subprocess.run(["git", "worktree", "add", "--detach", str(base), resolved.stdout.strip()],
+                   cwd=root, check=True, capture_output=True)
+    (base / ".venv").symlink_to((root / ".venv").resolve())
+    build_firmware(base)
+    return base
+
+
+def build_firmware(tree: Path) -> None:
+    """``make firmware`` in ``tree`` (the C ECU of the smoke runs)."""
+    done = subprocess.run(["make", "--no-print-directory", "firmware"], cwd=tree, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RestampError(f"make firmware in {tree} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
+
+
+def smoke_runs(tree: Path, out: Path, progress: bool = True) -> list[Path]:
+    """Run the smoke subset with the code of ``tree``, the frame logs written under ``out``;
+    returns the logs in a fixed order. Raises RestampError when a run fails."""
+    out.mkdir(parents=True, exist_ok=True)
+    disturbed = out / "dlc_smoke_disturbed.toml"
+    disturbed.write_text(DISTURBED_SMOKE.format(path=(tree / "hil" / "paths" / "dlc.csv").resolve()))
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    python = str((tree / ".venv" / "bin" / "python").absolute())
+    logs = []
+    for ecu, controllers in SMOKE_CONTROLLERS.items():
+        for controller in controllers:
+            for scenario in ("dlc_smoke", str(disturbed)):
+                log = out / f"{ecu}_{controller}_{Path(scenario).stem}.log"
+                command = [python, "-m", "hil", "run", "--scenario", scenario, "--controller", controller,
+                           "--ecu", ecu, "--log", str(log), "--replace"]
+                if progress:
+                    print(f"  {tree.name}: {ecu} {controller} {Path(scenario).stem}", flush=True)
+                done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True,
+                                      timeout=RUN_TIMEOUT_S)
+                if done.returncode != 0 or not log.is_file():
+                    raise RestampError(f"smoke run failed in {tree} ({' '.join(command[1:])}):\n"
+                                       f"{done.stderr[-2000:]}")
+                logs.append(log)
+    return logs
+
+
+# ---------------------------------------------------------------------------- comparison
+
+_CANDUMP = re.compile(r"\((\d+)\.(\d{6})\)\s+\S+\s+([0-9A-Fa-f]+)#([0-9A-Fa-f]*)\s*(\S*)")
+
+
+def behaviour_frames(log: Path, database: cantools.database.can.Database) -> list[tuple]:
+    """The frames of a candump log as (microseconds since the first frame, identifier,
+    payload or decoded signals, direction), the wall-clock signals of
+    :data:`WALL_CLOCK_SIGNALS` left out. Raises RestampError for a line it cannot read."""
+    frames: list[tuple] = []
+    first = None
+    for number, line in enumerate(log.read_text().splitlines(), 1):
+        match = _CANDUMP.fullmatch(line.strip())
+        if match is None:
+            raise RestampError(f"{log}: line {number} is not a candump frame: {line[:80]!r}")
+        stamp_us = int(match.group(1)) * 1_000_000 + int(match.group(2))
+        first = stamp_us if first is None else first
+        arbitration_id, data = int(match.group(3), 16), bytes.fromhex(match.group(4))
+        payload: object = data
+        try:
+            message = database.get_message_by_frame_id(arbitration_id)
+        except KeyError:
+            message = None
+        if message is not None and message.name in WALL_CLOCK_SIGNALS:
+            signals = message.decode(data, decode_choices=False, scaling=False)
+            payload = tuple(sorted((k, v) for k, v in signals.items()
+                                   if k not in WALL_CLOCK_SIGNALS[message.name]))
+        frames.append((stamp_us - first, arbitration_id, payload, match.group(5)))
+    return frames
+
+
+def first_difference(base_log: Path, log: Path, database: cantools.database.can.Database) -> str | None:
+    """None when the two logs show the same behaviour, else where they first differ."""
+    base, now = behaviour_frames(base_log, database), behaviour_frames(log, database)
+    for index, (a, b) in enumerate(zip(base, now)):
+        if a != b:
+            return f"{log.name}: frame {index + 1}: base {a} / now {b}"
+    if len(base) != len(now):
+        return f"{log.name}: {len(base)} frames at the base, {len(now)} now"
+    return None
+
+
+# ---------------------------------------------------------------------------- restamp
+
+def restamp(chosen: list[Candidate], base: str, command: str, root: Path = provenance.ROOT) -> None:
+    """Give each of ``chosen`` this checkout's sources and commit (its file unchanged), with
+    a ``restamped`` record of the check."""
+    stamps = provenance.load_manifest(root)
+    commit = provenance.git_commit(root)
+    for candidate in chosen:
+        entry = dict(stamps[candidate.path])
+        if provenance.file_digest(root / candidate.path) != entry["output_sha256"]:
+            raise RestampError(f"{candidate.path} changed since its stamp: rerun `{entry['command']}`")
+        digests = provenance.input_digests(entry["inputs"], entry["modules"], root)
+        entry.update(commit=commit, sha256=provenance.combined_digest(digests),
+                     sources={key: value[:16] for key, value in digests.items()},
+                     restamped={"base": base, "check": command, "changed": list(candidate.changed)})
+        stamps[candidate.path] = entry
+    provenance.save_manifest(stamps, root)
+
+
+def drop_known_stale_rows(restamped: set[str], root: Path = provenance.ROOT) -> list[str]:
+    """Remove the rows of results/KNOWN_STALE.md whose files were all restamped; returns
+    the commands of the rows removed."""
+    path = root / "results" / provenance.KNOWN_STALE_NAME
+    if not path.is_file():
+        return []
+    kept, dropped = [], []
+    for line in path.read_text().splitlines(keepends=True):
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        files = re.findall(r"`([^`]+)`", cells[0]) if line.lstrip().startswith("|") else []
+        command = re.fullmatch(r"`([^`]+)`", cells[1]) if len(cells) > 1 else None
+        if files and command and all(name in restamped for name in files):
+            dropped.append(command.group(1))
+            continue
+        kept.append(line)
+    path.write_text("".join(kept))
+    return dropped
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI; returns the exit status (0 restamped or nothing to do, 1 the smoke differs,
+    2 bad input)."""
+    parser = argparse.ArgumentParser(prog="python -m studies.restamp", description=__doc__.splitlines()[0])
+    parser.add_argument("--base", required=True,
+                        help="the commit at which the stale files were current (their stamps' commit)")
+    parser.add_argument("--workdir", type=Path, default=provenance.ROOT / "build" / "restamp",
+                        help="where the base's worktree and the smoke logs go (default build/restamp)")
+    parser.add_argument("--dry-run", action="store_true", help="list what would be restamped; run nothing")
+    args = parser.parse_args(argv)
+    command = f"python -m studies.restamp --base {args.base}"
+    root = provenance.ROOT
+    try:
+        base_tree = base_checkout(args.base, args.workdir.resolve(), root)
+        chosen, refused = candidates(base_tree, root)
+        for name, reason in sorted(refused.items()):
+            print(f"not restamped: {name}: {reason}")
+        for candidate in chosen:
+            print(f"candidate: {candidate.path} (`{candidate.command}`; changed: {', '.join(candidate.changed)})")
+        if not chosen or args.dry_run:
+            print("nothing to restamp" if not chosen else f"{len(chosen)} candidate(s); --dry-run: nothing run")
+            return 0
+        build_firmware(root)
+        database = cantools.database.load_file(str(root / "can_defs" / "vehicle.dbc"))
+        base_logs = smoke_runs(base_tree, args.workdir.resolve() / "logs-base")
+        logs = smoke_runs(root, args.workdir.resolve() / "logs-now")
+        differences = [d for d in (first_difference(a, b, database) for a, b in zip(base_logs, logs)) if d]
+        if differences:
+            print("the smoke subset differs from the base; nothing restamped:", file=sys.stderr)
+            for line in differences:
+                print(f"  {line}", file=sys.stderr)
+            return 1
+        restamp(chosen, args.base, command, root)
+        dropped = drop_known_stale_rows({c.path for c in chosen}, root)
+        print(f"{len(logs)} smoke runs equal to the base's; restamped {len(chosen)} results file(s)")
+        for removed in dropped:
+            print(f"results/{provenance.KNOWN_STALE_NAME}: row of `{removed}` removed")
+        return 0
+    except (RestampError, provenance.ProvenanceError, subprocess.SubprocessError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
