@@ -3,7 +3,7 @@
 # when the tree was) and a hash of its data inputs and the source files of its modules.
 # `make provenance` lists the stale ones with the command that regenerates each; long
 # studies not rerun since their inputs changed are listed in results/KNOWN_STALE.md.
-.PHONY: provenance
+.PHONY: provenance restamp
 
 PROVENANCE_STAMP = $(PY) -m studies.provenance stamp
 # `make NAME` plus the values of the variables $(2) that change what NAME computes.
@@ -26,3 +26,11 @@ PROVENANCE_HIL := $(PROVENANCE_CLOSED_LOOP) $(PROVENANCE_DBC)
 ## list stale results files (inputs changed since their stamp) with their commands
 provenance: setup
 	$(PY) -m studies.provenance check
+
+# A product-code change that keeps behaviour: restamp the stale studies on the proof of a
+# smoke subset run at BASE and here (studies/restamp.py; docs/architecture.md).
+BASE ?=
+## restamp results made stale by a behaviour-keeping code change: make restamp BASE=REV
+restamp: setup firmware
+	@if [ -z "$(BASE)" ]; then echo "error: make restamp needs BASE=REV (the commit at which the stale files were current)" >&2; exit 2; fi
+	$(PY) -m studies.restamp --base $(BASE)

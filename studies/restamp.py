@@ -22,7 +22,7 @@ the stamps to the current commit instead of rerunning hours of studies:
    shipped tuning, on ``dlc_smoke`` and on the same lane change under a steering offset, a
    crosswind and a yaw-rate bias (:data:`DISTURBED_SMOKE`).
 3. **The check.** Each frame log must equal its twin frame for frame: identifier, payload and
-   time since the first frame, with CTRL_DIAG's wall-clock signals (SOLVE_TIME_US,
+   time since the first frame (to 0.1 ms: the stamps carry the wall-clock start), with CTRL_DIAG's wall-clock signals (SOLVE_TIME_US,
    CYCLE_TIME_US, OVERRUNS and the CRC over them) left out. One difference anywhere and
    nothing is restamped (exit 1, the first differing frame named).
 4. **Restamp.** Each candidate's stamp gets this checkout's sources and commit, its output
@@ -87,6 +87,8 @@ yaw_rate_bias_rad_s = 0.005
 #: CTRL_DIAG's signals that the host's clock decides, not the control law.
 WALL_CLOCK_SIGNALS = {"CTRL_DIAG": ("CRC", "SOLVE_TIME_US", "CYCLE_TIME_US", "OVERRUNS")}
 RUN_TIMEOUT_S = 600
+#: Frame times are compared to 0.1 ms (a lockstep tick is 1 ms).
+TIME_RESOLUTION_US = 100
 
 
 class RestampError(Exception):
@@ -218,7 +220,9 @@ def behaviour_frames(log: Path, database: cantools.database.can.Database) -> lis
             signals = message.decode(data, decode_choices=False, scaling=False)
             payload = tuple(sorted((k, v) for k, v in signals.items()
                                    if k not in WALL_CLOCK_SIGNALS[message.name]))
-        frames.append((stamp_us - first, arbitration_id, payload, match.group(5)))
+        # the log's stamps are wall-clock start + virtual time in a double: a few
+        # microseconds of rounding that is not behaviour, below the 1 ms of a lockstep tick
+        frames.append((round((stamp_us - first) / TIME_RESOLUTION_US), arbitration_id, payload, match.group(5)))
     return frames
 
 
