@@ -22,7 +22,8 @@ the stamps to the current commit instead of rerunning hours of studies:
    shipped tuning, on ``dlc_smoke`` and on the same lane change under a steering offset, a
    crosswind and a yaw-rate bias (:data:`DISTURBED_SMOKE`).
 3. **The check.** Each frame log must equal its twin frame for frame: identifier, payload and
-   time since the first frame (to 0.1 ms: the stamps carry the wall-clock start), with CTRL_DIAG's wall-clock signals (SOLVE_TIME_US,
+   time since the first frame (to 0.1 ms: the stamps carry the wall-clock start; not for
+   HIL_SYNC_ACK, whose stamp races the next tick and whose payload names its tick), with CTRL_DIAG's wall-clock signals (SOLVE_TIME_US,
    CYCLE_TIME_US, OVERRUNS and the CRC over them) left out. One difference anywhere and
    nothing is restamped (exit 1, the first differing frame named).
 4. **Restamp.** Each candidate's stamp gets this checkout's sources and commit, its output
@@ -86,6 +87,9 @@ yaw_rate_bias_rad_s = 0.005
 """
 #: CTRL_DIAG's signals that the host's clock decides, not the control law.
 WALL_CLOCK_SIGNALS = {"CTRL_DIAG": ("CRC", "SOLVE_TIME_US", "CYCLE_TIME_US", "OVERRUNS")}
+#: Frames whose log stamp races the time master's next tick (the ECU's acknowledgement of a
+#: tick is logged at that tick or the next one); their payload names the tick.
+UNTIMED_FRAMES = ("HIL_SYNC_ACK",)
 RUN_TIMEOUT_S = 600
 #: Frame times are compared to 0.1 ms (a lockstep tick is 1 ms).
 TIME_RESOLUTION_US = 100
@@ -102,6 +106,8 @@ class Candidate:
     path: str
     command: str
     changed: tuple[str, ...]
+    #: the combined digest of its inputs and sources here when it was chosen
+    digest: str = ""
 
 
 # ---------------------------------------------------------------------------- candidates
@@ -135,7 +141,7 @@ def candidates(base_root: Path, root: Path = provenance.ROOT) -> tuple[list[Cand
         if other:
             refused[entry.path] = f"changed beyond product code: {', '.join(other[:4])}: rerun it"
             continue
-        eligible.append(Candidate(entry.path, stamp["command"], changed))
+        eligible.append(Candidate(entry.path, stamp["command"], changed, provenance.combined_digest(now)))
     return eligible, refused
 
 
@@ -199,9 +205,11 @@ _CANDUMP = re.compile(r"\((\d+)\.(\d{6})\)\s+\S+\s+([0-9A-Fa-f]+)#([0-9A-Fa-f]*)
 
 
 def behaviour_frames(log: Path, database: cantools.database.can.Database) -> list[tuple]:
-    """The frames of a candump log as (microseconds since the first frame, identifier,
-    payload or decoded signals, direction), the wall-clock signals of
-    :data:`WALL_CLOCK_SIGNALS` left out. Raises RestampError for a line it cannot read."""
+    """The frames of a candump log as (time since the first frame in units of
+    :data:`TIME_RESOLUTION_US`, identifier, payload or decoded signals, direction), sorted by
+    time and identifier, the wall-clock signals of :data:`WALL_CLOCK_SIGNALS` left out and
+    the frames of :data:`UNTIMED_FRAMES` at time -1 (first, in payload order).
+    Raises RestampError for a line it cannot read."""
     frames: list[tuple] = []
     first = None
     for number, line in enumerate(log.read_text().splitlines(), 1):
@@ -222,8 +230,13 @@ def behaviour_frames(log: Path, database: cantools.database.can.Database) -> lis
                                    if k not in WALL_CLOCK_SIGNALS[message.name]))
         # the log's stamps are wall-clock start + virtual time in a double: a few
         # microseconds of rounding that is not behaviour, below the 1 ms of a lockstep tick
-        frames.append((round((stamp_us - first) / TIME_RESOLUTION_US), arbitration_id, payload, match.group(5)))
-    return frames
+        time = round((stamp_us - first) / TIME_RESOLUTION_US)
+        if message is not None and message.name in UNTIMED_FRAMES:
+            time = -1
+        frames.append((time, arbitration_id, payload, match.group(5)))
+    # nodes' frames of one tick reach the recorder in thread order (an ACK stamped before a
+    # plant frame may be logged after it): compare in time order, then by identifier
+    return sorted(frames, key=lambda frame: (frame[0], frame[1], frame[3], repr(frame[2])))
 
 
 def first_difference(base_log: Path, log: Path, database: cantools.database.can.Database) -> str | None:
@@ -239,16 +252,23 @@ def first_difference(base_log: Path, log: Path, database: cantools.database.can.
 
 # ---------------------------------------------------------------------------- restamp
 
-def restamp(chosen: list[Candidate], base: str, command: str, root: Path = provenance.ROOT) -> None:
+def restamp(chosen: list[Candidate], base: str, command: str, root: Path = provenance.ROOT,
+            checked_commit: str | None = None) -> None:
     """Give each of ``chosen`` this checkout's sources and commit (its file unchanged), with
-    a ``restamped`` record of the check."""
+    a ``restamped`` record of the check; ``checked_commit``: the commit the smoke ran on,
+    which must still be the checkout's."""
     stamps = provenance.load_manifest(root)
     commit = provenance.git_commit(root)
+    if checked_commit is not None and commit != checked_commit:
+        raise RestampError(f"the checkout moved from {checked_commit} to {commit} while the smoke ran: "
+                           "nothing restamped")
     for candidate in chosen:
         entry = dict(stamps[candidate.path])
         if provenance.file_digest(root / candidate.path) != entry["output_sha256"]:
             raise RestampError(f"{candidate.path} changed since its stamp: rerun `{entry['command']}`")
         digests = provenance.input_digests(entry["inputs"], entry["modules"], root)
+        if candidate.digest and provenance.combined_digest(digests) != candidate.digest:
+            raise RestampError(f"the sources of {candidate.path} changed while the smoke ran: nothing restamped")
         entry.update(commit=commit, sha256=provenance.combined_digest(digests),
                      sources={key: value[:16] for key, value in digests.items()},
                      restamped={"base": base, "check": command, "changed": list(candidate.changed)})
@@ -288,6 +308,10 @@ def main(argv: list[str] | None = None) -> int:
     command = f"python -m studies.restamp --base {args.base}"
     root = provenance.ROOT
     try:
+        checked_commit = provenance.git_commit(root)
+        if checked_commit.endswith("-dirty"):
+            raise RestampError("the checkout has uncommitted changes outside results/: commit them first, "
+                               "so that the new stamps name the code that was checked")
         base_tree = base_checkout(args.base, args.workdir.resolve(), root)
         chosen, refused = candidates(base_tree, root)
         for name, reason in sorted(refused.items()):
@@ -307,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
             for line in differences:
                 print(f"  {line}", file=sys.stderr)
             return 1
-        restamp(chosen, args.base, command, root)
+        restamp(chosen, args.base, command, root, checked_commit)
         dropped = drop_known_stale_rows({c.path for c in chosen}, root)
         print(f"{len(logs)} smoke runs equal to the base's; restamped {len(chosen)} results file(s)")
         for removed in dropped:
