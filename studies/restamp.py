@@ -10,12 +10,13 @@ the stamps to the current commit instead of rerunning hours of studies:
 1. **Candidates.** Every stamped results file that ``python -m studies.provenance check``
    finds stale because its inputs changed (not because the file itself changed), whose stamp
    was current at ``REV`` (its inputs and sources as committed at ``REV`` give the recorded
-   digest), where every file that changed since then is product code (``.py`` of can_defs,
-   models, controller, firmware_sim, hil; ``.c`` / ``.h`` of firmware/src) and whose command
+   digest), where every file that changed since then is code the smoke runs (the Python
+   modules that ``eso-hil`` and ``eso-ecu`` import, studies/ left out, and the C ECU's
+   firmware/src; :func:`smoke_sources`) and whose command
    does not measure the machine or the build (``make timing``, ``make bench``, ``make
    can-bench``, ``make firmware-footprint``: their figures are what a code change moves).
-   A changed data file (tuning, artefact, scenario, path, DBC) or study module always
-   needs the rerun.
+   A changed data file (tuning, artefact, scenario, path, DBC), study module or training
+   code always needs the rerun.
 2. **The smoke subset** of the closed-loop studies, run at ``REV`` (a git worktree under
    ``--workdir``, its C ECU built there) and on this checkout: a lockstep run over CAN
    (``eso-hil run``) of every controller of the Python ECU and of the C ECU under the
@@ -49,8 +50,8 @@ import cantools
 
 from studies import provenance
 
-#: Product code: a change here is covered by the smoke runs (studies/ and data are not).
-PRODUCT_CODE = re.compile(r"(can_defs|models|controller|firmware_sim|hil)/.*\.py|firmware/src/[^/]+\.[ch]")
+#: The entry points of the smoke runs: the HIL's and the Python ECU's command lines.
+SMOKE_ENTRY_MODULES = ("hil.__main__", "firmware_sim.__main__")
 #: Commands whose files measure the machine or the build: a code change is what they measure.
 MACHINE_COMMANDS = ("make timing", "make bench", "make can-bench", "make firmware-footprint")
 #: The controllers of each ECU (``eso-hil run --ecu``).
@@ -112,10 +113,23 @@ class Candidate:
 
 # ---------------------------------------------------------------------------- candidates
 
-def candidates(base_root: Path, root: Path = provenance.ROOT) -> tuple[list[Candidate], dict[str, str]]:
+def smoke_sources(root: Path = provenance.ROOT) -> frozenset[str]:
+    """The source files (paths from ``root``) that the smoke runs execute: the project
+    modules ``eso-hil`` and ``eso-ecu`` import, transitively (studies/ left out: a study's
+    code is not what its smoke runs), and the C ECU's sources."""
+    modules = provenance.module_sources(SMOKE_ENTRY_MODULES, root)
+    python = {path.relative_to(root).as_posix() for path in modules}
+    firmware = {path.relative_to(root).as_posix() for path in (root / "firmware" / "src").glob("*.[ch]")}
+    return frozenset({name for name in python if not name.startswith("studies/")} | firmware)
+
+
+def candidates(base_root: Path, root: Path = provenance.ROOT,
+               covered: frozenset[str] | None = None) -> tuple[list[Candidate], dict[str, str]]:
     """The stale results files of ``root`` that a check against the tree ``base_root`` (the
-    base revision's checkout) may restamp, and the others with the reason for each."""
+    base revision's checkout) may restamp, and the others with the reason for each;
+    ``covered``: the files the smoke runs (default :func:`smoke_sources` of ``root``)."""
     manifest = provenance.load_manifest(root)
+    covered = smoke_sources(root) if covered is None else covered
     eligible: list[Candidate] = []
     refused: dict[str, str] = {}
     for entry in provenance.check(root):
@@ -137,9 +151,9 @@ def candidates(base_root: Path, root: Path = provenance.ROOT) -> tuple[list[Cand
         now = provenance.input_digests(stamp["inputs"], stamp["modules"], root)
         changed = tuple(sorted(name for name in set(now) | set(at_base)
                                if now.get(name) != at_base.get(name)))
-        other = [name for name in changed if not PRODUCT_CODE.fullmatch(name)]
+        other = [name for name in changed if name not in covered]
         if other:
-            refused[entry.path] = f"changed beyond product code: {', '.join(other[:4])}: rerun it"
+            refused[entry.path] = f"changed beyond the code the smoke runs: {', '.join(other[:4])}: rerun it"
             continue
         eligible.append(Candidate(entry.path, stamp["command"], changed, provenance.combined_digest(now)))
     return eligible, refused

@@ -55,6 +55,18 @@ def test_an_unreadable_line_is_an_error(tmp_path: Path) -> None:
         restamp.behaviour_frames(broken, DATABASE)
 
 
+#: The fake project's code that its smoke runs.
+SMOKED = frozenset({"controller/__init__.py", "controller/law.py"})
+
+
+def test_the_smoke_covers_the_ecus_and_the_plant_not_training_or_studies() -> None:
+    covered = restamp.smoke_sources(ROOT)
+    assert {"controller/observed_mpc.py", "hil/recorder.py", "models/vehicle.py", "firmware_sim/ecu.py",
+            "firmware/src/ecu_core.c"} <= covered
+    assert "models/koopman_train.py" not in covered  # training: the smoke trains nothing
+    assert not any(name.startswith("studies/") for name in covered)
+
+
 def _project(root: Path) -> None:
     """A tiny project: a product package, a study module and a data file, four results
     files stamped by three commands."""
@@ -80,17 +92,17 @@ def test_only_product_code_changes_of_non_machine_studies_are_candidates(tmp_pat
     _project(base)
     shutil.copytree(base, now)
     (now / "controller" / "law.py").write_text("GAIN = 2  # same law, new comment\n")
-    chosen, refused = restamp.candidates(base, now)
+    chosen, refused = restamp.candidates(base, now, SMOKED)
     assert [c.path for c in chosen] == ["results/data.md", "results/other.md", "results/table.md"]
     assert chosen[0].changed == ("controller/law.py",)
     assert "measures the machine" in refused["results/timing.md"]
 
     (now / "tuning.toml").write_text("q = 2\n")  # a data input: its study must run again
     (now / "studies" / "study.py").write_text("import controller.law  # edited\n")
-    chosen, refused = restamp.candidates(base, now)
+    chosen, refused = restamp.candidates(base, now, SMOKED)
     assert chosen == []
-    assert "changed beyond product code: studies/study.py, tuning.toml" in refused["results/data.md"]
-    assert "changed beyond product code: studies/study.py" in refused["results/table.md"]
+    assert "changed beyond the code the smoke runs: studies/study.py, tuning.toml" in refused["results/data.md"]
+    assert "changed beyond the code the smoke runs: studies/study.py" in refused["results/table.md"]
 
 
 def test_a_stamp_stale_already_at_the_base_is_refused(tmp_path: Path) -> None:
@@ -99,7 +111,7 @@ def test_a_stamp_stale_already_at_the_base_is_refused(tmp_path: Path) -> None:
     shutil.copytree(now, base)
     (base / "controller" / "law.py").write_text("GAIN = 3\n")  # the base differed from the stamp
     (now / "controller" / "law.py").write_text("GAIN = 4\n")
-    _, refused = restamp.candidates(base, now)
+    _, refused = restamp.candidates(base, now, SMOKED)
     assert refused["results/table.md"] == "its stamp was not current at the base revision"
 
 
@@ -112,7 +124,7 @@ def test_restamp_moves_the_stamp_and_drops_whole_known_stale_rows(tmp_path: Path
         "| Files | Regenerates them | Why |\n|---|---|---|\n"
         "| `results/table.md`, `results/other.md` | `make tables` | long |\n"
         "| `results/timing.md` | `make timing` | machine |\n")
-    chosen, _ = restamp.candidates(base, now)
+    chosen, _ = restamp.candidates(base, now, SMOKED)
     restamp.restamp([c for c in chosen if c.path != "results/data.md"], "abc123", "python -m studies.restamp --base abc123",
                     now)
     stale = {entry.path for entry in provenance.check(now)}
