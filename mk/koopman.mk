@@ -79,7 +79,7 @@ lateral-regimes: setup
 ## fit the dmdc-eso ablation's DMDc model on dk_d5's training runs -> models/artifacts/dmdc.{npz,json}
 dmdc: setup
 	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
-	$(PY) -m models.dmdc_artifact --data $(TRAIN_DATA)
+	$(PY) -m models.dmdc_artifact --data $(TRAIN_DATA) --out models/artifacts/dmdc --replace
 
 # Tables II / III with the learned controllers once per seed of the default model (seeds
 # 1-4 come from make table1's cache): results/seed_spread.{md,json}.

@@ -6,7 +6,8 @@
 TRAINING runs of the default artefact's data and split (``data_dir`` and ``split`` of
 ``models/artifacts/dk_d5.json``), so the ECU never needs the data at run time:
 
-    python -m models.dmdc_artifact            # make dmdc; about 10 s plus the data set
+    python -m models.dmdc_artifact --out models/artifacts/dmdc --replace
+                                              # make dmdc; about 10 s plus the data set
                                               # (data/wide, make train generates it)
 
 writes ``models/artifacts/dmdc.{npz,json}`` in the format of ``models.koopman.save_artifact``
@@ -17,6 +18,9 @@ deep model. The ECU loads it with ``models.dmdc_model.load_dmdc_model``, which a
 checks that it IS such a model; that loader lives in its own module so that the run time
 (and the provenance of every result the ECU produces) does not depend on the training
 code this builder reads its data with.
+
+``--out`` has no default (none points at the committed artefact) and an existing artefact
+is overwritten only with ``--replace``, as ``models.koopman_train``.
 """
 from __future__ import annotations
 
@@ -29,8 +33,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from models.dmdc_model import DMDC_ARTIFACT, DMDC_KIND, TS, load_dmdc_model
+from models.errors import OutputPathError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanError, KoopmanModel, MinMaxScaling, NormalisedKoopman, save_artifact
 from models.koopman_metrics import OPEN_LOOP_STEPS
+from models.output_paths import check_output_file
 
 
 def to_normalised(A: np.ndarray, B: np.ndarray, offset: np.ndarray, state_scaling: MinMaxScaling,
@@ -125,16 +131,36 @@ def build_dmdc_artifact(out: str | Path = DMDC_ARTIFACT, *, reference: str | Pat
     return model, model.metadata
 
 
+def check_out(out: Path, *, replace: bool, reference: Path, data_dir: Path | None) -> None:
+    """Both files ``out`` names (.npz, .json) are writable before any fitting: neither is
+    an input (the reference artefact, the data folder) and an existing one only with
+    ``replace``.
+
+    Raises:
+        KoopmanError: naming ``--out``, the path and the problem.
+    """
+    inputs = [Path(reference).with_suffix(".npz"), Path(reference).with_suffix(".json"),
+              *([Path(data_dir)] if data_dir is not None else [])]
+    try:
+        for suffix in (".npz", ".json"):
+            check_output_file(Path(out).with_suffix(suffix), "--out", replace=replace, inputs=inputs)
+    except OutputPathError as error:
+        raise KoopmanError(str(error)) from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m models.dmdc_artifact", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=DMDC_ARTIFACT.with_suffix(""), help="artefact path (no suffix)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help=f"artefact path without suffix (make dmdc: {DMDC_ARTIFACT.with_suffix('')})")
+    parser.add_argument("--replace", action="store_true", help="overwrite an existing --out artefact")
     parser.add_argument("--reference", type=Path, default=DEFAULT_ARTIFACT,
                         help="artefact whose data_dir and training split to use (default: %(default)s)")
     parser.add_argument("--data", type=Path, default=None, help="data folder (default: the reference's data_dir)")
     parser.add_argument("--debug", action="store_true", help="tracebacks on errors")
     args = parser.parse_args(argv)
     try:
+        check_out(args.out, replace=args.replace, reference=args.reference, data_dir=args.data)
         model, meta = build_dmdc_artifact(args.out, reference=args.reference, data_dir=args.data)
     except KoopmanError as e:
         if args.debug:
