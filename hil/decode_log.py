@@ -6,7 +6,8 @@ relative to the first frame), the raw timestamp, ID, frame name, alive counter, 
 verdict of a receiver that saw the whole log (``can_defs.E2EMonitor``: ok, crc_error,
 repeated, lost, sequence_error, wrong_length, unknown_id, bad_tick) and one column per
 signal (snake case), empty where the frame does not carry it. Frames outside the DBC keep
-their ID and raw payload (``data``) with ``e2e`` = unknown_id.
+their ID and raw payload (``data``) with ``e2e`` = unknown_id; a frame the contract never
+uses is named by its kind (`non_contract_label`: CAN FD, remote, error, extended).
 
 The plot draws each signal at the frames that carry it (commands as steps): speed (VX, TARGET_SPEED),
 steering (STEER_ANGLE_CMD against the measured STEER_ANGLE), yaw rate, the path driven
@@ -40,6 +41,7 @@ from can_defs.dbc import DBC_PATH
 from can_defs.e2e import E2EMonitor
 from can_defs.errors import CanDefsError
 from can_defs.frames import FRAME_CLASSES, FrameId
+from can_defs.log_reader import FrameKind, frame_kind
 from hil.errors import HilError
 from hil.logio import LogContents, dbc_message, frame_times, is_contract_data_frame
 
@@ -81,6 +83,21 @@ class DecodedLog:
         return np.asarray(times, dtype=float), np.asarray(values, dtype=float)
 
 
+#: The word `non_contract_label` gives each frame kind (a classic data frame has none).
+_KIND_WORDS: dict[FrameKind, str] = {FrameKind.DATA: "", FrameKind.FD: "CAN FD",
+                                     FrameKind.REMOTE: "remote", FrameKind.ERROR: "error"}
+
+
+def non_contract_label(message: can.Message) -> str:
+    """The ``frame`` cell of a frame that is no contract frame, named by `frame_kind` (the
+    one test of what a frame is) and its ID length: "(CAN FD frame)", "(extended CAN FD
+    frame)", "(remote frame)", "(extended remote frame)", "(extended frame)" or "(error
+    frame)" (an error frame's ID flag means nothing, so it is never called extended)."""
+    kind = frame_kind(message)
+    extended = "extended" if message.is_extended_id and kind is not FrameKind.ERROR else ""
+    return "(" + " ".join(word for word in (extended, _KIND_WORDS[kind], "frame") if word) + ")"
+
+
 def decode_log(contents: LogContents) -> DecodedLog:
     """Decode every frame of a log (see the module docstring for the columns)."""
     times, time_base = frame_times(contents.messages)
@@ -91,9 +108,7 @@ def decode_log(contents: LogContents) -> DecodedLog:
         row: dict[str, Any] = {"time_s": time_s, "timestamp": message.timestamp,
                                "id": message.arbitration_id, "data": bytes(message.data or b"").hex()}
         if not is_contract_data_frame(message):
-            kind = ("error" if message.is_error_frame else "remote" if message.is_remote_frame
-                    else "extended")
-            row.update(frame=f"({kind} frame)", e2e="unknown_id")
+            row.update(frame=non_contract_label(message), e2e="unknown_id")
             rows.append(row)
             continue
         result = monitor.check(message.arbitration_id, bytes(message.data))
@@ -168,9 +183,9 @@ def decode_with_dbc(contents: LogContents, database: Any) -> DecodedLog:
                                "id": message.arbitration_id, "data": bytes(message.data or b"").hex()}
         rows.append(row)
         db_message = dbc_message(database, message)
-        if message.is_error_frame or message.is_remote_frame:
-            row["frame"] = "(error frame)" if message.is_error_frame else (
-                f"{db_message.name} (remote)" if db_message is not None else "(remote frame)")
+        if frame_kind(message) in (FrameKind.ERROR, FrameKind.REMOTE):
+            row["frame"] = (f"{db_message.name} (remote)" if db_message is not None
+                            else non_contract_label(message))
             continue
         if db_message is None:
             row["frame"] = "(not in DBC)"

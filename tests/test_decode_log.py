@@ -77,6 +77,30 @@ def test_foreign_frames_keep_their_raw_payload(tmp_path: Path) -> None:
     assert decoded.rows[1]["frame"] == "(extended frame)"
 
 
+def test_each_frame_kind_is_named_by_the_one_frame_kind_test(tmp_path: Path) -> None:
+    """An 11-bit CAN FD frame is a CAN FD frame, not an extended one; an extended frame is
+    extended; a classic 11-bit frame of a contract ID is decoded as that frame."""
+    classic = can.Message(timestamp=0.0, arbitration_id=int(FrameId.VEH_DYN), data=bytes(8),
+                          is_extended_id=False)
+    messages = [classic,
+                can.Message(timestamp=0.01, arbitration_id=int(FrameId.VEH_DYN), data=bytes(16),
+                            is_extended_id=False, is_fd=True),
+                can.Message(timestamp=0.02, arbitration_id=0x18FF0001, data=bytes(12), is_fd=True),
+                can.Message(timestamp=0.03, arbitration_id=0x18FF0001, data=b"\x01"),
+                can.Message(timestamp=0.04, arbitration_id=int(FrameId.VEH_DYN),
+                            is_extended_id=False, is_remote_frame=True, dlc=8),
+                can.Message(timestamp=0.05, is_error_frame=True)]
+    with can.Logger(tmp_path / "kinds.log") as writer:
+        for message in messages:
+            writer.on_message_received(message)
+    decoded = decode_log(read_log(tmp_path / "kinds.log"))
+    print([row["frame"] for row in decoded.rows])
+    assert [row["frame"] for row in decoded.rows] == [
+        "VEH_DYN", "(CAN FD frame)", "(extended CAN FD frame)", "(extended frame)",
+        "(remote frame)", "(error frame)"]
+    assert [row["e2e"] for row in decoded.rows][1:] == ["unknown_id"] * 5
+
+
 def test_lateral_deviation_of_the_recorded_run_is_small() -> None:
     decoded = decode_log(read_log(LOGS / "lockstep_lmpc.log"))
     times, e_y = lateral_deviation(decoded, ReferencePath.from_csv(DLC))
