@@ -86,7 +86,8 @@ model = ["default", "models/artifacts/dk_paper_nominal.npz"]
     ('[axes]\ncontroller = ["nmpc"]\nscenario = ["dlc_smoke"]\necu = ["c"]',
      ["no cell left", "the C ECU has no nmpc"]),
     # issue 38: the whole grid is valid before the first cell, or one error
-    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nlag_factor = [0.0]', ["axes.lag_factor", "(0.0, 100.0]"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nlag_factor = [0.0]', ["axes.lag_factor", "[1.0, 100.0]"]),
+    ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nlag_factor = [0.5]', ["axes.lag_factor", "0.5", "[1.0, 100.0]"]),
     ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nspeed = ["p"]\n'
      '[speed_profiles.p]\ntime_s = [0.0, nan]\ntarget_speed_kmh = [30.0, 40.0]', ["speed_profiles.p", "time_s"]),
     ('[axes]\ncontroller = ["lmpc"]\nscenario = ["dlc_smoke"]\nspeed = ["p"]\n'

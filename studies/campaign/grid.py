@@ -345,11 +345,11 @@ def _axis_value(file: Path, name: str, value: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise bad("must be an integer >= 0")
         return value
+    # lag_factor >= 1: a cell adds (factor - 1) x the plant's steering time constant as
+    # steer_extra_lag_s, which the plant requires >= 0 (a lag can be added, not removed).
     ranges = {"mu": (0.05, 1.5), "speed": (1.0, 200.0), "mass_offset_kg": (-1000.0, 2000.0),
-              "lag_factor": (0.0, 100.0)}
+              "lag_factor": (1.0, 100.0)}
     low, high = ranges[name]
-    if name == "lag_factor" and number and value == 0.0:   # a steering that never moves
-        raise bad(f"must be a number in ({low}, {high}]")
     if not number or not math.isfinite(value) or not low <= value <= high:
         raise bad(f"must be a number in [{low}, {high}]")
     return float(value)
