@@ -36,7 +36,9 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -47,6 +49,8 @@ import numpy as np
 from hil.path_files import PATH_DIR, write_path_csv
 from hil.scenario import SCENARIO_DIR
 
+#: The repository: the training command runs with it on the module path.
+REPO = Path(__file__).resolve().parent.parent
 IDENTIFICATION_PATH_FILE = PATH_DIR / "identification.csv"
 #: In a folder of its own: the shipped scenarios of hil/scenarios/*.toml are the double
 #: lane changes of the evaluation (tests/test_scenario.py).
@@ -247,16 +251,18 @@ def measured_vehicle_file(out: Path, measured: dict[str, float]) -> Path:
 def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path,
              options: Sequence[str] = ()) -> None:
     """``python -m models.koopman_train --logs LOG --out DIR --replace --vehicle FILE [OPTIONS]``
-    in this process (the study owns DIR) (``options``: more training options, e.g. ``--steps-per-epoch 5``)."""
-    from models import koopman_cli  # torch: only when it trains
-
+    as its own process, the command a user runs (the study owns DIR) (``options``: more
+    training options, e.g. ``--steps-per-epoch 5``). Raises SystemExit when it fails."""
     argv = ["--logs", str(log), "--out", str(model_dir), "--replace", "--no-progress", "--vehicle",
             str(vehicle_file)]
     if epochs is not None:
         argv += ["--epochs", str(epochs)]
     argv += list(options)
-    if koopman_cli.main(argv) != 0:
-        raise SystemExit(f"error: training from {log} failed")
+    # the repository first on the path, whatever the working folder (paths stay relative to it)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    done = subprocess.run([sys.executable, "-m", "models.koopman_train", *argv], env=env)
+    if done.returncode != 0:
+        raise SystemExit(f"error: training from {log} failed (exit status {done.returncode})")
 
 
 def table_runs(model_dir: Path) -> list[dict[str, Any]]:
