@@ -26,7 +26,7 @@ from typing import Any
 import can
 
 from can_defs.frames import HANDSHAKE_TICK, TICK_STEP_MS, FrameId, HilSync
-from hil.bus import private_virtual_channel
+from hil.bus import BusConfig, open_bus, private_virtual_channel
 from hil.logio import ECU_OUTPUT_IDS, LogContents, frame_times, is_contract_data_frame, sync_tick
 from hil.replay_outputs import COMPARED_IDS, OutputFrame, ReplayError
 
@@ -131,10 +131,10 @@ def replay_log(contents: LogContents, controller: str, paths: Mapping[int, Path]
         ReplayError: the ECU could not start. A missing ACK ends the replay early with
         ``aborted`` set and the outputs so far.
     """
-    channel = private_virtual_channel("replay")
+    bus = BusConfig("virtual", private_virtual_channel("replay"))
     started = time.perf_counter()
-    ecu_bus = can.Bus(interface="virtual", channel=channel)
-    feeder = can.Bus(interface="virtual", channel=channel)
+    ecu_bus = open_bus(bus)
+    feeder = open_bus(bus)
     ecu_options = {name: value for name, value in (("controller_factory", controller_factory),
                                                    ("excitation", excitation)) if value is not None}
     try:

@@ -50,7 +50,6 @@ import platform  # noqa: E402
 import pstats  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-import uuid  # noqa: E402
 from collections.abc import Mapping, Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
@@ -106,15 +105,13 @@ def measure_ecu_overhead(samples: Sequence[VehicleSample]) -> dict[str, Any]:
     own timing record) and the wall time per tick (all frames of the tick handled up to
     the HIL_SYNC_ACK), each as :class:`Percentiles` in a dict, and the final mode.
     """
-    import can
-
     from firmware_sim.ecu import Ecu
+    from hil.bus import BusConfig, open_bus, private_virtual_channel
     from hil.ecu_harness import PeerNodes, ScriptedController, pump
 
-    channel = f"bench-{uuid.uuid4()}"
+    bus = BusConfig("virtual", private_virtual_channel("bench"))
     ticks_per_cycle = CONTROL_PERIOD_MS // TICK_MS
-    with can.Bus(interface="virtual", channel=channel) as ecu_bus, \
-            can.Bus(interface="virtual", channel=channel) as peer_bus:
+    with open_bus(bus) as ecu_bus, open_bus(bus) as peer_bus:
         ecu = Ecu(ecu_bus, "scripted", {1: Path("straight")}, lockstep=True,
                   controller_factory=lambda name: ScriptedController(solve_time_s=0.0),
                   path_loader=str)
