@@ -6,10 +6,19 @@ python-can's ``virtual`` bus (a thread with its own bus object), the Python ECU 
 process on any other interface, the C ECU executable as a process (on the ``virtual``
 interface through a socketcand hub of the run's own on TCP loopback, ``hil.timing.hub``,
 since it cannot join python-can's in-process bus). A study that needs more than a plain run
-passes :class:`RigHooks`: its own ECU (a Python ECU whose bus it can take away), a wrapper
-around the time master's bus (a jump of virtual time), a probe before each lockstep tick,
-more time-master nodes (a command audit). ``hil.session.run_hil`` is the plain run; the
-fault campaign's ECU-level cases and the real-time benchmark's plant side use hooks.
+passes :class:`RigHooks`: its own ECU (a Python ECU whose bus it can take away, or one
+another process started), a wrapper around the time master's bus (a jump of virtual time),
+a wrapper around the plant node (a plant that reboots), a hook on each tick's outgoing
+frames (odd frames added), a probe before each lockstep tick, more time-master nodes (a
+command audit).
+``hil.session.run_hil`` is the plain run; the fault campaign's ECU-level cases, the
+real-time benchmark's plant side and the bus tests of both ECUs use hooks.
+
+Replay (``hil.replay_feed``) is not a rig ECU kind: there the recorded log stands in for
+the plant, the planner and the time master. Its input frames, HIL_SYNC included, go as
+recorded to a fresh in-process Python ECU, which answers the log's own ticks (or, for a
+time-stamped log, is polled on a clock that follows the log's stamps); nothing is
+simulated and no master ticks, so there is nothing for a rig to wire.
 
 Use::
 
@@ -35,7 +44,7 @@ from hil.planner_node import PlannerNode
 from hil.recorder import BusRecorder, EcuFrameMonitor
 from hil.run_types import ECU_IMPLEMENTATIONS, HUB_CHANNEL, HilRunResult, RunOptions, SessionError
 from hil.scenario import Scenario
-from hil.time_master import LockstepMaster, MasterStats, RealTimeMaster
+from hil.time_master import HilNode, LockstepMaster, MasterStats, RealTimeMaster, SendHook
 
 
 class NoEcu(EcuRunner):
@@ -55,6 +64,9 @@ class RigHooks:
     ``ecu``: builds the run's ECU, called once the master's bus is open (``rig.open_bus``
     opens a bus object of the run for it, ``rig.hub_port`` is the run's hub);
     ``wrap_master_bus``: the time master's bus in, the bus the master uses out;
+    ``wrap_plant``: the plant node in, the node the master drives in its place out
+    (``rig.plant`` stays the plant, for its trace); ``send_hook``: each tick's node frames
+    in, the frames that reach the bus out (after the fault injector's, with ``faults``);
     ``before_tick``: called with the tick (ms) before each lockstep tick, after the
     handshake; ``before_run``: called once before the first tick; ``nodes``: more nodes of
     the time master, after the plant, the planner and the monitor; ``own_hub``: a socketcand
@@ -65,6 +77,8 @@ class RigHooks:
 
     ecu: Callable[["Rig"], EcuRunner] | None = None
     wrap_master_bus: Callable[[can.BusABC], can.BusABC] | None = None
+    wrap_plant: Callable[[PlantNode], HilNode] | None = None
+    send_hook: SendHook | None = None
     before_tick: Callable[[int], None] | None = None
     before_run: Callable[[], None] | None = None
     nodes: Sequence[Any] = ()
@@ -163,8 +177,9 @@ class Rig:
                 time.sleep(2 * READY_DELAY_S if options.lockstep else 0.5)
             bus = self.master_bus if self.hooks.wrap_master_bus is None else \
                 self.hooks.wrap_master_bus(self.master_bus)
-            nodes = [self.plant, self.planner, self.monitor, *self.hooks.nodes]
-            send_hook = self.injector.outgoing if self.injector is not None else None
+            plant = self.plant if self.hooks.wrap_plant is None else self.hooks.wrap_plant(self.plant)
+            nodes = [plant, self.planner, self.monitor, *self.hooks.nodes]
+            send_hook = self._send_hook()
             if options.lockstep:
                 self.master = LockstepMaster(
                     bus, nodes, handshake_timeout_s=options.handshake_timeout_s,
@@ -175,6 +190,14 @@ class Rig:
         except BaseException:
             self.close()
             raise
+
+    def _send_hook(self) -> SendHook | None:
+        """The fault injector's hook, then ``hooks.send_hook`` (either alone, or None)."""
+        injector = None if self.injector is None else self.injector.outgoing
+        extra = self.hooks.send_hook
+        if injector is None or extra is None:
+            return injector or extra
+        return lambda tick_ms, frames: extra(tick_ms, injector(tick_ms, frames))
 
     def _start_ecu(self) -> EcuRunner:
         if self.hooks.ecu is not None:

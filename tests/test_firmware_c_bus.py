@@ -194,23 +194,19 @@ def test_c_ecu_in_real_time_tracks_as_the_python_ecu(native, tmp_path: Path) -> 
 
 
 def _drive(scenario, port: int, seconds: float) -> list:
-    """Lockstep plant, planner and time master on the hub at ``port`` for ``seconds``;
-    the ECU's STEER_TORQUE_CMD frames."""
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
-    from hil.time_master import LockstepMaster
+    """A lockstep rig (``hil.rig``) on the hub at ``port`` for ``seconds``, driving the ECU
+    process already there; the ECU's STEER_TORQUE_CMD frames (tick ms, frame)."""
+    from hil.bus import BusConfig
+    from hil.rig import NoEcu, Rig, RigHooks
+    from hil.run_types import RunOptions
 
-    bus = can.Bus(interface="socketcand", channel=CHANNEL, host="127.0.0.1", port=port, tcp_tune=True)
-    try:
-        time.sleep(0.2)
-        monitor = EcuFrameMonitor()
-        master = LockstepMaster(bus, [PlantNode(scenario), PlannerNode(scenario), monitor],
-                                handshake_timeout_s=30.0, ack_timeout_s=10.0)
-        master.run(seconds)
-        return monitor.commands
-    finally:
-        bus.shutdown()
+    options = RunOptions(controller="(another process)", bus=BusConfig("socketcand", CHANNEL),
+                         handshake_timeout_s=30.0, ack_timeout_s=10.0)
+    hooks = RigHooks(ecu=lambda rig: NoEcu(), bus_options={"host": "127.0.0.1", "port": port, "tcp_tune": True},
+                     before_run=lambda: time.sleep(0.2))  # the hub delivers after its READY_DELAY_S
+    with Rig(scenario, options, hooks) as rig:
+        rig.run(seconds)
+    return rig.monitor.commands
 
 
 @contextmanager

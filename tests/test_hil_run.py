@@ -22,13 +22,11 @@ import numpy as np
 import pytest
 
 from can_defs.frames import CtrlMode
-from hil.bus import open_bus, private_virtual_channel
+from hil.bus import private_virtual_channel
 from hil.plant_node import PlantNode
-from hil.planner_node import PlannerNode
-from hil.recorder import EcuFrameMonitor
+from hil.rig import Rig, RigHooks
 from hil.scenario import load_scenario
-from hil.session import InProcessEcu, default_options, run_hil
-from hil.time_master import LockstepMaster
+from hil.session import default_options, run_hil
 from contract_reference import crc8_sae_j1850_bitwise, e2e_ok, unsigned
 
 CONTROLLER = "lmpc"  # the fastest of the four; the comparison is about the bus, not the law
@@ -131,20 +129,12 @@ def test_plant_restart_degrades_then_recovers_through_standby():
         speed_profile=dataclasses.replace(base.speed_profile, speeds_mps=(8 / 3.6,)))
     # Plant silent 300..600 ms; planner disengages 2.0..2.2 s (the way out of SAFE_STOP).
     engage = lambda t: not 2.0 <= t < 2.2  # noqa: E731
-    options = default_options(CONTROLLER, engage=engage)
-    plant = PlantNode(scenario)
-    monitor = EcuFrameMonitor()
-    ecu = InProcessEcu(scenario, options)
-    master_bus = open_bus(options.bus)
-    try:
-        master = LockstepMaster(master_bus, [_RestartingPlant(plant, 300, 600),
-                                             PlannerNode(scenario, engage=engage), monitor],
-                                handshake_timeout_s=30.0)
-        master.run(scenario.duration_s)
-        assert ecu.alive_problem() is None, "the ECU must survive the plant restart"
-    finally:
-        ecu.stop()
-        master_bus.shutdown()
+    options = default_options(CONTROLLER, engage=engage, handshake_timeout_s=30.0)
+    hooks = RigHooks(wrap_plant=lambda plant: _RestartingPlant(plant, 300, 600))
+    with Rig(scenario, options, hooks) as rig:
+        rig.run()
+        assert rig.ecu.alive_problem() is None, "the ECU must survive the plant restart"
+    plant, monitor = rig.plant, rig.monitor
     modes = {tick: int(cmd.ctrl_mode) for tick, cmd in monitor.commands}
     valid = {tick: cmd.cmd_valid for tick, cmd in monitor.commands}
     changes = [(t, CtrlMode(m).name) for i, (t, m) in enumerate(modes.items())

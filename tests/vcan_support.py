@@ -9,9 +9,10 @@ tests/test_vcan_lost_interface.py).
 - `ecu_frames`: the ECU's frames of such a recording, CTRL_DIAG without its wall-clock
   fields; `reference_frames`: the same of the Python ECU on python-can's virtual bus.
 - `scenario_copy`: a shipped scenario with an absolute path file (UML's working folder).
-- `drive_lockstep` (and this file run as a script): hil's plant, planner and lockstep time
-  master on vcan0 driving an ECU started by its CLI, which the C executable and
-  ``python -m firmware_sim`` share; ``send_hook`` injects extra frames.
+- `drive_lockstep` (and this file run as a script): a lockstep rig of hil (``hil.rig``:
+  plant, planner, monitor and time master) on vcan0 driving an ECU started by its CLI,
+  which the C executable and ``python -m firmware_sim`` share; ``send_hook`` injects
+  extra frames.
 - `drive_lost_interface` (this file run as a script with ``--lost-interface`` or
   ``--lost-interface-realtime``): the same driver around a lost interface: a lockstep run
   (or the ECU in real time without inputs), vcan0 set down and up again (``ip link``), a
@@ -33,6 +34,9 @@ from typing import IO, TYPE_CHECKING
 import can
 import pytest
 
+from hil.bus import BusConfig
+from hil.rig import NoEcu, Rig, RigHooks
+from hil.run_types import RunOptions
 from hil.time_master import SendHook
 from hil.vcan import REPO_ROOT, UML_SAFE_ENV, host_vcan_available, run_in_uml, uml_unavailable_reason
 
@@ -134,18 +138,28 @@ def start_ecu(ecu_program: Sequence[str], controller: str, scenario: Scenario, s
                              "--realtime" if realtime else "--lockstep"], stderr=stderr)
 
 
-def run_lockstep(bus: can.BusABC, scenario: Scenario, ecu: subprocess.Popen, send_hook: SendHook | None = None) -> None:
-    """One lockstep run of ``scenario`` on ``bus`` with new plant and planner nodes:
-    handshake with ``ecu`` (started by `start_ecu`), then ticks to the scenario's end."""
-    from hil.planner_node import PlannerNode
-    from hil.plant_node import PlantNode
-    from hil.recorder import EcuFrameMonitor
-    from hil.time_master import LockstepMaster
+class _StartedEcu(NoEcu):
+    """The ECU `start_ecu` started, as the rig's ECU: alive while its process runs;
+    `stop_ecu` stops it, not the rig (a second run may follow)."""
 
-    master = LockstepMaster(bus, [PlantNode(scenario), PlannerNode(scenario), EcuFrameMonitor()],
-                            handshake_timeout_s=120.0, ack_timeout_s=30.0, send_hook=send_hook,
-                            peer_alive=lambda: None if ecu.poll() is None else "the ECU exited")
-    master.run(scenario.duration_s)
+    def __init__(self, ecu: subprocess.Popen) -> None:
+        self.process = ecu
+
+    def alive_problem(self) -> str | None:
+        return None if self.process.poll() is None else "the ECU exited"
+
+
+def run_lockstep(scenario: Scenario, ecu: subprocess.Popen, send_hook: SendHook | None = None,
+                 fd: bool = False) -> None:
+    """One lockstep run of ``scenario`` on vcan0 by a new rig (``hil.rig``: its own socket,
+    plant and planner nodes): handshake with ``ecu`` (started by `start_ecu`), then ticks
+    to the scenario's end. ``send_hook``: `RigHooks.send_hook`; ``fd``: the rig's socket
+    may send CAN FD frames."""
+    options = RunOptions(controller="(another process)", bus=BusConfig("socketcan", "vcan0"),
+                         handshake_timeout_s=120.0, ack_timeout_s=30.0)
+    hooks = RigHooks(ecu=lambda rig: _StartedEcu(ecu), send_hook=send_hook, bus_options={"fd": fd})
+    with Rig(scenario, options, hooks) as rig:
+        rig.run()
 
 
 def stop_ecu(ecu: subprocess.Popen) -> int:
@@ -166,12 +180,10 @@ def drive_lockstep(scenario_file: str, controller: str, ecu_program: Sequence[st
 
     scenario = load_scenario(scenario_file)
     ecu = start_ecu(ecu_program, controller, scenario)
-    bus = can.Bus(interface="socketcan", channel="vcan0", fd=fd)
     try:
-        run_lockstep(bus, scenario, ecu, send_hook)
+        run_lockstep(scenario, ecu, send_hook, fd)
     finally:
         status = stop_ecu(ecu)
-        bus.shutdown()
     return status
 
 
@@ -227,11 +239,7 @@ def drive_lost_interface(scenario_file: str, controller: str, ecu_log: str, ecu_
         ecu = start_ecu(ecu_program, controller, scenario, stderr=log, realtime=realtime)
         try:
             if not realtime:
-                bus = can.Bus(interface="socketcan", channel="vcan0")
-                try:
-                    run_lockstep(bus, scenario, ecu)
-                finally:
-                    bus.shutdown()
+                run_lockstep(scenario, ecu)
             else:
                 wait_for_ecu_frame(ecu)  # running, not still starting (seconds in UML under load)
                 # the baseline: its CPU time over as long with vcan0 up
@@ -251,11 +259,7 @@ def drive_lost_interface(scenario_file: str, controller: str, ecu_log: str, ecu_
             time.sleep(1.2)
             report["rerun_at"], report["log_at_rerun"] = time.time(), Path(ecu_log).stat().st_size
             if not realtime:
-                bus = can.Bus(interface="socketcan", channel="vcan0")
-                try:
-                    run_lockstep(bus, scenario, ecu)
-                finally:
-                    bus.shutdown()
+                run_lockstep(scenario, ecu)  # its own socket, opened after the down period
         finally:
             if ecu.poll() is None:
                 report["exit_status"] = stop_ecu(ecu)
