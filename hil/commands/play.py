@@ -26,7 +26,7 @@ HELP = "play a recorded CAN log onto a bus with its original timing"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``eso-hil play``."""
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
-                        ".db, .trc; optionally .gz)")
+                        ".db, .trc; optionally .gz; .mf4)")
     parser.add_argument("--interface", default=None,
                         help="python-can interface (default: python-can's configuration: "
                         "$CAN_INTERFACE, ~/.canrc; else virtual)")

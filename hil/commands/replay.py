@@ -52,10 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      "written. Give --json after LOG (eso-hil replay LOG --json): before it, "
                      "--json takes LOG as its FILE.")
     parser.add_argument("log", type=Path, help="recorded log (.log candump, .asc, .blf, .csv, "
-                        ".trc; optionally .gz)")
+                        ".db, .trc; optionally .gz; .mf4)")
     parser.add_argument("--controller", default=None,
-                        help="controller of the ECU (eso-dkmpc, dkmpc, lmpc, nmpc, or an ablation: "
-                        "lmpc-eso, dmdc-eso); default: "
+                        help="controller of the ECU (eso-dkmpc, dkmpc, lmpc, nmpc, an ablation: "
+                        "lmpc-eso, dmdc-eso, or the geometric baseline stanley); default: "
                         "the one in the log's sidecar <log>.json")
     parser.add_argument("--path", action="append", default=[], metavar="ID=FILE",
                         help="reference path of a PATH_ID (repeatable); default: the sidecar's, "
