@@ -181,8 +181,11 @@ def base_checkout(revision: str, workdir: Path, root: Path = provenance.ROOT) ->
 
 
 def build_firmware(tree: Path) -> None:
-    """``make firmware`` in ``tree`` (the C ECU of the smoke runs)."""
-    done = subprocess.run(["make", "--no-print-directory", "firmware"], cwd=tree, capture_output=True, text=True)
+    """``make firmware`` in ``tree`` (the C ECU of the smoke runs). The environment's install
+    stamp counts as up to date (``make -o``): a worktree's fresh pyproject.toml must not
+    reinstall the shared virtual environment as an editable install of the worktree."""
+    done = subprocess.run(["make", "--no-print-directory", "-o", ".venv/.installed", "firmware"], cwd=tree,
+                          capture_output=True, text=True)
     if done.returncode != 0:
         raise RestampError(f"make firmware in {tree} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
 
