@@ -6,7 +6,8 @@ are the console scripts of ``python -m hil`` and ``python -m firmware_sim``.
 The commands are taken from code blocks (fenced or indented) and inline code spans; a
 trailing comment and backslash continuations are handled. A command whose run takes minutes
 is only checked, not run: this test catches the renamed option, the removed target and the
-misspelt module that a newcomer would meet first.
+misspelt module that a newcomer would meet first. The quick ones also run, as written, in
+``tests/test_doc_commands_run.py``.
 """
 from __future__ import annotations
 
