@@ -141,6 +141,54 @@ def test_bad_program_is_the_python_ecus_error_line(native, name: str, text: str 
     assert (c_status, c_line) == (python_status, python_line)
 
 
+#: TOML that Python's tomllib refuses, and the line both ECUs name (before, the C ECU took
+#: the last of two values, a float without a leading digit, and a byte that is not UTF-8).
+TOML_PROBES = {
+    "twice.toml": (b'kind = "prbs"\nhold_s = 0.5\nhold_s = 0.6\n', 3),
+    "no_leading_digit.toml": (b'kind = "prbs"\nhold_s = .5\n', 2),
+    "no_trailing_digit.toml": (b'kind = "prbs"\nhold_s = 5.\n', 2),
+    "leading_zero.toml": (b'kind = "prbs"\nhold_s = 05\n', 2),
+    "latin1_comment.toml": (b'kind = "prbs"  # caf\xe9\nhold_s = 0.5\n', 1),
+    "latin1_table.csv": (b"time_s,steer_rad\n0.0,0.0\n1.0,0.01\xe9\n", 3),
+}
+
+
+@pytest.mark.parametrize("name", TOML_PROBES)
+def test_what_tomllib_refuses_both_ecus_refuse_naming_the_line(native, name: str, tmp_path: Path) -> None:
+    """One verdict on a program file the TOML grammar (or UTF-8) refuses: exit 2 and one
+    ``error: --excite FILE:`` line naming the line; a byte that is not UTF-8 is the same
+    line from both ECUs (models/input_files.py and firmware/src/ecu_lines.c)."""
+    content, line = TOML_PROBES[name]
+    program = tmp_path / name
+    program.write_bytes(content)
+    verdicts = {which: cli_error(which, str(program)) for which in ("python", "c")}
+    for which, (status, text) in verdicts.items():
+        assert status == 2, (which, text)
+        assert text.startswith(f"error: --excite {program}: "), (which, text)
+        assert f"line {line}" in text, (which, text)
+    if name.startswith("latin1"):
+        assert verdicts["c"] == verdicts["python"] == (2, f"error: --excite {program}: line {line}: not UTF-8")
+
+
+def test_toml_numbers_and_utf8_comments_that_tomllib_takes_the_c_ecu_takes(native, tmp_path: Path) -> None:
+    """The other side of the probes: underscores between digits, an exponent, a sign,
+    hexadecimal, octal and binary integers and a comment in UTF-8 (2- and 4-byte characters)
+    load in both ECUs to the same program (its one-line description; the C ECU then stops
+    at the bus, which exists nowhere here)."""
+    from firmware_sim.excitation import describe, load_program
+
+    program = tmp_path / "ok.toml"
+    program.write_bytes('kind = "prbs"  # caf\u00e9 \U0001d11e\nhold_s = 1_0.5e-1\ndelay_s = +0.5\n'
+                        "seed = 0x1_f\ntorque_hold_s = 0o7\nwheelbase_m = 0b1_0\n".encode())
+    expected = describe(load_program(str(program)))
+    assert "bit 1.05 s" in expected and "from 0.5 s after ACTIVE" in expected
+    result = subprocess.run([str(ECU), "--interface", "socketcand", "--channel", "vcan0", "--port", "1",
+                             "--controller", "lmpc", "--path", "1=hil/paths/dlc.csv", "--lockstep", "--excite",
+                             str(program)], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
+    assert expected in result.stderr, result.stderr[-2000:]
+    assert "cannot open CAN bus" in result.stderr
+
+
 def test_a_table_over_the_static_limit_is_refused_naming_file_and_limit(native, tmp_path: Path) -> None:
     """The C ECU keeps a table program in a static table (no heap after start-up): a file
     with more rows is one error line naming the file and the limit, the same from both ECUs

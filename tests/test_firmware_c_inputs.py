@@ -106,6 +106,7 @@ LINE_PROBES = {
     "long_header": (b"x,y,yaw" + PADDING.encode() + b"\n0,0,0\n", "line 1: longer than 4096 bytes"),
     "nul": (b"x,y,yaw\n0,0,0\n0.1,0\x00junk,0\n0.2,0,0\n", "line 3: holds a NUL byte"),
     "nul_header": (b"x,y\x00,yaw\n0,0,0\n0.1,0,0\n", "line 1: holds a NUL byte"),
+    "not_utf8": (b"x,y,yaw\n0,0,0\n0.1,0,0 \xff\n", "line 3: not UTF-8"),
 }
 
 

@@ -140,6 +140,71 @@ static int parse_float(const char *text, double *value) {
   return *end == '\0' && !strpbrk(text, "xX");
 }
 
+/* Digits with single underscores between them (TOML's 1*( DIGIT / "_" DIGIT )) from *text,
+ * copied to plain[*used] without the underscores; *text moves past them. 0: no digit. */
+static int toml_digits(const char **text, char *plain, size_t *used) {
+  const char *p = *text;
+  if (!isdigit((unsigned char)*p)) return 0;
+  while (isdigit((unsigned char)*p) || (*p == '_' && isdigit((unsigned char)p[1]))) {
+    if (*p != '_') plain[(*used)++] = *p;
+    p++;
+  }
+  *text = p;
+  return 1;
+}
+
+/* A TOML hexadecimal, octal or binary integer's digits (after 0x / 0o / 0b, underscores
+ * between them) into plain as a decimal integer, saturated at LLONG_MAX (over every field's
+ * limit, as the unbounded Python int is). 0: not such digits. */
+static int toml_radix_integer(const char *digits, int base, char *plain, size_t len) {
+  static const char DIGITS[] = "0123456789abcdef";
+  unsigned long long value = 0;
+  const char *p = digits;
+  for (;; p++) {
+    const char *at = *p ? strchr(DIGITS, tolower((unsigned char)*p)) : NULL;
+    int digit = at && at - DIGITS < base ? (int)(at - DIGITS) : -1;
+    if (digit < 0 && *p == '_' && p > digits && p[1] && p[-1] != '_') continue; /* checked below */
+    if (digit < 0) break;
+    value = value > (LLONG_MAX - (unsigned long long)digit) / (unsigned long long)base
+                ? (unsigned long long)LLONG_MAX
+                : value * (unsigned long long)base + (unsigned long long)digit;
+  }
+  if (p == digits || *p != '\0' || p[-1] == '_') return 0;
+  snprintf(plain, len, "%llu", value);
+  return 1;
+}
+
+/* A TOML number (integer or float, as Python's tomllib reads it) into plain (len >=
+ * strlen(text) + 1) as decimal text without underscores, for strtod / strtoll: 0x / 0o /
+ * 0b and the integer's digits; or an optional sign, then inf or nan, or an integer part
+ * with no leading zero, an optional fraction with a digit on each side of its point and an
+ * optional exponent. 0 for anything else (".5", "5.", "05", "1__0", "infinity"), which
+ * tomllib refuses too. */
+static int toml_number(const char *text, char *plain, size_t len) {
+  size_t used = 0;
+  if (strlen(text) >= len) return 0;
+  if (text[0] == '0' && text[1] && strchr("xob", text[1])) /* no sign before these in TOML */
+    return toml_radix_integer(text + 2, text[1] == 'x' ? 16 : (text[1] == 'o' ? 8 : 2), plain, len);
+  if (*text == '+' || *text == '-') plain[used++] = *text++;
+  if (!strcmp(text, "inf") || !strcmp(text, "nan")) {
+    snprintf(plain + used, len - used, "%s", text);
+    return 1;
+  }
+  if (text[0] == '0' && (isdigit((unsigned char)text[1]) || text[1] == '_')) return 0;
+  if (!toml_digits(&text, plain, &used)) return 0;
+  if (*text == '.') {
+    plain[used++] = *text++;
+    if (!toml_digits(&text, plain, &used)) return 0;
+  }
+  if (*text == 'e' || *text == 'E') {
+    plain[used++] = *text++;
+    if (*text == '+' || *text == '-') plain[used++] = *text++;
+    if (!toml_digits(&text, plain, &used)) return 0;
+  }
+  plain[used] = '\0';
+  return *text == '\0';
+}
+
 /* The file name without folder and extension (Path.stem). */
 static void stem_of(const char *file, char *stem, size_t len) {
   const char *base = strrchr(file, '/');
@@ -218,12 +283,12 @@ static int load_toml(ecu_excite_t *ex, const char *file, ecu_lines_t *lines, cha
                                        "torque_amplitude_nm", "torque_hold_s", "delay_s", "steer_rate_limit_rad_s",
                                        "lateral_error_bound_m", "table_time_s", "table_steer_rad", "table_torque_nm"};
   enum { N_FIELDS = sizeof FIELDS / sizeof FIELDS[0] };
-  static char line[LINE_BYTES];
+  static char line[LINE_BYTES], plain[LINE_BYTES]; /* start-up only: one program is read */
   char kind[NAME_BYTES] = "", name[NAME_BYTES];
   int number = 0, has_kind = 0, got;
   int64_t program_seed = 0;
   double numbers[N_FIELDS];
-  int given[N_FIELDS] = {0};
+  int given[N_FIELDS] = {0}, seen[N_FIELDS] = {0};
   stem_of(file, name, sizeof name);
   while ((got = ecu_read_line(lines, line, err, err_len)) != 0) {
     if (got < 0) return -1;
@@ -248,6 +313,11 @@ static int load_toml(ecu_excite_t *ex, const char *file, ecu_lines_t *lines, cha
       snprintf(err, err_len, "--excite %s: unknown field(s) %s; known: %s", file, key, known);
       return -1;
     }
+    if (seen[field]) { /* TOML defines a key once; tomllib refuses the file */
+      snprintf(err, err_len, "--excite %s: line %d: not valid TOML (%s given twice)", file, number, key);
+      return -1;
+    }
+    seen[field] = 1;
     if (!strncmp(key, "table_", 6)) {
       snprintf(err, err_len, "--excite %s: field %s belongs in a CSV table program", file, key);
       return -1;
@@ -279,23 +349,22 @@ static int load_toml(ecu_excite_t *ex, const char *file, ecu_lines_t *lines, cha
                field == 9 ? "an integer" : "a finite number", value[0] == 't' ? "True" : "False");
       return -1;
     }
-    const char *number_text = !strcmp(value, "+inf") ? "inf" : (!strcmp(value, "+nan") ? "nan" : value);
-    if (field <= 1 || !parse_float(number_text, &parsed)) {
+    if (field <= 1 || !toml_number(value, plain, sizeof plain) || !parse_float(plain, &parsed)) {
       snprintf(err, err_len, "--excite %s: line %d: %s = %s: not a value the C ECU reads (a number, or a \"string\" "
                "for name and kind)", file, number, key, value);
       return -1;
     }
-    if (field == 9 && (strpbrk(value, ".eEn") || parsed != floor(parsed))) {
+    if (field == 9 && (strpbrk(plain, ".eEn") || parsed != floor(parsed))) {
       snprintf(err, err_len, "--excite %s: field seed must be an integer, got %s", file, value);
       return -1;
     }
     if (field == 9) { /* exact as an integer (a double would round a large seed) */
       char *end;
       errno = 0;
-      long long seed = strtoll(value, &end, 10);
+      long long seed = strtoll(plain, &end, 10);
       if (errno == ERANGE || *end != '\0' || seed == LLONG_MAX || seed == LLONG_MIN) {
         snprintf(err, err_len, "excitation program '%s': seed %s must be an integer of magnitude below 2^63 - 1",
-                 name, value);
+                 name, plain);
         return -1;
       }
       program_seed = (int64_t)seed;
