@@ -25,8 +25,9 @@ flat-track stiffnesses at its static loads (the extra mass moves the tyres along
 degressive load curve, so the axles' stiffness changes are not exactly 0 % and -20 %).
 
 Writes to ``--out`` (default ``results/identification``): ``tables.md`` (Tables II and
-III), ``summary.json`` (every figure, the fitted bicycle against the nominal one, the
-stage times) and ``training_report.md`` (the training's prediction errors on held-out
+III), ``summary.json`` (every figure, the fitted bicycle against the nominal one),
+``logs/identification_timing.json`` (stage and run wall times, the machine; not under
+version control) and ``training_report.md`` (the training's prediction errors on held-out
 pieces of the drive). The log and the models stay in ``--work`` (``build/identification``).
 """
 from __future__ import annotations
@@ -49,6 +50,8 @@ import numpy as np
 from hil.path_files import PATH_DIR, write_path_csv
 from hil.scenario import SCENARIO_DIR
 
+#: The machine's part of the study (stage and run wall times, the host), under ``--out``/logs/.
+TIMING_FILE = "identification_timing.json"
 #: The repository: the training command runs with it on the module path.
 REPO = Path(__file__).resolve().parent.parent
 IDENTIFICATION_PATH_FILE = PATH_DIR / "identification.csv"
@@ -357,16 +360,15 @@ def tables_markdown(runs: Sequence[dict[str, Any]], summary: dict[str, Any]) -> 
     lines.append("")
     for scenario, title in TABLE_SCENARIOS.items():
         lines.append(tracking_table(title, [r for r in runs if r["scenario"] == scenario], scenario))
-    times = summary["seconds"]
-    lines += ["", f"Stage times on this machine ({summary['machine']}, shared with other work): drive "
-                  f"over CAN {times['drive']:.0f} s, training {times['training']:.0f} s, tables "
-                  f"{times['tables']:.0f} s, total {sum(times.values()):.0f} s.", ""]
+    lines += ["", f"Stage times (drive over CAN, training, tables) and the machine: logs/{TIMING_FILE} "
+                  "beside this file, not under version control.", ""]
     return "\n".join(lines)
 
 
 def run_study(out: Path, work: Path, epochs: int | None, reuse_log: bool) -> list[Path]:
     """The whole study (see the module docstring); returns the files written."""
     from studies.machine import machine_description
+    from studies.report import split_machine_keys
 
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
@@ -388,15 +390,20 @@ def run_study(out: Path, work: Path, epochs: int | None, reuse_log: bool) -> lis
     started = time.perf_counter()
     runs = table_runs(model_dir)
     seconds["tables"] = time.perf_counter() - started
+    # what the inputs decide is committed; the machine's part (wall times) goes to logs/
+    runs_inputs_only, runs_timing = split_machine_keys(runs)
     summary = {"changed_plant": {"mass_offset_kg": CHANGED_MASS_OFFSET_KG, "lag_factor": CHANGED_LAG_FACTOR,
                                  "rear_cornering_stiffness_scale": CHANGED_REAR_STIFFNESS_SCALE},
-               "drive": drive, "bicycle": bicycle_comparison(model_dir), "runs": runs,
-               "seconds": {k: round(v, 1) for k, v in seconds.items()},
-               "machine": machine_description(), "epochs": epochs}
+               "drive": {k: v for k, v in drive.items() if k != "seconds"},
+               "bicycle": bicycle_comparison(model_dir), "runs": runs_inputs_only, "epochs": epochs}
+    timing = {"machine": machine_description(), "seconds": {k: round(v, 1) for k, v in seconds.items()},
+              "runs": runs_timing}
     written = [out / "tables.md", out / "summary.json", out / "training_report.md"]
-    written[0].write_text(tables_markdown(runs, summary))
+    written[0].write_text(tables_markdown(runs_inputs_only, summary))
     written[1].write_text(json.dumps(summary, indent=1) + "\n")
     shutil.copyfile(model_dir / "report.md", written[2])
+    (out / "logs").mkdir(exist_ok=True)
+    (out / "logs" / TIMING_FILE).write_text(json.dumps(timing, indent=1) + "\n")
     return written
 
 

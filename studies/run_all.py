@@ -36,11 +36,6 @@ from hil.bus import resolve_bus_config
 from hil.errors import HilError
 
 CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
-#: Summary keys whose values depend on the machine and its load, not on the run's inputs:
-#: they go to ``run_timing.json`` beside the frame logs, so ``run_metrics.json`` stays the
-#: same from one machine to the next and ``make run`` leaves the checkout clean.
-MACHINE_KEYS = ("wall_time_s", "compute_time", "solver_time_mean_s", "solve_time_us_median",
-                "solve_time_us_max", "ecu_overruns", "realtime_overruns")
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 #: Output names per scenario: (table, figure, title).
 OUTPUTS = {
@@ -112,15 +107,6 @@ def run_summary(result: Any) -> dict[str, Any]:
     return summary
 
 
-def split_machine_keys(runs: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Each run's summary in two: the part its inputs decide, and the part that depends on
-    the machine (:data:`MACHINE_KEYS`, with the run's scenario and controller to name it)."""
-    inputs_only = [{k: v for k, v in run.items() if k not in MACHINE_KEYS} for run in runs]
-    machine = [{"scenario": run["scenario"], "controller": run["controller"],
-                **{k: run[k] for k in MACHINE_KEYS if k in run}} for run in runs]
-    return inputs_only, machine
-
-
 def summary_text(runs: Sequence[dict[str, Any]]) -> str:
     """One screen: a line per run."""
     lines = [f"{'scenario':<12} {'controller':<10} {'max|eY| m':>9} {'RMSE eY':>8} "
@@ -157,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the ECU: python (firmware_sim) or c (build/firmware/ecu, make firmware)")
     args = parser.parse_args(argv)
 
-    from studies.report import plot_scenario, tracking_table
+    from studies.report import plot_scenario, split_machine_keys, tracking_table
     from hil.scenario import load_scenario
     from hil.session import C_ECU_CONTROLLERS, RunOptions, reference_path, run_hil
 

@@ -13,13 +13,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from studies.report import COLOUR, display_name
+from studies.report import COLOUR, MACHINE_KEYS, display_name, split_machine_keys
 
 FRICTION_TITLES = {"high": "high friction: `dlc_high_mu`, 35 km/h, mu 0.85 (Table II's lane change)",
                    "low": "low friction: `dlc_low_mu`, 45-55 km/h, mu 0.5 (Table III's lane change)"}
 #: Identified models, by controller.
 IDENTIFIED_MODEL = {"eso-dkmpc": "identified Koopman", "dkmpc": "identified Koopman", "lmpc": "fitted bicycle"}
 STEM = "vehicle_variants"
+#: The stage times per car (wall clock, this machine), under the report's folder/logs/.
+TIMES_FILE = "vehicle_variants_times.md"
 
 
 def columns(results: Sequence[Mapping[str, Any]]) -> list[tuple[str, str]]:
@@ -165,8 +167,8 @@ def report_markdown(results: Sequence[Mapping[str, Any]], meta: Mapping[str, Any
               "Own: the flat-track slope of the car's tyres at its static axle loads and its yaw "
               "inertia; fitted: `bicycle.json` of the training (mass, lf, lr given).", "",
               *bicycle_table(results), "",
-              f"## Stage times on this machine ({meta['machine']}, shared with other work)", "",
-              *times_table(results), ""]
+              f"Stage times and the machine: `logs/{TIMES_FILE}` beside this file (not under version "
+              "control), so a rerun of the same code rewrites the same bytes here.", ""]
     return "\n".join(lines)
 
 
@@ -213,10 +215,27 @@ def plot_report(results: Sequence[Mapping[str, Any]], path: Path) -> Path:
     return path
 
 
+def inputs_only(result: Mapping[str, Any]) -> dict[str, Any]:
+    """A car's result without what the machine decides: its stage times, the drive's wall
+    time and each run's (``studies.report.MACHINE_KEYS``)."""
+    kept = {k: v for k, v in result.items() if k != "seconds"}
+    kept["runs"] = split_machine_keys(result["runs"])[0]
+    if "drive" in result:
+        kept["drive"] = {k: v for k, v in result["drive"].items() if k not in MACHINE_KEYS}
+    return kept
+
+
 def write_report(results: Sequence[Mapping[str, Any]], out: Path, meta: Mapping[str, Any]) -> list[Path]:
-    """Write ``vehicle_variants.md``, ``.json`` and ``.png`` into ``out``; returns them."""
+    """Write ``vehicle_variants.md``, ``.json`` and ``.png`` into ``out`` (the same bytes on
+    any machine) and the stage times with ``meta["machine"]`` into ``out``/logs/; returns
+    the first three."""
     out.mkdir(parents=True, exist_ok=True)
     markdown, document, figure = (out / f"{STEM}.md", out / f"{STEM}.json", out / f"{STEM}.png")
-    markdown.write_text(report_markdown(results, meta))
-    document.write_text(json.dumps({**meta, "cars": list(results)}, indent=1) + "\n")
+    shared = {k: v for k, v in meta.items() if k != "machine"}
+    markdown.write_text(report_markdown(results, shared))
+    document.write_text(json.dumps({**shared, "cars": [inputs_only(r) for r in results]}, indent=1) + "\n")
+    (out / "logs").mkdir(exist_ok=True)
+    (out / "logs" / TIMES_FILE).write_text(
+        f"# Vehicle variants: stage times on {meta.get('machine', 'this machine')}\n\n"
+        + "\n".join(times_table(results)) + "\n")
     return [markdown, document, plot_report(results, figure)]

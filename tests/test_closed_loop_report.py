@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 import studies.closed_loop as closed_loop
-from studies.report import PAPER_TRACKING, tracking_table
+from studies.report import MACHINE_KEYS, PAPER_TRACKING, split_machine_keys, tracking_table
 from hil.scenario import load_scenario
 from studies.paper_tables import acceptance_checks, main, run_study, summary_text
 from tests.test_closed_loop_doubles import KinematicCommand, KinematicPlant, PurePursuit
@@ -43,7 +43,11 @@ def test_study_writes_tables_figures_json_and_traces(tmp_path: Path, doubles) ->
     assert not (tmp_path / "compute_time.md").exists()  # compute time: make bench only
     assert len(list((tmp_path / "traces").glob("*.npz"))) == 6
     on_disk = json.loads((tmp_path / "study_metrics.json").read_text())
-    assert on_disk == json.loads(json.dumps(document))
+    inputs_only, timing = split_machine_keys(document["runs"])
+    assert on_disk == json.loads(json.dumps({**document, "runs": inputs_only}))
+    assert not any(set(run) & set(MACHINE_KEYS) for run in on_disk["runs"])  # the same on any host
+    on_host = json.loads((tmp_path / "logs" / "tables_timing.json").read_text())
+    assert on_host["runs"] == json.loads(json.dumps(timing)) and on_host["machine"]
     runs = {(r["scenario"], r["controller"]): r for r in on_disk["runs"]}
     assert runs[("dlc_low_mu", "nmpc")]["error"].startswith("FileNotFoundError")
     assert runs[("dlc_high_mu", "lmpc")]["completed"]
@@ -52,7 +56,7 @@ def test_study_writes_tables_figures_json_and_traces(tmp_path: Path, doubles) ->
     print(table)
     assert "| ESO-DKMPC | yes |" in table and "0.217 / 0.066 / 0.093" in table
     assert "NMPC could not be built: FileNotFoundError" in table
-    summary = summary_text(on_disk)
+    summary = summary_text(document)
     print(summary)
     assert "[FAIL] every controller completes" in summary and "nmpc on dlc_high_mu" in summary
     checks = (tmp_path / "study_checks.md").read_text()
@@ -95,7 +99,7 @@ def test_acceptance_checks_pass_and_fail_for_the_right_reasons() -> None:
     scenarios = ["dlc_high_mu", "dlc_low_mu"]
     controllers = ["eso-dkmpc", "dkmpc", "lmpc", "nmpc"]
     passed = acceptance_checks(_all_runs(), scenarios, controllers)
-    assert [c["passed"] for c in passed] == [True, True, True, True]
+    assert [c["passed"] for c in passed] == [True, True, True]
     failing = acceptance_checks(_all_runs({
         ("dlc_low_mu", "lmpc"): {"max_abs": 2.3},
         ("dlc_high_mu", "eso-dkmpc"): {"rmse": 0.09, "median": 7e-3},
@@ -107,8 +111,7 @@ def test_acceptance_checks_pass_and_fail_for_the_right_reasons() -> None:
         (False, "lmpc on dlc_low_mu: max |e_Y| = 2.300 m")
     assert verdicts["ESO-DKMPC e_Y RMSE < DKMPC's on dlc_high_mu"][0] is False
     assert verdicts["ESO-DKMPC e_Y RMSE < DKMPC's on dlc_low_mu"][0] is True
-    ratio_check = verdicts["ESO-DKMPC median step time within 3.0x of LMPC's (this run)"]
-    assert ratio_check[0] is False and "ratio 3.50" in ratio_check[1]
+    assert not any("step time" in check for check in verdicts)  # a machine figure: make bench
 
 
 def test_tables_carry_our_values_and_the_papers() -> None:

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from studies import run_all
+from studies.report import MACHINE_KEYS, split_machine_keys
 
 
 def _run(out: Path) -> None:
@@ -20,7 +21,7 @@ def test_run_metrics_hold_no_machine_figures_and_repeat_exactly(tmp_path: Path) 
     assert first == (tmp_path / "run_metrics.json").read_bytes()
     [run] = json.loads(first)["runs"]
     assert run["completed"] and run["controller"] == "lmpc"
-    assert not set(run) & set(run_all.MACHINE_KEYS)
+    assert not set(run) & set(MACHINE_KEYS)
     [timing] = json.loads((tmp_path / "logs" / "run_timing.json").read_text())["runs"]
     assert (timing["scenario"], timing["controller"]) == ("dlc_high_mu", "lmpc")
     assert timing["wall_time_s"] > 0 and timing["compute_time"]["steps"] > 0
@@ -28,6 +29,6 @@ def test_run_metrics_hold_no_machine_figures_and_repeat_exactly(tmp_path: Path) 
 
 def test_split_keeps_every_key_once() -> None:
     runs = [{"scenario": "s", "controller": "c", "wall_time_s": 1.0, "tracking": {"e": 1}}]
-    inputs_only, machine = run_all.split_machine_keys(runs)
+    inputs_only, machine = split_machine_keys(runs)
     assert inputs_only == [{"scenario": "s", "controller": "c", "tracking": {"e": 1}}]
     assert machine == [{"scenario": "s", "controller": "c", "wall_time_s": 1.0}]
