@@ -42,7 +42,9 @@ ECU_OUTPUT_IDS: frozenset[int] = frozenset(
     {FrameId.HIL_SYNC_ACK, FrameId.STEER_TORQUE_CMD, FrameId.CTRL_DIAG})
 
 #: Version of the sidecar JSON layout (3 added ``ecu``, ``model``, ``excite`` and
-#: ``input_files``; 2 added ``wall_start`` / ``wall_end``; 1 and 2 are read too).
+#: ``input_files``; 2 added ``wall_start`` / ``wall_end``; 1 and 2 are read too). A new
+#: role of ``input_files`` is no new layout: readers take every role, and a sidecar
+#: without one ("default model", "vehicle", "C ECU data" came later) has nothing to check.
 SIDECAR_VERSION = 3
 
 #: Root of the checkout: relative paths in sidecars are relative to it.
@@ -304,7 +306,9 @@ def frame_times(messages: list[can.Message]) -> tuple[list[float], str]:
 
 @dataclass(frozen=True)
 class InputFile:
-    """A file the recorded ECU's commands depend on: its ``role`` ("path 1", "model",
+    """A file the recorded ECU's commands depend on: its ``role`` ("path 1", "model"
+    (``--model``'s), "default model" (the controller's artefact without ``--model``),
+    "vehicle" (models/vehicle.toml), "C ECU data" (the C ECU's build/firmware/ecu_data.bin),
     "excite", "tuning"), its ``path`` and the SHA-256 of its bytes (hex)."""
 
     role: str
@@ -341,7 +345,9 @@ class LogMetadata:
     Since layout 3: the ECU (``ecu``: "python" or "c"), its ``--model`` (a file or a
     Koopman artefact's stem) and ``--excite`` (a shipped program's name or a program
     file), and ``input_files``: every file the ECU's commands depend on (paths, model,
-    excitation program, tuning) with its hash. None / empty in older sidecars."""
+    excitation program, tuning; without ``--model`` the controller's default model, and the
+    vehicle file and the C ECU's data file where they are read) with its hash. None /
+    empty in older sidecars."""
 
     controller: str
     mode: str

@@ -31,6 +31,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
@@ -260,15 +261,14 @@ class Rig:
     def _write_sidecar(self, recorder: BusRecorder) -> None:
         """The log's sidecar, so `eso-hil replay LOG` rebuilds this ECU without flags: the
         ECU, controller, paths, ``--model`` and ``--excite``, and a hash of every file they
-        read (with the tuning), so a replay refuses once one has changed."""
+        read (`recorded_ecu_files`, with the tuning), so a replay refuses once one has
+        changed."""
         from controller.tuning import DEFAULT_TUNING_PATH
-        from firmware_sim.controller_factory import model_files
         from firmware_sim.excitation import program_file
 
         options = self.options
         files: list[tuple[str, Any]] = [(f"path {self.scenario.path_id}", self.scenario.path_file)]
-        if options.model is not None:
-            files += [("model", file) for file in model_files(options.controller, options.model)]
+        files += recorded_ecu_files(options.controller, options.model, options.ecu)
         excite_file = None if options.excite is None else program_file(options.excite)
         if excite_file is not None:
             files.append(("excite", excite_file))
@@ -299,3 +299,56 @@ class Rig:
                    "ecu_frames_raw": self.monitor.raw, "ecu": options.ecu,
                    **({"injector": self.injector} if self.injector is not None else {})},
         )
+
+
+#: Controllers built on the nominal vehicle parameters of models/vehicle.toml (the
+#: bicycle of LMPC and its ablation, NMPC's single-track model, Stanley's axle distance).
+#: A fitted bicycle (``--model``) lies over those parameters, so the file is read then too.
+VEHICLE_FILE_CONTROLLERS = ("lmpc", "lmpc-eso", "nmpc", "stanley")
+
+
+def default_model_files(controller: str) -> list[Path]:
+    """The model files the registry builds ``controller`` on without ``--model``: the
+    Koopman artefact of eso-dkmpc / dkmpc (``.npz``, ``.json``), the DMDc artefact of
+    dmdc-eso; none for the others (`VEHICLE_FILE_CONTROLLERS`)."""
+    from controller.registry import MODEL_FILE_KINDS
+
+    if controller == "dmdc-eso":
+        from models.dmdc_model import DMDC_ARTIFACT
+        stem = DMDC_ARTIFACT
+    elif MODEL_FILE_KINDS.get(controller) == "koopman":
+        from models.koopman_artifact import DEFAULT_ARTIFACT
+        stem = DEFAULT_ARTIFACT
+    else:
+        return []
+    return [stem.with_suffix(".npz"), stem.with_suffix(".json")]
+
+
+def recorded_ecu_files(controller: str, model: Path | str | None,
+                       ecu: str = "python") -> list[tuple[str, Path]]:
+    """(role, file) of every file the ECU's controller reads as it is built, but the
+    tuning: ``--model``'s files ("model"), else the default artefact ("default model"),
+    models/vehicle.toml ("vehicle") for `VEHICLE_FILE_CONTROLLERS`, and for the C ECU
+    without ``--model`` the build's data file ("C ECU data", build/firmware/ecu_data.bin;
+    with ``--model`` its data file is converted from the model and the tuning, both
+    recorded). A replay runs the Python ECU, which reads the same model files.
+
+    A default file that does not exist is left out: the ECU could not have been built on
+    it, and the sidecar is written as the run ends, when an error must not hide the
+    run's own.
+    """
+    from firmware_sim.controller_factory import model_files
+    from firmware_sim.native import DEFAULT_DATA
+    from models.vehicle_params import DEFAULT_PARAMS_PATH
+
+    if model is not None:  # checked before the run: each of them exists
+        files = [("model", file) for file in model_files(controller, Path(model))]
+        defaults = []
+    else:
+        files = []
+        defaults = [("default model", file) for file in default_model_files(controller)]
+        if ecu == "c":
+            defaults.append(("C ECU data", DEFAULT_DATA))
+    if controller in VEHICLE_FILE_CONTROLLERS:
+        defaults.append(("vehicle", DEFAULT_PARAMS_PATH))
+    return files + [(role, file) for role, file in defaults if file.is_file()]

@@ -59,7 +59,7 @@ def test_a_run_with_an_excitation_replays_to_a_match(hil_cli, capsys, tmp_path: 
     _record(hil_cli, log, "lmpc", "--excite", "prbs-torque")
     metadata = read_sidecar(log)
     assert metadata is not None and metadata.excite == "prbs-torque" and metadata.ecu == "python"
-    assert {f.role for f in metadata.input_files} == {"path 1", "tuning"}
+    assert {f.role for f in metadata.input_files} == {"path 1", "vehicle", "tuning"}
     status, out, _ = _replay(hil_cli, capsys, log)
     assert status == 0 and "excitation: prbs-torque (from the sidecar)" in out
     assert "result: MATCH" in out

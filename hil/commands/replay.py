@@ -7,8 +7,9 @@ Exit status, in every mode (exact or tolerance comparison, ``--ref``, ``--realti
 - 3 (:data:`EXIT_DIFFERENT`): they differ, or the ECU stopped answering (replay aborted);
 - 1 (:data:`EXIT_ERROR`): bad input, one ``error: ...`` line: no such log, a log without
   the ECU's inputs (nothing to replay), nothing to compare with, unknown controller, an
-  output file that exists without ``--replace``, a path, model or excitation file the
-  sidecar recorded that is missing or changed; 2: a bad option (argparse).
+  output file that exists without ``--replace``, a file the sidecar recorded (path,
+  model, excitation program, the controller's default model, vehicle file or C ECU data
+  file) that is missing or changed; 2: a bad option (argparse).
 
 The ECU is rebuilt as the sidecar recorded it (controller, paths, ``--model``,
 ``--excite``); the options of the same names replace the sidecar's.
@@ -218,9 +219,11 @@ def _recorded_ecu(args: argparse.Namespace, metadata: Any,
     notes: list[str] = []
     if metadata is not None:
         # the files the replay takes from elsewhere are not the sidecar's business
-        given = {"model"} if args.model is not None else set()
+        given = {"model", "default model"} if args.model is not None else set()
         given |= {"excite"} if args.excite is not None else set()
         given |= {f.role for f in metadata.input_files if f.role.startswith("path ") and args.path}
+        if controller != metadata.controller:  # another controller reads its own files
+            given |= {"default model", "vehicle", "C ECU data"}
         problems = check_input_files(metadata.input_files, skip_roles=given)
         # The tuning is part of the build, like the code: a replay against a changed build
         # is what finds a regression, so it runs and says why it may differ.
@@ -229,13 +232,13 @@ def _recorded_ecu(args: argparse.Namespace, metadata: Any,
         refused = [(recorded, sentence) for recorded, sentence in problems
                    if recorded.role != "tuning"]
         if refused:
-            options = sorted({"--path ID=FILE" if f.role.startswith("path ") else f"--{f.role}"
-                              for f, _ in refused})
+            options = sorted({option for f, _ in refused
+                              if (option := _replacing_option(f.role, controller)) is not None})
             raise ReplayError(
                 f"{args.log}: cannot rebuild the recorded ECU: "
                 + "; ".join(sentence for _, sentence in refused)
-                + f" (hashes in {sidecar_path(args.log)}); restore the file, or replay with "
-                f"another through {' / '.join(options)}")
+                + f" (hashes in {sidecar_path(args.log)}); restore the file"
+                + (f", or replay with another through {' / '.join(options)}" if options else ""))
         if metadata.ecu == "c":
             notes.append("the log was recorded with the C ECU (firmware/); the replay runs the "
                          "Python ECU (firmware_sim)")
@@ -243,3 +246,18 @@ def _recorded_ecu(args: argparse.Namespace, metadata: Any,
         warn(f"{args.log}: {note}")
     factory = None if model is None else model_controller_factory(controller, model)
     return factory, load_excitation(excite), setup, notes
+
+
+def _replacing_option(role: str, controller: str) -> str | None:
+    """The replay option that gives another file for a recorded file of ``role``, None
+    when there is none (the vehicle file, the C ECU's data file, the default model of a
+    controller that takes no ``--model``)."""
+    from controller.registry import MODEL_FILE_KINDS
+
+    if role.startswith("path "):
+        return "--path ID=FILE"
+    if role in ("model", "excite"):
+        return f"--{role}"
+    if role == "default model" and controller in MODEL_FILE_KINDS:
+        return "--model"
+    return None
