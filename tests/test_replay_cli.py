@@ -120,3 +120,29 @@ def test_log_from_elsewhere_replays_with_a_clear_report(hil_cli, capsys, tmp_pat
     assert "no HIL_SYNC in the log" in out and "per signal with tolerances" in out
     assert "80 frame(s) with IDs outside the contract's DBC" in out
     assert "paths: 1=" in out and "default: hil/paths/dlc.csv" in out
+
+
+def test_a_real_time_recording_is_refused_unless_a_comparison_that_can_hold_is_asked_for(
+        hil_cli, capsys, tmp_path: Path) -> None:
+    """A ``--realtime`` run's commands depend on the host's timing, which no log holds: a
+    plain replay says so up front (exit 1, one line) instead of a DIFFERENT for timing
+    alone; ``--compare tolerance`` and a replay's own reference run as asked."""
+    realtime = LOGS / "realtime_lmpc.blf"
+    for extra in ([], ["--compare", "exact"], ["--json"]):
+        status = hil_cli(["replay", str(realtime), *extra])
+        captured = capsys.readouterr()
+        assert status == 1 and captured.out == "" and captured.err.count("\n") == 1, captured
+        assert captured.err.startswith(f"error: {realtime}: a real-time recording")
+        assert "host's timing" in captured.err and "--compare tolerance" in captured.err
+    status = hil_cli(["replay", str(realtime), "--compare", "tolerance"])
+    out = capsys.readouterr().out
+    assert status in (0, 3) and "comparison: per signal with tolerances" in out
+    status = hil_cli(["replay", str(realtime), "--ref", str(LOGS / "realtime_lmpc.ref.log")])
+    assert status == 0 and "result: MATCH" in capsys.readouterr().out
+    assert hil_cli(["replay", str(realtime), "--write-ref", str(tmp_path / "rt.ref.log")]) == 0
+    # the same frames without the sidecar (a log of another tool): compared as before
+    bare = tmp_path / "bare.blf"
+    shutil.copy(realtime, bare)
+    capsys.readouterr()
+    assert hil_cli(["replay", str(bare), "--controller", "lmpc"]) in (0, 3)
+    assert "comparison: per signal with tolerances" in capsys.readouterr().out

@@ -9,7 +9,9 @@ Exit status, in every mode (exact or tolerance comparison, ``--ref``, ``--realti
   the ECU's inputs (nothing to replay), nothing to compare with, unknown controller, an
   output file that exists without ``--replace``, a file the sidecar recorded (path,
   model, excitation program, the controller's default model, vehicle file or C ECU data
-  file) that is missing or changed; 2: a bad option (argparse).
+  file) that is missing or changed, a real-time recording (the sidecar's ``mode``)
+  without ``--compare tolerance``, ``--ref`` or ``--write-ref``
+  (`check_realtime_comparison`); 2: a bad option (argparse).
 
 The ECU is rebuilt as the sidecar recorded it (controller, paths, ``--model``,
 ``--excite``); the options of the same names replace the sidecar's.
@@ -71,7 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "<log name>.ref.log next to the log)")
     parser.add_argument("--compare", choices=("exact", "tolerance"), default=None,
                         help="bit for bit (default for lockstep logs) or per signal with "
-                        "tolerances (default for logs without HIL_SYNC)")
+                        "tolerances (default for logs without HIL_SYNC; to be given for a "
+                        "real-time recording, which is refused without it, --ref or --write-ref)")
     parser.add_argument("--tol", action="append", default=[], metavar="SIGNAL=VALUE",
                         help="tolerance of one signal in --compare tolerance, e.g. "
                         "steer_angle_cmd=0.005 (repeatable)")
@@ -139,6 +142,8 @@ def main(args: argparse.Namespace) -> int:
     database, dbc_name = display_database(args.dbc)
     contents = read_log(args.log)
     metadata = read_sidecar(args.log)
+    if metadata is not None and metadata.mode == "realtime":
+        check_realtime_comparison(args, writing)
     if controller_given is not None:
         controller, controller_source = controller_given, "--controller"
     elif metadata is not None:
@@ -190,6 +195,30 @@ def main(args: argparse.Namespace) -> int:
         print(f"wrote {target} ({len(report.run.outputs)} frames)", file=sys.stderr)
         return EXIT_MATCH
     return EXIT_MATCH if report.match else EXIT_DIFFERENT
+
+
+def check_realtime_comparison(args: argparse.Namespace, writing: bool) -> None:
+    """A real-time recording (the sidecar's ``mode``) is compared only in a way that can
+    hold: per signal with tolerances (``--compare tolerance``, asked for), or with a
+    reference a replay wrote (``--ref``; ``--write-ref`` writes one). Its recorded commands
+    depend on the host's timing (when each control task ran, its overruns), which no log
+    holds, so a replay cannot reproduce them: a plain replay would report DIFFERENT for the
+    host's timing alone.
+
+    Raises:
+        ReplayError: none of these was given (one line, saying which to give).
+    """
+    from hil.logio import sidecar_path
+    from hil.replay import ReplayError
+
+    if writing or args.ref is not None or args.compare == "tolerance":
+        return
+    raise ReplayError(
+        f"{args.log}: a real-time recording ('mode': 'realtime' in {sidecar_path(args.log)}): "
+        "its ECU's commands depend on the host's timing (when each control task ran, its "
+        "overruns), which no log holds, so a replay cannot reproduce them; compare per signal "
+        "with --compare tolerance [--tol SIGNAL=VALUE] (differences beyond the tolerances are "
+        "reported), or with a replay's own reference (--write-ref, then --ref FILE)")
 
 
 def _recorded_ecu(args: argparse.Namespace, metadata: Any,
