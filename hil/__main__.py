@@ -9,9 +9,11 @@ keeps its module-level imports light (argparse only) and imports its machinery i
 line in the table.
 
 Errors of the project (``HilError`` and the other packages' bases) print ``error: ...``
-on stderr and exit 1; ``--debug`` shows the traceback instead. SIGINT, SIGTERM and SIGHUP
-all unwind the command the same way (ECU stopped, log flushed, sidecar written) and exit
-130, 143 and 129 (128 + the signal number). A reader that closes the pipe early
+on stderr and exit 1 (:data:`EXIT_ERROR`), a bad option value (``hil.errors.OptionError``)
+exits 2 (:data:`EXIT_USAGE`, argparse's status for a bad option); ``--debug`` shows the
+traceback instead. SIGINT, SIGTERM and SIGHUP all unwind the command the same way (ECU
+stopped, log flushed, sidecar written) and exit 130, 143 and 129 (128 + the signal
+number). A reader that closes the pipe early
 (``eso-hil decode LOG | head``) ends the command quietly with 141 (128 + SIGPIPE), as a
 C tool killed by SIGPIPE, not with a BrokenPipeError traceback.
 """
@@ -38,6 +40,12 @@ SUBCOMMANDS: dict[str, str] = {
     "play": "hil.commands.play",
     "faults": "hil.commands.faults",
 }
+
+
+#: Exit status of an error of the project (``error: ...``).
+EXIT_ERROR = 1
+#: Exit status of a bad option value, as argparse's own option errors and ``eso-ecu``'s.
+EXIT_USAGE = 2
 
 
 def _project_errors() -> tuple[type[BaseException], ...]:
@@ -86,8 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     except _project_errors() as e:
         if args.debug:
             raise
+        from hil.errors import OptionError
+
         print(f"error: {e}", file=sys.stderr)
-        return 1
+        return EXIT_USAGE if isinstance(e, OptionError) else EXIT_ERROR
     except KeyboardInterrupt as e:
         signum = getattr(e, "signum", signal.SIGINT)
         print(f"error: stopped by {signal.Signals(signum).name}", file=sys.stderr)

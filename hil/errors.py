@@ -34,6 +34,13 @@ class OutputPathError(HilError):
     the command's replace option), or its folder is missing or not writable."""
 
 
+class OptionError(HilError):
+    """A command-line option has a value the command cannot use: an unknown name, a number
+    out of range, an output it may not write (the message names the option and the value).
+    ``eso-hil`` exits 2 for it, as for argparse's own option errors and as ``eso-ecu`` does;
+    other errors exit 1."""
+
+
 class StopSignal(KeyboardInterrupt):
     """SIGTERM or SIGHUP arrived: unwinds like Ctrl-C (SIGINT), so every ``finally`` stops
     the ECU, flushes the log and writes the sidecar; the command exits 128 + ``signum``."""

@@ -78,7 +78,7 @@ def test_an_unknown_controller_stops_before_anything_starts(hil_cli, capsys, nam
     status = hil_cli(["run", "--scenario", "dlc_smoke", "--controller", name])
     captured = capsys.readouterr()
     print(captured.err)
-    assert status == 1 and captured.out == ""
+    assert status == 2 and captured.out == ""  # a bad option value, as eso-ecu's
     assert captured.err.count("\n") == 1 and captured.err.count("unknown controller") == 1
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import can
 import numpy as np
@@ -152,22 +153,26 @@ def test_plant_restart_degrades_then_recovers_through_standby():
     assert modes[2500] == CtrlMode.ACTIVE and valid[2500]
 
 
-@pytest.mark.parametrize("argv, fragment", [
-    (["run", "--scenario", "no_such_scenario", "--controller", "lmpc"], "unknown scenario 'no_such_scenario'"),
-    (["run", "--scenario", "dlc_smoke", "--controller", "pid"], "unknown controller 'pid'"),
+@pytest.mark.parametrize("argv, fragment, expected_status", [
+    # a bad option value exits 2, as argparse's own option errors and eso-ecu's
+    (["run", "--scenario", "no_such_scenario", "--controller", "lmpc"], "unknown scenario 'no_such_scenario'", 2),
+    (["run", "--scenario", "dlc_smoke", "--controller", "pid"], "unknown controller 'pid'", 2),
     (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--log", "run.txt"],
-     "--log run.txt: unknown log format '.txt'"),
-    (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ack-timeout", "0"], "--ack-timeout must be > 0"),
+     "--log run.txt: unknown log format '.txt'", 2),
+    (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--ack-timeout", "0"], "--ack-timeout must be > 0", 2),
+    # bad input: a scenario file that does not load, a bus that does not open
+    (["run", "--scenario", str(Path(__file__).resolve().parents[1] / "pyproject.toml"), "--controller", "lmpc"],
+     "pyproject.toml: unknown field(s)", 1),
     (["run", "--scenario", "dlc_smoke", "--controller", "lmpc", "--interface", "socketcan",
-      "--channel", "nocan0", "--handshake-timeout", "1"], "cannot open CAN bus socketcan:nocan0"),
+      "--channel", "nocan0", "--handshake-timeout", "1"], "cannot open CAN bus socketcan:nocan0", 1),
 ])
-def test_cli_bad_input_is_one_error_line(argv, fragment, capsys):
+def test_cli_bad_input_is_one_error_line(argv, fragment, expected_status, capsys):
     from hil.__main__ import main
 
     status = main(argv)
     err = capsys.readouterr().err
     print(err)
-    assert status == 1
+    assert status == expected_status
     assert err.startswith("error: ") and fragment in err and "Traceback" not in err
 
 

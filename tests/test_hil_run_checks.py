@@ -49,11 +49,11 @@ def test_log_onto_the_runs_own_path_file_is_refused(tmp_path, capsys):
     status = hil_main(run_args(scenario, "--log", str(path_copy)))
     err = capsys.readouterr().err
     print(err)
-    assert status == 1 and err.count("\n") == 1
+    assert status == 2 and err.count("\n") == 1
     assert err.startswith(f"error: --log {path_copy}: is one of the inputs of this run")
     assert path_copy.read_bytes() == DLC.read_bytes()
     status = hil_main(run_args(scenario, "--log", str(scenario)))
-    assert status == 1 and "is one of the inputs" in capsys.readouterr().err
+    assert status == 2 and "is one of the inputs" in capsys.readouterr().err
 
 
 def test_existing_out_file_is_refused_before_the_run(tmp_path, capsys):
@@ -66,7 +66,7 @@ def test_existing_out_file_is_refused_before_the_run(tmp_path, capsys):
     status = hil_main(run_args(scenario, "--out", str(out)))
     err = capsys.readouterr().err
     print(err, f"after {time.monotonic() - started:.2f} s")
-    assert status == 1 and err == f"error: --out {out}: is a file, expected a folder\n"
+    assert status == 2 and err == f"error: --out {out}: is a file, expected a folder\n"
     assert out.read_text() == "keep me"
 
 
@@ -76,16 +76,16 @@ def test_outputs_of_another_run_need_replace_and_missing_folders_are_errors(tmp_
     assert hil_main(run_args(scenario, "--out", str(out), "--log", str(log))) == 0
     capsys.readouterr()
     summary = (out / "summary.json").read_text()
-    assert hil_main(run_args(scenario, "--out", str(out))) == 1
+    assert hil_main(run_args(scenario, "--out", str(out))) == 2
     err = capsys.readouterr().err
     assert "holds another run's outputs" in err and "--replace" in err
-    assert hil_main(run_args(scenario, "--log", str(log))) == 1
+    assert hil_main(run_args(scenario, "--log", str(log))) == 2
     assert "file exists (give --replace" in capsys.readouterr().err
     assert (out / "summary.json").read_text() == summary
     assert hil_main(run_args(scenario, "--out", str(out), "--log", str(log), "--replace")) == 0
     capsys.readouterr()
     for option, target in (("--out", tmp_path / "no" / "out"), ("--log", tmp_path / "no" / "r.log")):
-        assert hil_main(run_args(scenario, option, str(target))) == 1
+        assert hil_main(run_args(scenario, option, str(target))) == 2  # a bad option value
         err = capsys.readouterr().err
         print(err)
         assert err.startswith(f"error: {option} {target}: folder") and "does not exist" in err

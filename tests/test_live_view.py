@@ -155,7 +155,7 @@ def test_cli_plot_file_is_written_and_stdout_stays_json(tmp_path, capsys):
     assert f"wrote {out}" in captured.err
     assert matplotlib.image.imread(out).shape[:2] == (800, 1200)
     # an existing image needs --replace
-    assert main(_run(tmp_path, "--plot", str(out))) == 1
+    assert main(_run(tmp_path, "--plot", str(out))) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"error: --plot {out}: file exists")
 
@@ -174,7 +174,7 @@ def test_cli_plot_without_file_and_display_notes_and_runs(tmp_path, capsys):
 ])
 def test_cli_plot_errors_are_one_line_before_the_run(tmp_path, capsys, name, message):
     target = tmp_path / name
-    assert main(_run(tmp_path, "--plot", str(target))) == 1
+    assert main(_run(tmp_path, "--plot", str(target))) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err.count("\n") == 1 and captured.err.startswith(f"error: --plot {target}")
@@ -185,7 +185,7 @@ def test_cli_plot_errors_are_one_line_before_the_run(tmp_path, capsys, name, mes
 def test_cli_plot_onto_an_input_is_refused(tmp_path, capsys):
     scenario = load_scenario("dlc_smoke")
     before = scenario.path_file.read_bytes()
-    assert main(_run(tmp_path, "--plot", str(scenario.path_file))) == 1
+    assert main(_run(tmp_path, "--plot", str(scenario.path_file))) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "is one of the inputs" in err
     assert scenario.path_file.read_bytes() == before

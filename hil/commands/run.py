@@ -17,9 +17,13 @@ name (any case), the scenario and
 its path file (the contract's path checks), the DBC, and the outputs: ``--log`` and
 ``--out`` are never one of the run's inputs, their folders must exist, and an existing log
 or an ``--out`` folder holding another run's outputs is an error unless ``--replace`` is
-given. ``--model`` and ``--excite`` get the ECU's own checks first: a file the ECU cannot
-use exits 2 with one ``error:`` line, as ``eso-ecu`` does (other errors exit 1). ``--out``
-is the one folder a run creates (its parent must exist). SIGTERM and SIGHUP end the run as SIGINT does (ECU stopped with its last
+given. ``--model`` and ``--excite`` get the ECU's own checks first. A bad option value
+(an unknown controller, a ``--scenario`` that names no file and no shipped scenario, a
+timeout <= 0, a ``--model`` or ``--excite`` file the ECU cannot use, an unusable
+``--log``, ``--out`` or ``--plot``) is one ``error:`` line and exit 2
+(`hil.errors.OptionError`), as argparse's own option errors and ``eso-ecu``'s; a scenario
+or path file that does not load, a bus that does not open and a failed run exit 1.
+``--out`` is the one folder a run creates (its parent must exist). SIGTERM and SIGHUP end the run as SIGINT does (ECU stopped with its last
 CMD_VALID = 0 frame, log flushed, sidecar written; exit 143 / 129 / 130).
 """
 from __future__ import annotations
@@ -27,6 +31,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 from hil.commands import add_ecu_input_options, controller_name
@@ -83,30 +89,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run the scenario; print the summary; 0 on success."""
-    from firmware_sim.errors import EcuError
     from hil.bus import resolve_bus_config
     from hil.errors import HilError
     from hil.faults import scenario_fault_spec
-    from hil.scenario import load_scenario
+    from hil.scenario import list_scenarios, load_scenario
     from hil.session import RunOptions, check_c_ecu, run_hil
     from hil.time_master import DEFAULT_ACK_TIMEOUT_S, DEFAULT_HANDSHAKE_TIMEOUT_S
 
-    for name in ("handshake_timeout", "ack_timeout"):
-        value = getattr(args, name)
-        if value is not None and not value > 0:
-            raise HilError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
-    args.controller = controller_name(args.controller)
-    try:  # the ECU's own checks, before anything else: exit 2 as eso-ecu
+    with bad_option_values():
+        for name in ("handshake_timeout", "ack_timeout"):
+            value = getattr(args, name)
+            if value is not None and not value > 0:
+                raise HilError(f"--{name.replace('_', '-')} must be > 0 s, got {value}")
+        args.controller = controller_name(args.controller)
+        # the ECU's own checks, before anything else (eso-ecu makes them too)
         check_ecu_configuration(args.controller, args.model, args.excite)
-    except EcuError as error:
-        if getattr(args, "debug", False):
-            raise
-        print(f"error: {error}", file=sys.stderr)
-        return EXIT_ECU_CONFIGURATION
-    scenario = load_scenario(args.scenario)
+    # --scenario naming no file and no shipped scenario is a bad option value, as an unknown
+    # --controller; a scenario file that does not load is bad input
+    names_nothing = not Path(args.scenario).exists() and args.scenario not in list_scenarios()
+    with bad_option_values() if names_nothing else nullcontext():
+        scenario = load_scenario(args.scenario)
     plot_file = None if args.plot in (None, SHOW_ONLY) else args.plot
-    check_run_paths(scenario, args.log, args.out, args.replace, model=args.model, excite=args.excite,
-                    plot=plot_file)
+    with bad_option_values():
+        check_run_paths(scenario, args.log, args.out, args.replace, model=args.model,
+                        excite=args.excite, plot=plot_file)
     options = RunOptions(
         controller=args.controller,
         bus=resolve_bus_config(args.interface, args.channel),
@@ -160,8 +166,21 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Exit status for a ``--model`` or ``--excite`` the ECU cannot use (``eso-ecu``'s, too).
-EXIT_ECU_CONFIGURATION = 2
+@contextmanager
+def bad_option_values() -> Iterator[None]:
+    """The checks inside look at option values only, so what they refuse is a bad option
+    (the message names it): the HIL's and the ECU's errors are re-raised as
+    `hil.errors.OptionError`, which ``eso-hil`` exits 2 for, as ``eso-ecu`` does. A DBC
+    that does not load (``can_defs``' error) is no option's fault and passes as it is."""
+    from firmware_sim.errors import EcuError
+    from hil.errors import HilError, OptionError
+
+    try:
+        yield
+    except OptionError:
+        raise
+    except (HilError, EcuError) as error:
+        raise OptionError(str(error)) from error
 
 
 def check_ecu_configuration(controller: str, model: Path | None, excite: str | None) -> None:
