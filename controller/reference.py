@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from controller.errors import PathError
-from models.input_files import PATH_FILE_MAX_BYTES, bounded_lines
+from models.input_files import PATH_FILE_MAX_BYTES, bounded_lines, csv_number
 from models.measurement import wrap_angle
 
 #: Largest spacing allowed between consecutive path points (m).
@@ -129,7 +129,7 @@ def _parse_path_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
             point = []
             for j, cell in enumerate(row):
                 try:
-                    point.append(float(cell))
+                    point.append(csv_number(cell))
                 except ValueError as e:
                     raise PathError(f"{path}: line {line} column {CSV_HEADER[j]}: "
                                     f"not a number: {cell!r}") from e

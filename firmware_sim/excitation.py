@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_sim.errors import ConfigError
-from models.input_files import EXCITE_FILE_MAX_BYTES, InputFileError, bounded_lines
+from models.input_files import EXCITE_FILE_MAX_BYTES, InputFileError, bounded_lines, csv_number
 
 PROGRAM_KINDS = ("chirp", "prbs", "steps", "table")
 _MASK64 = (1 << 64) - 1
@@ -405,11 +405,11 @@ def _table_rows(path: Path, header: list[str], numbered: Iterable[tuple[int, lis
         if len(columns[0]) == TABLE_MAX_ROWS:
             raise ConfigError(f"--excite {path}: line {number}: more than {TABLE_MAX_ROWS} rows (the table "
                               "limit of both ECUs)")
-        try:
-            for column, cell in zip(columns, row):
-                column.append(float(cell))
-        except ValueError:
-            raise ConfigError(f"--excite {path}: line {number}: not a number in {row}") from None
+        for j, (column, cell) in enumerate(zip(columns, row), start=1):
+            try:
+                column.append(csv_number(cell))
+            except ValueError:
+                raise ConfigError(f"--excite {path}: line {number}: not a number in column {j}: {cell!r}") from None
     return ExcitationProgram(path.stem, "table", table_time_s=tuple(columns[0]),
                              table_steer_rad=tuple(columns[1]),
                              table_torque_nm=tuple(columns[2]) if len(columns) == 3 else ())

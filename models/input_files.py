@@ -6,7 +6,8 @@ The text files both ECUs read (path CSVs, excitation programs) go through `bound
 whose rules the C ECU's ``firmware/src/ecu_lines.c`` follows byte for byte, so both give
 the same verdict on the same file: a line is at most `MAX_LINE_BYTES` bytes with its end
 and holds no NUL byte; a file is at most its own limit in all. Other inputs are read whole
-with `read_bounded` (at most ``limit + 1`` bytes are ever read).
+with `read_bounded` (at most ``limit + 1`` bytes are ever read). Their numbers are read
+by `csv_number`, the C ECU's rule.
 """
 from __future__ import annotations
 
@@ -27,6 +28,21 @@ MODEL_FILE_MAX_BYTES = 64 * 1024 * 1024
 #: Bytes of a training log or named-column CSV given to ``koopman_train --logs`` (a 612 s
 #: identification drive logs about 40 MB).
 LOG_FILE_MAX_BYTES = 512 * 1024 * 1024
+
+
+def csv_number(cell: str) -> float:
+    """A number of a CSV input file (path files, excitation tables) as both ECUs read it:
+    Python's ``float`` of an ASCII cell without underscores (decimal, ``inf`` or ``nan``,
+    blanks around it). CSV is not TOML: ``1_0`` is refused, as the C ECU's ``strtod``
+    refuses it, where ``float`` would read 10; so are non-ASCII digits and blanks, which the
+    C ECU, reading bytes, does not take either.
+
+    Raises:
+        ValueError: ``cell`` is not such a number.
+    """
+    if "_" in cell or not cell.isascii():
+        raise ValueError(f"not a number: {cell!r}")
+    return float(cell)
 
 
 class InputFileError(ValueError):

@@ -223,3 +223,18 @@ def test_hil_run_passes_the_program_to_the_c_ecu(native, tmp_path: Path) -> None
     for program, passed in (("chirp", "chirp"), ("rel/doublet.csv", str(Path("rel/doublet.csv").resolve()))):
         command = c_ecu_command(scenario, default_options("lmpc", ecu="c", excite=program))
         assert command[command.index("--excite") + 1] == passed
+
+
+@pytest.mark.parametrize("cell", ["1_0", "\u0661"])
+def test_a_table_number_is_ascii_without_underscores_in_both_ecus(native, cell: str, tmp_path: Path) -> None:
+    """CSV is not TOML: a table cell ``1_0`` (or an Arabic-Indic digit) is not a number for
+    either ECU, refused at its line with exit 2 (before, the Python ECU read 10, or 1, and
+    then refused the table for a time that does not increase, or took it). The Python
+    ECU's line also names the value; the C ECU's names the column only."""
+    program = tmp_path / "table.csv"
+    program.write_text(f"time_s,steer_rad\n0.0,0.01\n{cell},0.0\n0.5,0.0\n", encoding="utf-8")
+    prefix = f"error: --excite {program}: line 3: not a number in column 1"
+    python_status, python_line = cli_error("python", str(program))
+    c_status, c_line = cli_error("c", str(program))
+    assert python_status == c_status == 2
+    assert python_line == f"{prefix}: {cell!r}" and c_line.startswith(prefix), (python_line, c_line)

@@ -107,6 +107,10 @@ LINE_PROBES = {
     "nul": (b"x,y,yaw\n0,0,0\n0.1,0\x00junk,0\n0.2,0,0\n", "line 3: holds a NUL byte"),
     "nul_header": (b"x,y\x00,yaw\n0,0,0\n0.1,0,0\n", "line 1: holds a NUL byte"),
     "not_utf8": (b"x,y,yaw\n0,0,0\n0.1,0,0 \xff\n", "line 3: not UTF-8"),
+    # a CSV number is ASCII without underscores (models/input_files.py csv_number): before,
+    # the Python ECU read 1_0 as 10 and an Arabic-Indic digit as its value
+    "underscore": (b"x,y,yaw\n0,0,0\n0.25,1_0,0\n", "line 3 column y: not a number: '1_0'"),
+    "non_ascii_digit": ("x,y,yaw\n0,0,0\n0.25,\u0661,0\n".encode(), "line 3 column y: not a number: '\u0661'"),
 }
 
 
