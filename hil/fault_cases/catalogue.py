@@ -1,7 +1,8 @@
 """The fault campaign's case catalogue (``make faults``, ``studies.fault_campaign``): the
 campaign's scenario and fault onset, the contract's expected reactions (`Expect` and their
 bounds), `FaultCase`, the injector's cases (`campaign_cases`, also the campaign grid's
-fault catalogue) and the ECU-level ones (`ecu_cases`: a jump of virtual time, a lost bus).
+fault catalogue), the ECU-level ones (`ecu_cases`: a jump of virtual time, a lost bus) and
+the input files' (`input_cases`).
 
 Bus faults run with ESO-DKMPC; vehicle faults with ESO-DKMPC and DKMPC (the observer is
 what should make them survivable). Faults start at 3.0 s, in the first lane change
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from can_defs.frames import HANDSHAKE_TICK, CtrlMode
+from hil.fault_cases.input_cases import CONTROLLER as INPUT_CONTROLLER, INPUT_CASES
 from hil.faults import PLANNER_IDS, PLANT_IDS
 
 #: Where the fault starts in the campaign (s): mid first lane change of the DLC.
@@ -95,7 +97,9 @@ class FaultCase:
     note: str = ""
     #: A fault of the time base or of the ECU's own bus (`ecu_cases`), run by
     #: `run_ecu_case`: ``{"kind": "time_jump", "start_s", "ahead_ms"}`` or
-    #: ``{"kind": "lost_bus", "start_s", "outage_s"}``; None: the injector's ``table``.
+    #: ``{"kind": "lost_bus", "start_s", "outage_s"}``; a bad input file
+    #: (``{"kind": "input", ...}``: ``hil.fault_cases.input_cases``); None: the injector's
+    #: ``table``.
     ecu_fault: dict[str, Any] | None = None
 
 
@@ -214,7 +218,15 @@ def ecu_cases() -> list[FaultCase]:
     ]
 
 
+def input_cases() -> list[FaultCase]:
+    """A bad input file given to the ECU at start-up (``hil.fault_cases.input_cases``: the
+    files and the verdict each case expects of both ECUs), with its controller."""
+    return [FaultCase(case.name, "bus", {}, (INPUT_CONTROLLER,), (), case.note, ecu_fault=case.ecu_fault())
+            for case in INPUT_CASES]
+
+
 def all_cases() -> list[FaultCase]:
     """Every case of `make faults`: the injector's (`campaign_cases`, also the campaign
-    grid's fault catalogue) and the ECU-level ones (`ecu_cases`)."""
-    return campaign_cases() + ecu_cases()
+    grid's fault catalogue), the ECU-level ones (`ecu_cases`) and the input files'
+    (`input_cases`)."""
+    return campaign_cases() + ecu_cases() + input_cases()

@@ -12,6 +12,7 @@ from typing import Any
 from hil.errors import HilError
 from hil.fault_cases.c_ecu import c_not_applicable, run_c_ecu_case
 from hil.fault_cases.catalogue import SCENARIO, FaultCase
+from hil.fault_cases.input_runs import run_input_case
 from hil.fault_cases.python_ecu import EcuLogCounter, run_ecu_case
 from hil.fault_cases.verdicts import Verdict, evaluate
 from hil.faults import FaultSpec
@@ -30,6 +31,8 @@ def run_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
     if ecu == "c" and (reason := c_not_applicable(case)) is not None:
         return Verdict(case.name, case.group, controller, f"{case.name}: {case.note}",
                        outcome="n/a", ecu=ecu, not_applicable=reason)
+    if case.ecu_fault is not None and case.ecu_fault["kind"] == "input":
+        return run_input_case(case, controller, scenario_name, duration_s, ecu)
     if case.ecu_fault is not None:
         if ecu == "c":
             return run_c_ecu_case(case, controller, scenario_name, duration_s)

@@ -10,7 +10,9 @@ Per run (`evaluate`):
   came within its bound;
 - max |e_Y| of the true pose (t = 0, 25, 50, ... ms) and the outcome: ``safe stop`` (SAFE_STOP
   and the plant at standstill at the end; SAFE_STOP steers straight, so it may leave the
-  path), else ``tracked`` (max |e_Y| <= 1 m), else ``FAILED``;
+  path), else ``tracked`` (max |e_Y| <= 1 m), else ``FAILED``; the input-file cases
+  (``hil.fault_cases.input_runs``) have two outcomes of their own, set only where the case
+  expects them and every row is met: ``refused to start`` and ``FAULT latched``;
 - invalid commands, checked independently of the ECU's own code: every ECU frame decoded
   with cantools from the DBC, CRC recomputed; a STEER_TORQUE_CMD with CMD_VALID = 1 is
   invalid when its CRC is wrong, |steer| > 0.3 rad, |torque| > the ECU's 3000 N m (inside
@@ -47,6 +49,10 @@ SETTLE_WINDOW_S = 2.0
 VALID_MODES = {int(CtrlMode.ACTIVE), int(CtrlMode.DEGRADED), int(CtrlMode.SAFE_STOP)}
 #: Bus bits whose new appearance counts as a reaction (bit 2 is the solver's fallback).
 REACTION_BITS = 0b1011
+#: Outcomes of a run that passes: the vehicle kept on the path or safely stopped, or (input-
+#: file cases only, where the case expects it) the ECU refused its bad file at start-up or
+#: latched FAULT for it, commanding nothing.
+PASSING_OUTCOMES = ("tracked", "safe stop", "refused to start", "FAULT latched")
 
 
 @dataclass
@@ -83,10 +89,10 @@ class Verdict:
         return all(e["met"] for e in self.expects)
 
     def passed(self) -> bool:
-        """No crash, no invalid command, outcome tracked or safe stop, expectations met
-        (False for a case that did not run: ``not_applicable``)."""
+        """No crash, no invalid command, a passing outcome (`PASSING_OUTCOMES`),
+        expectations met (False for a case that did not run: ``not_applicable``)."""
         return (not self.not_applicable and self.crashes == 0 and self.invalid_commands == 0
-                and self.outcome in ("tracked", "safe stop") and self.expects_met)
+                and self.outcome in PASSING_OUTCOMES and self.expects_met)
 
 
 def check_commands(raw: Sequence[tuple[int, int, bytes]]) -> tuple[int, int, list[str]]:
