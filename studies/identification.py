@@ -368,7 +368,7 @@ def tables_markdown(runs: Sequence[dict[str, Any]], summary: dict[str, Any]) -> 
 def run_study(out: Path, work: Path, epochs: int | None, reuse_log: bool) -> list[Path]:
     """The whole study (see the module docstring); returns the files written."""
     from studies.machine import machine_description
-    from studies.report import split_machine_keys
+    from studies.machine_figures import split_machine_keys
 
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)

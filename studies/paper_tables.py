@@ -8,7 +8,7 @@ Writes to ``--out`` (default ``results/``):
 - ``fig8_high_mu.png``, ``fig9_low_mu.png``: speed, steer, trajectory, e_Y (Figs 8 / 9);
 - ``study_checks.md``: the issue's acceptance checks, PASS / FAIL with the figures;
 - ``study_metrics.json``: every number above plus the acceptance checks; the same bytes on
-  any machine (``studies.report.MACHINE_KEYS`` left out);
+  any machine (``studies.machine_figures.MACHINE_KEYS`` left out);
 - ``logs/tables_timing.json`` (not under version control): each run's step and solver
   times and the machine they ran on (``make bench`` compares step times side by side);
 - ``traces/<scenario>__<controller>.npz``: the full time series of every run.
@@ -35,7 +35,8 @@ from tqdm import tqdm
 from studies.closed_loop import ClosedLoopResult, ClosedLoopTrace, control_steps, run_closed_loop
 from hil.errors import HilError
 from studies.machine import machine_description
-from studies.report import display_name, plot_scenario, split_machine_keys, tracking_table
+from studies.machine_figures import split_machine_keys
+from studies.report import display_name, plot_scenario, tracking_table
 from controller.registry import GEOMETRIC_NAMES
 from hil.scenario import Scenario, load_scenario
 

@@ -143,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="the ECU: python (firmware_sim) or c (build/firmware/ecu, make firmware)")
     args = parser.parse_args(argv)
 
-    from studies.report import plot_scenario, split_machine_keys, tracking_table
+    from studies.machine_figures import split_machine_keys
+    from studies.report import plot_scenario, tracking_table
     from hil.scenario import load_scenario
     from hil.session import C_ECU_CONTROLLERS, RunOptions, reference_path, run_hil
 

@@ -13,7 +13,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from studies.report import COLOUR, MACHINE_KEYS, display_name, split_machine_keys
+from studies.machine_figures import MACHINE_KEYS, split_machine_keys
+from studies.report import COLOUR, display_name
 
 FRICTION_TITLES = {"high": "high friction: `dlc_high_mu`, 35 km/h, mu 0.85 (Table II's lane change)",
                    "low": "low friction: `dlc_low_mu`, 45-55 km/h, mu 0.5 (Table III's lane change)"}
@@ -217,7 +218,7 @@ def plot_report(results: Sequence[Mapping[str, Any]], path: Path) -> Path:
 
 def inputs_only(result: Mapping[str, Any]) -> dict[str, Any]:
     """A car's result without what the machine decides: its stage times, the drive's wall
-    time and each run's (``studies.report.MACHINE_KEYS``)."""
+    time and each run's (``studies.machine_figures.MACHINE_KEYS``)."""
     kept = {k: v for k, v in result.items() if k != "seconds"}
     kept["runs"] = split_machine_keys(result["runs"])[0]
     if "drive" in result:

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 import studies.closed_loop as closed_loop
-from studies.report import MACHINE_KEYS, PAPER_TRACKING, split_machine_keys, tracking_table
+from studies.machine_figures import MACHINE_KEYS, split_machine_keys
+from studies.report import PAPER_TRACKING, tracking_table
 from hil.scenario import load_scenario
 from studies.paper_tables import acceptance_checks, main, run_study, summary_text
 from tests.test_closed_loop_doubles import KinematicCommand, KinematicPlant, PurePursuit

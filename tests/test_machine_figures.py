@@ -1,9 +1,9 @@
 """Studies commit what their inputs decide and put what the machine decides (wall and
 step times, the host) under results/logs/, so that a rerun of the same code rewrites the
-same bytes (studies/report.py MACHINE_KEYS; tables, run, identification, vehicle variants)."""
+same bytes (studies/machine_figures.py; tables, run, identification, vehicle variants)."""
 from __future__ import annotations
 
-from studies.report import MACHINE_KEYS, split_machine_keys
+from studies.machine_figures import MACHINE_KEYS, split_machine_keys
 from studies.vehicle_variants_report import inputs_only
 
 

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from studies import run_all
-from studies.report import MACHINE_KEYS, split_machine_keys
+from studies.machine_figures import MACHINE_KEYS, split_machine_keys
 
 
 def _run(out: Path) -> None:
