@@ -11,8 +11,8 @@ the stamps to the current commit instead of rerunning hours of studies:
    finds stale because its inputs changed (not because the file itself changed), whose stamp
    was current at ``REV`` (its inputs and sources as committed at ``REV`` give the recorded
    digest), where every file that changed since then is code the smoke runs (the Python
-   modules that ``eso-hil`` and ``eso-ecu`` import, studies/ left out, and the C ECU's
-   firmware/src; :func:`smoke_sources`) and whose command
+   modules that ``eso-hil run`` and ``eso-ecu`` import, the fault injection and studies/
+   left out, and the C ECU's firmware/src; :func:`smoke_sources`) and whose command
    does not measure the machine or the build (``make timing``, ``make bench``, ``make
    can-bench``, ``make firmware-footprint``: their figures are what a code change moves).
    A changed data file (tuning, artefact, scenario, path, DBC), study module or training
@@ -50,8 +50,11 @@ import cantools
 
 from studies import provenance
 
-#: The entry points of the smoke runs: the HIL's and the Python ECU's command lines.
-SMOKE_ENTRY_MODULES = ("hil.__main__", "firmware_sim.__main__")
+#: The entry points of the smoke runs: ``eso-hil run`` and the Python ECU's command line.
+SMOKE_ENTRY_MODULES = ("hil.commands.run", "firmware_sim.__main__")
+#: Code those entry points import that the smoke does not execute: the fault injection
+#: (the smoke runs inject no fault), so a change there needs the fault studies' reruns.
+NOT_EXERCISED = re.compile(r"hil/fault[^/]*\.py|hil/fault_cases/.*")
 #: Commands whose files measure the machine or the build: a code change is what they measure.
 MACHINE_COMMANDS = ("make timing", "make bench", "make can-bench", "make firmware-footprint")
 #: The controllers of each ECU (``eso-hil run --ecu``).
@@ -115,10 +118,12 @@ class Candidate:
 
 def smoke_sources(root: Path = provenance.ROOT) -> frozenset[str]:
     """The source files (paths from ``root``) that the smoke runs execute: the project
-    modules ``eso-hil`` and ``eso-ecu`` import, transitively (studies/ left out: a study's
-    code is not what its smoke runs), and the C ECU's sources."""
+    modules ``eso-hil run`` and ``eso-ecu`` import, transitively, without the fault
+    injection (:data:`NOT_EXERCISED`) and studies/ (a study's code is not what its smoke
+    runs), and the C ECU's sources."""
     modules = provenance.module_sources(SMOKE_ENTRY_MODULES, root)
-    python = {path.relative_to(root).as_posix() for path in modules}
+    python = {name for name in (path.relative_to(root).as_posix() for path in modules)
+              if not NOT_EXERCISED.fullmatch(name)}
     firmware = {path.relative_to(root).as_posix() for path in (root / "firmware" / "src").glob("*.[ch]")}
     return frozenset({name for name in python if not name.startswith("studies/")} | firmware)
 
