@@ -40,7 +40,7 @@ from can_defs.frames import CtrlMode
 # The contract's one frame-kind test (contract, rev. 2, "frame kinds"): a classic CAN data
 # frame with an 11-bit ID. Kept under the ECU's name so that a test can swap the test the
 # ECU applies for one that takes every frame.
-from can_defs.log_reader import is_contract_data_frame as is_contract_frame_kind
+from can_defs.log_reader import is_contract_data_frame
 
 from controller.base import Controller
 from firmware_sim.bus_loop import BusLoop
@@ -185,7 +185,7 @@ class Ecu(ControlTask, BusLoop):
     def handle_message(self, msg: can.Message) -> None:
         """Process one received frame; in lockstep a HIL_SYNC runs the due tasks. Never raises."""
         try:
-            if not is_contract_frame_kind(msg):
+            if not is_contract_data_frame(msg):
                 # rev. 2: never taken for the contract frame of the same number, never FAULTS
                 self.ignored_frames += 1
                 self._log.log("frame-kind", logging.INFO,

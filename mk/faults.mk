@@ -1,6 +1,6 @@
 # Fault injection and fuzzing of the ECU (issue 10; docs/faults.md).
 #   make faults   every fault in the high-mu double lane change, lockstep on the virtual
-#                 bus (43 runs, about 2 min here): results/faults.md, faults.json,
+#                 bus (47 runs with the input-file cases, about 2 min here): results/faults.md, faults.json,
 #                 faults_vehicle.png (--replace: rewrites them); FAULTS_ARGS="--only NAME ..."
 #                 for a subset
 #   make faults-c the same cases against the C ECU executable (build/firmware/ecu, a process

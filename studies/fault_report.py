@@ -58,7 +58,7 @@ def markdown(verdicts: Sequence[Verdict], wall_s: float, command: str, ecu: str 
              "(HIL_SYNC 10 s ahead: the ECU's clock jumps, the plant's does not) and a lost "
              "bus (the ECU's interface down for 2.5 s of wall clock; lockstep stops meanwhile, "
              "so its bounds and figures are wall clock and vary from run to run).", ""]
-    for group, title in (("bus", "Bus, frame-kind and time-base faults (ESO-DKMPC)"),
+    for group, title in (("bus", "Bus, frame-kind, time-base and input-file faults (ESO-DKMPC)"),
                          ("vehicle", "Vehicle faults (ESO-DKMPC against DKMPC)")):
         rows = [v for v in verdicts if v.group == group and not v.not_applicable]
         if not rows:

@@ -428,7 +428,7 @@ def test_fd_lookalikes_are_ignored_and_the_case_fails_if_they_were_taken(monkeyp
     case = short("CAN FD look-alikes")
     verdict = smoke(case, duration_s=1.6)
     assert verdict.passed() and verdict.mode_sequence == "ACTIVE"
-    monkeypatch.setattr("firmware_sim.ecu.is_contract_frame_kind", lambda message: True)
+    monkeypatch.setattr("firmware_sim.ecu.is_contract_data_frame", lambda message: True)
     broken = smoke(case, duration_s=1.6)
     assert missed(broken) == ["no reaction for 1000 ms"]
 

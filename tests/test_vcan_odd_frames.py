@@ -24,7 +24,7 @@ the test sets inside user-mode Linux). How each ECU ignores them differs: the C 
 raw socket enables neither option, so the kernel never hands it FD or error frames, and
 it drops remote frames by their flag (firmware/src/os_linux.c); python-can's socket
 enables error frames (not FD), and the Python ECU drops them by their flags
-(firmware_sim/ecu.py ``is_contract_frame_kind``).
+(firmware_sim/ecu.py ``is_contract_data_frame``).
 
 About 1.5 s of virtual time per ECU (``dlc_smoke`` cut short, LMPC); run time and the
 command: docs/vcan.md.

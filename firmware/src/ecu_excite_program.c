@@ -262,7 +262,8 @@ static int load_table(ecu_excite_t *ex, const char *file, ecu_lines_t *lines, ch
     double *targets[3] = {&ex->table_time[ex->table_rows], &ex->table_steer[ex->table_rows], &ex->table_torque[ex->table_rows]};
     for (int j = 0; j < count; j++) {
       if (!parse_float(trim(cells[j]), targets[j])) {
-        snprintf(err, err_len, "--excite %s: line %d: not a number in column %d", file, number, j + 1);
+        snprintf(err, err_len, "--excite %s: line %d: not a number in column %d: '%s'", file, number, j + 1,
+                 trim(cells[j]));
         return -1;
       }
     }
