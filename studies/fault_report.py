@@ -1,12 +1,20 @@
 """The fault campaign's report: results/faults.md, faults.json and faults_vehicle.png
 (faults_c.* for the C ECU, compared with the Python campaign's faults.json), the vehicle
 faults' e_Y figure, and the check of the output folder before any run.
+
+It renders from the rows of the campaign engine's ``fault_case`` cells (`verdicts_from_rows`:
+the grids ``faults`` and ``faults_c``), in the catalogue's order whatever order the cells
+ran in. ``python -m studies.fault_report GRID --campaign DIR --out DIR [--replace]`` renders
+the rows a ``python -m studies.campaign GRID --out DIR`` wrote (``DIR/rows.json``);
+``make faults`` runs both in one command (``studies.fault_campaign``).
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
-from collections.abc import Sequence
+import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -176,6 +184,23 @@ def figure(verdicts: Sequence[Verdict], path: Path, scenario_name: str = SCENARI
     return path
 
 
+def verdicts_from_rows(rows: Sequence[dict[str, Any]],
+                       order: Mapping[str, int] | None = None) -> list[Verdict]:
+    """The verdicts of ``fault_case`` cells' rows (``studies.campaign.fault_case_cell``) in
+    the campaign's order: by case (``order``: case name -> position; default the
+    catalogue's), then in the order of the controllers the case names."""
+    from studies.campaign.fault_case_cell import verdict_of_row
+    from studies.campaign.fault_axes import fault_cases
+
+    catalogue = fault_cases()
+    order = order if order is not None else {name: i for i, name in enumerate(catalogue)}
+
+    def position(row: dict[str, Any]) -> tuple[int, int]:
+        return order[row["case"]], catalogue[row["case"]].controllers.index(row["controller"])
+
+    return [verdict_of_row(row) for row in sorted(rows, key=position)]
+
+
 def check_paths(out_dir: Path, replace: bool, scenario_name: str = SCENARIO, ecu: str = "python") -> None:
     """Refuse an unusable output folder before any run: its parent missing, a file, not
     writable, holding an earlier campaign's results (without ``replace``) or where an
@@ -234,3 +259,49 @@ def write_results(verdicts: Sequence[Verdict], out_dir: Path, wall_s: float, com
     js.write_text(json.dumps(rows, indent=2) + "\n", encoding="utf-8")
     png = figure(verdicts, out_dir / png_name)
     return [md, js, png]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m studies.fault_report GRID --campaign DIR --out DIR [--replace]``: the
+    report of a fault grid's rows (``DIR/rows.json`` of ``python -m studies.campaign``)."""
+    from can_defs.errors import CanDefsError
+    from studies.campaign.grid import load_grid
+    from studies.campaign.report import ROWS_JSON, read_rows_json
+
+    parser = argparse.ArgumentParser(prog="python -m studies.fault_report",
+                                     description="The fault campaign's report from a fault grid's rows.")
+    parser.add_argument("grid", help="the fault grid (a file, or a shipped grid's name: faults, faults_c)")
+    parser.add_argument("--campaign", type=Path, required=True,
+                        help="the campaign's folder (python -m studies.campaign GRID --out DIR)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for faults.* (faults_c.*)")
+    parser.add_argument("--replace", action="store_true", help="overwrite an earlier report in --out")
+    parser.add_argument("--command", default=None, help="the command the report names (default: the grid's)")
+    args = parser.parse_args(argv)
+    try:
+        grid = load_grid(args.grid)
+        ecus = {cell.ecu for cell in grid.cells}
+        if len(ecus) != 1 or any(cell.runner != "fault_case" for cell in grid.cells):
+            raise HilError(f"{grid.source}: not a fault grid (runner fault_case, one ECU)")
+        ecu = ecus.pop()
+        path = args.campaign / ROWS_JSON
+        if not path.is_file():
+            raise HilError(f"{path}: no rows: run python -m studies.campaign {args.grid} --out {args.campaign}")
+        rows = [row for row in read_rows_json(path) if row.get("runner") == "fault_case"]
+        failed = [row for row in rows if row.get("error")]
+        if failed:
+            raise HilError(f"fault case {failed[0]['case']} / {failed[0]['controller']}: the run failed "
+                           f"in the harness: {failed[0]['error']}")
+        check_paths(args.out, args.replace, ecu=ecu)
+        verdicts = verdicts_from_rows(rows)
+        wall_s = sum(float(row.get("wall_s", 0.0)) for row in rows)
+        command = args.command or ("make faults" + ("-c" if ecu == "c" else ""))
+        for written in write_results(verdicts, args.out, wall_s, command, ecu):
+            print(f"wrote {written}")
+    except (HilError, CanDefsError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      description="Run a campaign grid of HIL runs on Ray.")
     parser.add_argument("grid", help="grid TOML file, or a shipped grid's name (smoke, robustness)")
     parser.add_argument("--out", type=Path, required=True,
-                        help="output folder: cells.csv, summary.md, heatmap_*.png, cache/")
+                        help="output folder: cells.csv, summary.md, heatmap_*.png, cache/ (rows.json: "
+                             "every row of a grid whose cells are not cached, fault_case)")
     add_executor_arguments(parser)
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                         help="tqdm progress bar: cells done, failed, time left (default on)")
@@ -57,12 +58,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     from studies.campaign.grid import load_grid
-    from studies.campaign.report import (CsvAppender, summary_markdown, write_cells_csv,
-                                         write_heatmaps)
-    from studies.campaign.cell import run_cell
+    from studies.campaign.report import (ROWS_JSON, CsvAppender, summary_markdown, write_cells_csv,
+                                         write_heatmaps, write_rows_json)
     from studies.campaign.executors import open_executor
-    from studies.campaign.runner import (CampaignError, cached_rows, check_c_ecu_built,
-                                         run_campaign)
+    from studies.campaign.runner import (CampaignError, cached_rows, cell_cacheable, cell_task,
+                                         check_c_ecu_built, run_campaign)
     from studies.machine import machine_description
 
     grid = load_grid(args.grid)  # every error before any cell runs
@@ -73,7 +73,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     except OSError as e:
         raise CampaignError(f"cannot create {out}: {e.strerror}") from e
     appender = CsvAppender(out / "cells.csv", cached_rows(grid, out))
-    executor = open_executor(run_cell, address=args.address, workers=args.workers, serial=args.serial)
+    executor = open_executor(cell_task(grid), address=args.address, workers=args.workers, serial=args.serial)
     try:
         result = run_campaign(grid, out, executor, progress=args.progress, on_row=appender)
     finally:
@@ -86,6 +86,8 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         computed=result.computed, cached=result.cached, machine=machine_description(),
         interrupted=result.interrupted), encoding="utf-8")
     written = [out / "cells.csv", out / "summary.md", *write_heatmaps(grid, result.rows, out)]
+    if not all(cell_cacheable(cell) for cell in grid.cells):  # rows the cache does not keep
+        written.append(write_rows_json(out / ROWS_JSON, result.rows))
     for path in written:
         print(f"wrote {path}")
     print(f"{len(result.rows)}/{result.total} cells finished ({result.computed} computed, "

@@ -71,56 +71,32 @@ import copy
 import itertools
 import math
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from hil.errors import HilError
-from hil.scenario import _DURATION_RANGE_S, _SPEED_RANGE_KMH
 from models.input_files import read_bounded
+from studies.campaign.axes import (  # noqa: F401 - the axes' names, where they always were
+    ALL_CONTROLLERS, AXES, CLOSED_LOOP_RUNNER, DEFAULT_ECU, DEFAULT_MODEL, FAULT_CASE_RUNNER,
+    HIL_RUNNER, NO_CASE, NO_DISTURBANCE, NO_FAULT, PROFILE_SPEED_RANGE_KMH, PROFILE_TIME_MAX_S,
+    REQUIRED_AXES, RUNNERS, SCENARIO_VALUE, GridError, axis_values, excludes, fault_catalogue,
+    grid_disturbances, grid_faults, matches, speed_profiles)
+from studies.campaign.fault_axes import check_fault_case_axes, fault_case_left_out
 from studies.campaign.toml_text import to_toml  # noqa: F401 - the cells' scenario text
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 #: Bytes of a grid file (read no further).
 GRID_FILE_MAX_BYTES = 1024 * 1024
-#: A [speed_profiles.NAME] table's bounds: a scenario's [speed_profile] rules.
-PROFILE_TIME_MAX_S = _DURATION_RANGE_S[1]
-PROFILE_SPEED_RANGE_KMH = _SPEED_RANGE_KMH
 GRID_DIR = Path(__file__).resolve().parent / "grids"
-#: Every axis, in the order of a cell's fields and of cells.csv.
-AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
-        "model", "seed", "ecu", "disturbance", "runner")
-REQUIRED_AXES = ("controller", "scenario")
-#: Value of an axis the grid does not set: the scenario's own (mu, speed, mass), x1, none.
-SCENARIO_VALUE = "scenario"
-NO_FAULT = "none"
-#: The disturbance axis' value for "nothing added" (a grid without the axis has only it).
-NO_DISTURBANCE = "none"
-DEFAULT_MODEL = "default"
-#: The ECU of a grid without an ``ecu`` axis (and the only one before the axis existed).
-DEFAULT_ECU = "python"
-#: The runners of the ``runner`` axis: over CAN in lockstep (the default), or without CAN.
-HIL_RUNNER = "hil"
-CLOSED_LOOP_RUNNER = "closed_loop"
-RUNNERS = (HIL_RUNNER, CLOSED_LOOP_RUNNER)
 #: Controllers that run a Koopman artefact (the only ones the model axis changes).
 KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
 #: Path the MPC horizons need beyond a run's last position (m): 30 steps at 25 ms, 70 km/h.
 HORIZON_ROOM_M = 15.0
 CONTROL_PERIOD_S = 0.025
 _TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults", "disturbances"}
-_RUN_KEYS = {"distance_m", "margin_s", "keep_trace"}
-#: The controller axis' value for every controller of ``controller.registry``, as the
-#: registry has them when the grid loads.
-ALL_CONTROLLERS = "all"
+_RUN_KEYS = {"distance_m", "margin_s", "keep_trace", "duration_s"}
 _KMH = 1.0 / 3.6
-
-
-class GridError(HilError):
-    """A grid file is unreadable or names an unknown axis, value, controller or scenario."""
-
 
 @dataclass(frozen=True)
 class Cell:
@@ -138,6 +114,7 @@ class Cell:
     ecu: str = DEFAULT_ECU
     disturbance: str = NO_DISTURBANCE
     runner: str = HIL_RUNNER
+    case: str = NO_CASE
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -148,7 +125,19 @@ class Cell:
         return ", ".join(f"{k}={v}" for k, v in self.as_dict().items()
                          if v not in (SCENARIO_VALUE, NO_FAULT, DEFAULT_MODEL) and
                          not (k == "lag_factor" and v == 1.0) and not (k == "ecu" and v == DEFAULT_ECU)
-                         and not (k == "runner" and v == HIL_RUNNER))
+                         and not (k == "runner" and v == HIL_RUNNER) and k != "case"
+                         ) + (f", case={self.case}" if self.case != NO_CASE else "")
+
+    @property
+    def exclusive(self) -> bool:
+        """The cell must run alone, in the driver, after every other cell: it measures the
+        ECU's own wall-clock behaviour, so no other run may compete with it for the cores
+        (a fault case with an ECU-level fault: ``studies.campaign.fault_case_cell``)."""
+        if self.runner != FAULT_CASE_RUNNER:
+            return False
+        from studies.campaign.fault_case_cell import case_is_exclusive
+
+        return case_is_exclusive(self.case)
 
 
 @dataclass(frozen=True)
@@ -174,6 +163,10 @@ class Grid:
     disturbances: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     #: ``[run] keep_trace``: the cells' rows carry their e_Y trace.
     keep_trace: bool = False
+    #: ``[run] duration_s``: the ``fault_case`` cells' scenario duration (None: the scenario's).
+    duration_s: float | None = None
+    #: fault_case cells left out: a controller the case does not run.
+    case_left_out: int = 0
 
     def scenario_document(self, cell: Cell) -> dict[str, Any]:
         """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
@@ -218,14 +211,14 @@ def load_grid(file: str | Path) -> Grid:
     for name in REQUIRED_AXES:
         if name not in axes_raw:
             raise GridError(f"{file}: axes.{name} is required")
-    profiles = _speed_profiles(file, raw.get("speed_profiles", {}))
-    grid_faults = raw.get("faults", {})
-    if not isinstance(grid_faults, dict) or not all(isinstance(v, dict) for v in grid_faults.values()):
+    profiles = speed_profiles(file, raw.get("speed_profiles", {}))
+    tables = raw.get("faults", {})
+    if not isinstance(tables, dict) or not all(isinstance(v, dict) for v in tables.values()):
         raise GridError(f"{file}: [faults.NAME] must be tables of hil/faults.py's [faults] schema")
-    axes = {name: _axis_values(file, name, axes_raw.get(name)) for name in AXES}
+    axes = {name: axis_values(file, name, axes_raw.get(name)) for name in AXES}
     scenario_files = {name: _scenario_file(file, name) for name in axes["scenario"]}
-    faults = _faults(file, axes["fault"], grid_faults)
-    disturbances = _disturbances(file, axes["disturbance"], raw.get("disturbances", {}))
+    faults = grid_faults(file, axes["fault"], raw.get("faults", {}))
+    disturbances = grid_disturbances(file, axes["disturbance"], raw.get("disturbances", {}))
     for name, value in (("speed", v) for v in axes["speed"]):
         if isinstance(value, str) and value not in (SCENARIO_VALUE, *profiles):
             raise GridError(f"{file}: axes.{name} = {value!r}: not a number (km/h) and not a "
@@ -255,14 +248,17 @@ def load_grid(file: str | Path) -> Grid:
     keep_trace = run.get("keep_trace", False)
     if not isinstance(keep_trace, bool):
         raise GridError(f"{file}: run.keep_trace = {keep_trace!r}: must be true or false")
-    excludes = _excludes(file, raw.get("exclude", []), axes)
+    check_fault_case_axes(file, axes, axes_raw, run)   # the whole catalogue when no case axis
+    rules = excludes(file, raw.get("exclude", []), axes)
 
-    cells, excluded, not_applicable = [], 0, 0
+    cells, excluded, not_applicable, case_left_out = [], 0, 0, 0
     c_left_out: dict[str, int] = {}
     for values in itertools.product(*(axes[name] for name in AXES)):
         cell = Cell(*values)
-        if any(_matches(cell, rule) for rule in excludes):
+        if any(matches(cell, rule) for rule in rules):
             excluded += 1
+        elif fault_case_left_out(cell):
+            case_left_out += 1  # a controller the case does not run
         elif cell.model != DEFAULT_MODEL and cell.controller not in KOOPMAN_CONTROLLERS:
             not_applicable += 1  # the same run as the default model's
         elif (reason := c_ecu_unavailable(cell, faults)) is not None:
@@ -274,7 +270,9 @@ def load_grid(file: str | Path) -> Grid:
                 speed_profiles=profiles, faults=faults,
                 distance_m=_distances(distance), margin_s=float(margin),
                 excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out,
-                disturbances=disturbances, keep_trace=keep_trace)
+                disturbances=disturbances, keep_trace=keep_trace,
+                duration_s=None if run.get("duration_s") is None else float(run["duration_s"]),
+                case_left_out=case_left_out)
     if not cells:
         left_out = "".join(f"; {n} C cells left out: {why}" for why, n in c_left_out.items())
         raise GridError(f"{file}: no cell left after the exclusions{left_out}")
@@ -292,69 +290,6 @@ def _distances(raw: Any) -> float | dict[str, float] | None:
     return float(raw)
 
 
-def _axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
-    defaults = {"controller": None, "scenario": None, "mu": SCENARIO_VALUE, "speed": SCENARIO_VALUE,
-                "mass_offset_kg": SCENARIO_VALUE, "lag_factor": 1.0, "fault": NO_FAULT,
-                "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE, "ecu": DEFAULT_ECU,
-                "disturbance": NO_DISTURBANCE, "runner": HIL_RUNNER}
-    if raw is None:
-        return (defaults[name],)
-    values = raw if isinstance(raw, list) else [raw]
-    if not values:
-        raise GridError(f"{file}: axes.{name} is empty")
-    if name == "controller" and ALL_CONTROLLERS in values:
-        if len(values) > 1:
-            raise GridError(f"{file}: axes.controller = {values!r}: {ALL_CONTROLLERS!r} stands alone")
-        from controller.registry import ALL_CONTROLLER_NAMES
-
-        values = list(ALL_CONTROLLER_NAMES)
-    checked = tuple(_axis_value(file, name, v) for v in values)
-    if len(set(checked)) != len(checked):
-        raise GridError(f"{file}: axes.{name} = {values!r}: repeated value")
-    return checked
-
-
-def _axis_value(file: Path, name: str, value: Any) -> Any:
-    def bad(why: str) -> GridError:
-        return GridError(f"{file}: axes.{name} value {value!r}: {why}")
-
-    number = not isinstance(value, bool) and isinstance(value, (int, float))
-    if name == "controller":
-        from controller.registry import ALL_CONTROLLER_NAMES
-
-        if value not in ALL_CONTROLLER_NAMES:
-            raise bad(f"unknown controller; choose from {', '.join(ALL_CONTROLLER_NAMES)}")
-        return value
-    if name == "ecu":
-        from hil.session import ECU_IMPLEMENTATIONS
-
-        if value not in ECU_IMPLEMENTATIONS:
-            raise bad(f"unknown ECU; choose from {', '.join(ECU_IMPLEMENTATIONS)}")
-        return value
-    if name == "runner":
-        if value not in RUNNERS:
-            raise bad(f"unknown runner; choose from {', '.join(RUNNERS)}")
-        return value
-    if name in ("scenario", "fault", "model", "disturbance"):
-        if not isinstance(value, str) or not value:
-            raise bad("must be a non-empty string")
-        return value
-    if name == "speed" and isinstance(value, str):
-        return value
-    if name == "seed":
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise bad("must be an integer >= 0")
-        return value
-    # lag_factor >= 1: a cell adds (factor - 1) x the plant's steering time constant as
-    # steer_extra_lag_s, which the plant requires >= 0 (a lag can be added, not removed).
-    ranges = {"mu": (0.05, 1.5), "speed": (1.0, 200.0), "mass_offset_kg": (-1000.0, 2000.0),
-              "lag_factor": (1.0, 100.0)}
-    low, high = ranges[name]
-    if not number or not math.isfinite(value) or not low <= value <= high:
-        raise bad(f"must be a number in [{low}, {high}]")
-    return float(value)
-
-
 def c_ecu_unavailable(cell: Cell, faults: Mapping[str, Mapping[str, Any]]) -> str | None:
     """Why the C ECU cannot run ``cell`` (the reason it is left out of the grid), or None
     when it can (and for every Python cell). ``faults``: fault name -> ``[faults]`` table.
@@ -364,8 +299,8 @@ def c_ecu_unavailable(cell: Cell, faults: Mapping[str, Mapping[str, Any]]) -> st
     error frames (``hil.fault_cases.c_ecu.c_not_applicable``: a fault sending such
     look-alikes would be another fault there).
     """
-    if cell.ecu != "c":
-        return None
+    if cell.ecu != "c" or cell.runner == FAULT_CASE_RUNNER:
+        return None  # a case the C ECU cannot take is run and reported not applicable
     if cell.runner == CLOSED_LOOP_RUNNER:
         return f"the {CLOSED_LOOP_RUNNER} runner has no bus for the C ECU"
     from hil.session import C_ECU_CONTROLLERS
@@ -405,111 +340,6 @@ def _model_file(file: Path, model: str) -> Path:
 def model_file(grid: Grid, model: str) -> Path | None:
     """The artefact of a model axis value (None: the controllers' default)."""
     return None if model == DEFAULT_MODEL else _model_file(grid.source, model)
-
-
-def _speed_profiles(file: Path, raw: Any) -> dict[str, tuple[tuple[float, ...], tuple[float, ...]]]:
-    if not isinstance(raw, dict):
-        raise GridError(f"{file}: speed_profiles must be tables [speed_profiles.NAME]")
-    out = {}
-    for name, table in raw.items():
-        where = f"{file}: speed_profiles.{name}"
-        if not isinstance(table, dict) or set(table) != {"time_s", "target_speed_kmh"}:
-            raise GridError(f"{where} must have exactly time_s and target_speed_kmh")
-        times, speeds = table["time_s"], table["target_speed_kmh"]
-        if (not isinstance(times, list) or not isinstance(speeds, list) or not times
-                or len(times) != len(speeds)
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in times + speeds)):
-            raise GridError(f"{where}: time_s and target_speed_kmh must be arrays of numbers of one length")
-        # a scenario's [speed_profile] rules (hil/scenario.py), checked before the first cell
-        if not all(math.isfinite(t) and 0.0 <= t <= PROFILE_TIME_MAX_S for t in times):
-            raise GridError(f"{where}: time_s = {times!r}: every time must be a number in [0, {PROFILE_TIME_MAX_S}] s")
-        if any(later <= earlier for earlier, later in zip(times, times[1:])):
-            raise GridError(f"{where}: time_s = {times!r}: must be strictly increasing")
-        low, high = PROFILE_SPEED_RANGE_KMH
-        if not all(math.isfinite(v) and low <= v <= high for v in speeds):
-            raise GridError(f"{where}: target_speed_kmh = {speeds!r}: every speed must be a number in "
-                            f"[{low}, {high}] km/h")
-        out[name] = (tuple(float(t) for t in times), tuple(float(v) for v in speeds))
-    return out
-
-
-@lru_cache(maxsize=1)
-def fault_catalogue() -> dict[str, dict[str, Any]]:
-    """The fault catalogue: name -> ``[faults]`` table of each case of ``make faults``
-    (``hil.fault_cases.catalogue.campaign_cases``)."""
-    from hil.fault_cases.catalogue import campaign_cases
-
-    return {case.name: case.table for case in campaign_cases()}
-
-
-def _faults(file: Path, names: Sequence[str], grid_faults: Mapping[str, Any]) -> dict[str, dict]:
-    from hil.faults import FaultSpec, FaultSpecError
-
-    out: dict[str, dict] = {}
-    for name in names:
-        if name == NO_FAULT:
-            out[name] = {}
-            continue
-        if name in grid_faults:
-            table = grid_faults[name]
-        elif name in fault_catalogue():
-            table = fault_catalogue()[name]
-        else:
-            raise GridError(f"{file}: axes.fault value {name!r}: not {NO_FAULT!r}, not a "
-                            f"[faults.NAME] table of the file and not in the fault catalogue "
-                            f"({', '.join(repr(n) for n in fault_catalogue())})")
-        try:
-            FaultSpec.from_mapping(table, f"{file}: faults {name!r}")
-        except FaultSpecError as e:
-            raise GridError(str(e)) from e
-        out[name] = copy.deepcopy(dict(table))
-    return out
-
-
-def _disturbances(file: Path, names: Sequence[str], tables: Any) -> dict[str, dict]:
-    """Each disturbance axis value's ``[disturbances]`` table, checked as a scenario's."""
-    from models.disturbance import DisturbanceError, Disturbances
-
-    if not isinstance(tables, dict) or not all(isinstance(v, dict) for v in tables.values()):
-        raise GridError(f"{file}: [disturbances.NAME] must be tables of a scenario's [disturbances] schema")
-    for name, table in tables.items():
-        try:
-            Disturbances.from_mapping(table, f"{file}: disturbances.{name}")
-        except DisturbanceError as e:
-            raise GridError(str(e)) from e
-    out: dict[str, dict] = {}
-    for name in names:
-        if name == NO_DISTURBANCE:
-            out[name] = {}
-        elif name in tables:
-            out[name] = copy.deepcopy(tables[name])
-        else:
-            raise GridError(f"{file}: axes.disturbance value {name!r}: not {NO_DISTURBANCE!r} and not a "
-                            f"[disturbances.NAME] table of the file ({', '.join(map(repr, tables)) or 'none defined'})")
-    return out
-
-
-def _excludes(file: Path, raw: Any, axes: Mapping[str, tuple]) -> list[dict[str, tuple]]:
-    if not isinstance(raw, list) or not all(isinstance(r, dict) for r in raw):
-        raise GridError(f"{file}: exclude must be an array of tables ([[exclude]])")
-    rules = []
-    for i, rule in enumerate(raw):
-        unknown = sorted(set(rule) - set(AXES))
-        if unknown or not rule:
-            raise GridError(f"{file}: exclude[{i}]: unknown axis {', '.join(unknown) or '(empty rule)'}")
-        checked = {}
-        for name, value in rule.items():
-            values = value if isinstance(value, list) else [value]
-            checked[name] = tuple(_axis_value(file, name, v) for v in values)
-            missing = [v for v in checked[name] if v not in axes[name]]
-            if missing:
-                raise GridError(f"{file}: exclude[{i}].{name} = {missing[0]!r}: not a value of axes.{name}")
-        rules.append(checked)
-    return rules
-
-
-def _matches(cell: Cell, rule: Mapping[str, tuple]) -> bool:
-    return all(getattr(cell, name) in values for name, values in rule.items())
 
 
 # ---------------------------------------------------------------------------- cell -> scenario

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from studies.campaign.grid import AXES, DEFAULT_ECU, HIL_RUNNER, Grid
+from studies.campaign.grid import AXES, DEFAULT_ECU, HIL_RUNNER, NO_CASE, Grid
 
 #: Columns of cells.csv, in order (the axes as the issue names them, then the results).
 CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "disturbance",
@@ -71,6 +71,26 @@ class CsvAppender:
     def __call__(self, row: dict[str, Any]) -> None:
         with self.path.open("a", newline="", encoding="utf-8") as handle:
             csv.DictWriter(handle, CSV_FIELDS).writerow(csv_row(row))
+
+
+#: Every row of the run with all its fields, for a grid whose cells are not cached (the
+#: ``fault_case`` runner's: ``studies.fault_report`` renders from it).
+ROWS_JSON = "rows.json"
+
+
+def write_rows_json(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
+    """``rows.json``: the rows in grid order, every field (NaN as JSON's NaN)."""
+    import json
+
+    path.write_text(json.dumps(list(rows), indent=1, allow_nan=True) + "\n", encoding="utf-8")
+    return path
+
+
+def read_rows_json(path: Path) -> list[dict[str, Any]]:
+    """The rows :func:`write_rows_json` wrote."""
+    import json
+
+    return json.loads(path.read_text(encoding="utf-8"))
 
 
 def write_cells_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
@@ -151,7 +171,9 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
         f"- Grid: `{_shown(grid.source)}`, "
         f"{len(grid.cells)} cells ({grid.excluded} excluded, {grid.not_applicable} not applicable: "
         "the model axis on a controller without a Koopman model"
-        + "".join(f"; {n} C cells left out: {why}" for why, n in grid.c_left_out.items()) + ").",
+        + "".join(f"; {n} C cells left out: {why}" for why, n in grid.c_left_out.items())
+        + (f"; {grid.case_left_out} left out: a controller the fault case does not run"
+           if grid.case_left_out else "") + ").",
         f"- This run: {computed} cells computed, {cached} from the cache, {len(rows)} of "
         f"{len(grid.cells)} finished{' (interrupted)' if interrupted else ''}; wall time "
         f"{wall_s:.0f} s on {executor}.",
@@ -192,7 +214,8 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
         lines += ["", "## Cells not completed", "", "| controller | cell | end | error |", "|---|---|---|---|"]
         for r in failures[:60]:
             cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r and a != "ecu"
-                             and not (a == "runner" and r[a] == HIL_RUNNER))
+                             and not (a == "runner" and r[a] == HIL_RUNNER)
+                             and not (a == "case" and r[a] == NO_CASE))
             error = str(r.get("error", "")).replace("|", "/").replace("\n", " ")[:160]
             lines.append(f"| {_column(r)} | {cell} | {r.get('end_reason', '')} | {error} |")
         if len(failures) > 60:
@@ -202,7 +225,7 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
 
 def runner_lines(grid: Grid) -> list[str]:
     """What one cell is, for each runner of the grid (summary.md's header)."""
-    from studies.campaign.grid import CLOSED_LOOP_RUNNER
+    from studies.campaign.grid import CLOSED_LOOP_RUNNER, FAULT_CASE_RUNNER
 
     runners = {cell.runner for cell in grid.cells}
     lines = []
@@ -211,6 +234,11 @@ def runner_lines(grid: Grid) -> list[str]:
                      "`python -m hil run --faults`): the Python ECU in-process; \"NAME (C)\" the C ECU "
                      "executable `build/firmware/ecu` as a process on the run's own loopback socketcand hub "
                      "(`--ecu c`). Completed: ran to the end with the ECU ACTIVE and |e_Y| <= 2 m throughout.")
+    if FAULT_CASE_RUNNER in runners:
+        lines.append(f"- Each {FAULT_CASE_RUNNER} cell: one case of the fault catalogue with one controller, "
+                     "run and judged by `hil.fault_cases.runs.run_case` (as `make faults`). Completed: the "
+                     "verdict passed; end reason: its outcome; e_Y max: max |e_Y|. The report is "
+                     "`studies.fault_report`'s (results/faults.*).")
     if CLOSED_LOOP_RUNNER in runners:
         lines.append(f"- Each {CLOSED_LOOP_RUNNER} cell: one run of the controller and the plant without "
                      "CAN (`studies.closed_loop.run_closed_loop`, the runner of `make tables`). Completed: "

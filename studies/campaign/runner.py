@@ -12,7 +12,12 @@ whether the grid has the axis. A re-run into the same DIR computes only the cell
 cached result; editing a source file or an artefact recomputes what it could change.
 A cell whose run raised is cached with its error (the same inputs fail the same way); a
 cell whose worker died (Ray) is recorded in the rows but not cached, so the next run
-retries it.
+retries it. A ``fault_case`` cell is never cached (:func:`cell_cacheable`: its verdict holds
+wall-clock measurements; ``studies.campaign.fault_case_cell``).
+
+Exclusive cells (``Cell.exclusive``: the fault cases that measure the ECU's own wall-clock
+behaviour) run after every other cell, one at a time in this process, once the executor's
+workers are released (:func:`run_campaign`).
 
 The cells run on ``studies.campaign.executors`` (Ray, local or a cluster, or this process),
 which the other long studies share. Ctrl-C cancels the cells in flight and keeps every
@@ -24,7 +29,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,9 +38,10 @@ from firmware_sim.native import DEFAULT_DATA
 from hil.errors import HilError
 from hil.session import C_ECU_EXECUTABLE
 from studies.campaign.cell import ROOT, CellJob
-from studies.campaign.executors import Executor
-from studies.campaign.grid import (DEFAULT_ECU, HIL_RUNNER, NO_DISTURBANCE, Cell, Grid,
-                                   effective_values, model_file, to_toml)
+from studies.campaign.executors import Executor, SerialExecutor
+from studies.campaign.fault_case_cell import FaultCaseJob, fault_case_job, run_fault_case_cell
+from studies.campaign.grid import (DEFAULT_ECU, FAULT_CASE_RUNNER, HIL_RUNNER, NO_DISTURBANCE, Cell,
+                                   Grid, effective_values, model_file, to_toml)
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
@@ -93,9 +99,28 @@ def check_c_ecu_built(grid: Grid) -> None:
                             f"C ECU's {missing[0]} is missing: run `make firmware` first")
 
 
-def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
+def cell_cacheable(cell: Cell) -> bool:
+    """Whether ``cell``'s row goes to the cache: every cell but a ``fault_case`` one, whose
+    verdict holds wall-clock measurements (reaction times and CPU share of the lost bus,
+    wall times) that a rerun would not repeat, and whose campaign checks the ECU as it is."""
+    return cell.runner != FAULT_CASE_RUNNER
+
+
+def cell_task(grid: Grid) -> Callable[[Any], dict[str, Any]]:
+    """The executors' task function for ``grid``'s cells: a ``fault_case`` grid's (that
+    runner stands alone on its axis), else the scenario runners' ``run_cell``."""
+    if any(cell.runner == FAULT_CASE_RUNNER for cell in grid.cells):
+        return run_fault_case_cell
+    from studies.campaign.cell import run_cell
+
+    return run_cell
+
+
+def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob | FaultCaseJob:
     """The worker's job for ``cell``, with its cache key (a C cell: after
-    :func:`check_c_ecu_built`)."""
+    :func:`check_c_ecu_built`; a ``fault_case`` cell: its own job, never cached)."""
+    if cell.runner == FAULT_CASE_RUNNER:
+        return fault_case_job(grid, cell)
     document = grid.scenario_document(cell)
     path_file = Path(document["path"]["file"])
     document["path"]["file"] = _repo_relative(path_file)
@@ -108,6 +133,7 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob:
     values = cell.as_dict()
     if cell.disturbance == NO_DISTURBANCE:
         del values["disturbance"]  # as before the disturbance axis (its scenario text says it)
+    del values["case"]  # only a fault_case cell has one
     if cell.runner == HIL_RUNNER:
         del values["runner"]  # the key material of a cell over CAN as before the runner axis
     if cell.ecu == DEFAULT_ECU:
@@ -173,7 +199,9 @@ class CampaignResult:
 def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: bool = True,
                  on_row: Callable[[dict[str, Any]], None] | None = None) -> CampaignResult:
     """Run every cell of ``grid`` not yet cached in ``out_dir``; a KeyboardInterrupt stops
-    the campaign and returns what finished (``interrupted`` True)."""
+    the campaign and returns what finished (``interrupted`` True). The exclusive cells
+    (``Cell.exclusive``) run last, one at a time in this process, after ``executor`` is
+    closed (so no worker holds a core meanwhile; closing it again is harmless)."""
     from tqdm import tqdm
 
     started = time.monotonic()
@@ -185,7 +213,7 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
             for cell, job in zip(grid.cells, jobs)}
     results: dict[str, dict[str, Any]] = {}
     for job in jobs:
-        cached = cache.get(job.key)
+        cached = cache.get(job.key) if getattr(job, "cacheable", True) else None
         if cached is not None:
             results[job.key] = cached
     todo = [job for job in jobs if job.key not in results]
@@ -196,13 +224,13 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
     bar = tqdm(total=len(jobs), initial=cached_count, unit="cell", disable=not progress,
                desc=grid.name, dynamic_ncols=True)
     bar.set_postfix(failed=failed, cached=cached_count)
-    stream = executor.run(todo)
+    stream = _shared_then_exclusive(executor, todo)
     try:
         for job, row, worker_error in stream:
             if worker_error is not None:  # recorded, not cached: the next run retries it
                 row = {"key": job.key, "completed": 0, "end_reason": "error", "error": worker_error}
             row = {**axes[job.key], **row}
-            if worker_error is None:
+            if worker_error is None and getattr(job, "cacheable", True):
                 cache.put(job.key, row)
             results[job.key] = row
             computed += 1
@@ -221,6 +249,15 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
                           failed=sum(1 for r in rows if not r.get("completed")),
                           total=len(jobs), wall_s=time.monotonic() - started,
                           executor=executor.description, interrupted=interrupted)
+
+
+def _shared_then_exclusive(executor: Executor, jobs: list[Any]) -> Iterator[tuple[Any, Any, str | None]]:
+    """The jobs on ``executor``, then the exclusive ones alone in this process."""
+    alone = [job for job in jobs if getattr(job, "exclusive", False)]
+    yield from executor.run([job for job in jobs if not getattr(job, "exclusive", False)])
+    if alone:
+        executor.close()
+        yield from SerialExecutor(executor.task_function).run(alone)
 
 
 def cached_rows(grid: Grid, out_dir: Path, version: str | None = None) -> list[dict[str, Any]]:
