@@ -2,7 +2,11 @@
 #   make faults   every fault in the high-mu double lane change, lockstep on the virtual
 #                 bus (47 runs with the input-file cases, about 2 min here): results/faults.md, faults.json,
 #                 faults_vehicle.png (--replace: rewrites them); FAULTS_ARGS="--only NAME ..."
-#                 for a subset
+#                 for a subset. The campaign is the grid studies/campaign/grids/faults.toml
+#                 (faults_c.toml for faults-c; runner fault_case, one cell per case and
+#                 controller) on the campaign engine, 2 local Ray workers, the wall-clock
+#                 cases alone after the others, nothing cached; studies.fault_report renders
+#                 the report from the cells' rows, all in one command (studies.fault_campaign)
 #   make faults-c the same cases against the C ECU executable (build/firmware/ecu, a process
 #                 on a loopback socketcand hub, as `hil run --ecu c`): results/faults_c.md,
 #                 faults_c.json, faults_c_vehicle.png, compared with results/faults.json;
@@ -21,7 +25,7 @@ faults: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.fault_campaign --workers 2 --out results --replace $(FAULTS_ARGS)
 	$(PROVENANCE_STAMP) results/faults.md results/faults.json results/faults_vehicle.png \
 		--command "$(call provenance_command,faults,FAULTS_ARGS)" \
-		--inputs $(PROVENANCE_HIL) --modules studies.fault_campaign
+		--inputs $(PROVENANCE_HIL) studies/campaign/grids/faults.toml --modules studies.fault_campaign
 
 ## the fault campaign against the C ECU executable -> results/faults_c.*, compared with faults.*
 faults-c: setup firmware
@@ -29,6 +33,7 @@ faults-c: setup firmware
 	$(PROVENANCE_STAMP) results/faults_c.md results/faults_c.json results/faults_c_vehicle.png \
 		--command "$(call provenance_command,faults-c,FAULTS_ARGS)" \
 		--inputs $(PROVENANCE_HIL) results/faults.json $(wildcard firmware/src/*.[ch]) \
+		studies/campaign/grids/faults_c.toml \
 		--modules studies.fault_campaign
 
 ## the RX-path fuzz test with FUZZ_EXAMPLES examples (default 200000)

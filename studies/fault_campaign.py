@@ -1,16 +1,18 @@
 """`make faults`: every fault of hil/faults.py in the high-mu double lane change, in
 lockstep on the virtual bus, judged from the frames alone.
 
-The cases (``hil.fault_cases.catalogue``) run as tasks of the campaigns' executors
-(``studies.fault_runs``), each judged from the frames (``hil.fault_cases.verdicts``); the
-report goes to results/faults.* (``studies.fault_report``). The full 13.5 s scenario every
+The cases (``hil.fault_cases.catalogue``) are the cells of the grid
+``studies/campaign/grids/faults.toml`` (runner ``fault_case``), run through the campaign
+engine on the campaigns' executors (``studies.fault_runs``), each judged from the frames
+(``hil.fault_cases.verdicts``); the report goes to results/faults.*, rendered from the
+cells' rows (``studies.fault_report``). The full 13.5 s scenario every
 time (about 12-15 s of wall clock per run here); faults start at 3.0 s, in the first lane
 change (X ~ 29 m).
 
 ``--ecu c`` (``make faults-c``) runs the same cases against the C ECU executable
 (``build/firmware/ecu``) as ``hil run --ecu c`` does: a separate process on a socketcand hub
 of its own on TCP loopback, the injector between this process's nodes and the hub
-(``hil.fault_cases.c_ecu``). It writes results/faults_c.* and compares each verdict with the
+(``hil.fault_cases.c_ecu``; the grid ``faults_c.toml``). It writes results/faults_c.* and compares each verdict with the
 Python campaign's (results/faults.json).
 
 This module is the command: its options (shared with ``python -m hil faults --campaign``),

@@ -20,7 +20,9 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     seed = [0, 1]                               # seed of the random faults
     ecu = ["python", "c"]                       # the Python ECU in-process, the C executable
     disturbance = ["none", "wind"]              # "none" or a [disturbances.NAME] table
-    runner = ["hil", "closed_loop"]             # over CAN (default), or without CAN
+    runner = ["hil", "closed_loop"]             # over CAN (default), or without CAN; or
+                                                # "fault_case" alone (below)
+    case = ["drop 5 %", "lost bus"]             # fault_case cells: cases of make faults
 
     [[exclude]]                  # a cell matching every key of one table is dropped
     controller = "nmpc"
@@ -56,6 +58,15 @@ in one loop without CAN (``studies.campaign.closed_loop_cell``: the runner of ``
 tables``, for grids too large for the bus). A ``closed_loop`` cell takes no fault (no bus
 carries frames there; the lag, mass, friction and disturbance axes act on the plant) and
 no C ECU (left out as a C cell the C ECU cannot run).
+
+The ``fault_case`` runner (``studies.campaign.fault_axes``, ``fault_case_cell``): each cell
+is one case of the fault catalogue (the ``case`` axis, default the whole catalogue) with
+one controller, judged by ``hil.fault_cases.runs.run_case`` (``make faults``: the grids
+``faults`` and ``faults_c``). It stands alone on the runner axis and takes only the
+controller, scenario and ecu axes and ``[run] duration_s``; a (case, controller) the case
+does not run is left out (``Grid.case_left_out``). The cases that measure the ECU's own
+wall-clock behaviour are exclusive cells (``Cell.exclusive``: run alone, after the
+others). The axes' values and tables are checked in ``studies.campaign.axes``.
 
 Each cell becomes one scenario TOML (:func:`scenario_document`): the base scenario's file
 with the cell's values written in, its ``[faults]`` table holding the fault, the lag and
