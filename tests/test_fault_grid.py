@@ -72,6 +72,10 @@ def test_a_small_fault_grid_on_the_engine_gives_run_cases_verdicts(tmp_path: Pat
     rows = json.loads((out / "rows.json").read_text())
     assert [row["case"] for row in rows] == ["virtual time jump", "drop 5 %"]   # grid order
     assert not any((out / "cache").iterdir())                                  # never cached
+    import csv
+    with (out / "cells.csv").open() as handle:
+        assert [(r["fault"], r["end_reason"]) for r in csv.DictReader(handle)] == \
+            [(row["case"], row["outcome"]) for row in rows]                    # the case in the fault column
     cases = {case.name: case for case in all_cases()}
     for row in rows:
         direct = run_case(cases[row["case"]], "eso-dkmpc", duration_s=4.0)

@@ -39,10 +39,13 @@ def _text(value: Any, digits: int = 6) -> str:
 
 
 def csv_row(row: dict[str, Any]) -> dict[str, str]:
-    """A result row as the text of :data:`CSV_FIELDS`."""
+    """A result row as the text of :data:`CSV_FIELDS` (a ``fault_case`` cell's case in the
+    ``fault`` column: it has no other fault)."""
     out = {}
     for name in CSV_FIELDS:
         value = row.get(_AXIS_COLUMN.get(name, name), "")
+        if name == "fault" and row.get("case", NO_CASE) != NO_CASE:
+            value = row["case"]
         if name in ("e_y_rmse", "e_y_max", "heading_rmse"):
             out[name] = _text(_float(value))
         elif name in ("step_p50_us", "step_p99_us", "wall_s"):
@@ -190,7 +193,7 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
         done = [r for r in mine if r.get("completed")]
         e_y = [_float(r["e_y_rmse"]) for r in done]
         e_max = [_float(r["e_y_max"]) for r in mine if math.isfinite(_float(r.get("e_y_max")))]
-        head = [_float(r["heading_rmse"]) for r in done]
+        head = [v for v in (_float(r.get("heading_rmse")) for r in done) if math.isfinite(v)]
         p50, p99 = _median(mine, "step_p50_us"), _median(mine, "step_p99_us")
         fields = [column, f"{len(done)}/{len(mine)}",
                   f"{sum(e_y) / len(e_y) * 100:.1f}" if e_y else "-",
