@@ -90,7 +90,7 @@ def test_a_small_fault_grid_on_the_engine_gives_run_cases_verdicts(tmp_path: Pat
                                                             fault_report.verdicts_from_rows(rows)]
 
 
-def test_exclusive_cells_run_last_alone_after_the_executor_is_released(tmp_path: Path) -> None:
+def test_exclusive_cells_run_last_alone_after_the_executor_is_released(tmp_path: Path, monkeypatch) -> None:
     from studies.campaign.executors import SerialExecutor
     from studies.campaign.runner import run_campaign
 
@@ -108,6 +108,9 @@ def test_exclusive_cells_run_last_alone_after_the_executor_is_released(tmp_path:
     def task(job):
         ran.append((job.case, Recording.closed))
         return {"key": job.key, "completed": 1}
+
+    # the exclusive cells run the grid's own cell task, here the recording one
+    monkeypatch.setattr("studies.campaign.runner.cell_task", lambda grid: task)
 
     result = run_campaign(load_grid(grid_file), tmp_path / "out", Recording(task), progress=False)
     assert ran == [("drop 5 %", False), ("delay", False), ("lost bus", True), ("virtual time jump", True)]

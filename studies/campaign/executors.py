@@ -46,8 +46,6 @@ class Executor(Protocol):
 
     workers: int
     description: str
-    #: What each task runs (the module-level function given to :func:`open_executor`).
-    task_function: Callable[[Any], Any]
 
     def run(self, jobs: Sequence[Any]) -> Iterator[Finished]:
         """Run ``task_function`` on every job; yield them as they finish (any order)."""
@@ -97,7 +95,6 @@ class RayExecutor:
                  workers: int | None = None) -> None:
         ray = _ray()
         self.ray = ray
-        self.task_function = task_function
         # No usage statistics (they would leave the machine); keep 127.0.0.1 as given.
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")

@@ -224,7 +224,7 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
     bar = tqdm(total=len(jobs), initial=cached_count, unit="cell", disable=not progress,
                desc=grid.name, dynamic_ncols=True)
     bar.set_postfix(failed=failed, cached=cached_count)
-    stream = _shared_then_exclusive(executor, todo)
+    stream = _shared_then_exclusive(executor, todo, cell_task(grid))
     try:
         for job, row, worker_error in stream:
             if worker_error is not None:  # recorded, not cached: the next run retries it
@@ -251,13 +251,15 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
                           executor=executor.description, interrupted=interrupted)
 
 
-def _shared_then_exclusive(executor: Executor, jobs: list[Any]) -> Iterator[tuple[Any, Any, str | None]]:
-    """The jobs on ``executor``, then the exclusive ones alone in this process."""
+def _shared_then_exclusive(executor: Executor, jobs: list[Any],
+                           task: Callable[[Any], Any]) -> Iterator[tuple[Any, Any, str | None]]:
+    """The jobs on ``executor``, then the exclusive ones alone in this process (``task``:
+    the grid's cell task, :func:`cell_task`)."""
     alone = [job for job in jobs if getattr(job, "exclusive", False)]
     yield from executor.run([job for job in jobs if not getattr(job, "exclusive", False)])
     if alone:
         executor.close()
-        yield from SerialExecutor(executor.task_function).run(alone)
+        yield from SerialExecutor(task).run(alone)
 
 
 def cached_rows(grid: Grid, out_dir: Path, version: str | None = None) -> list[dict[str, Any]]:
