@@ -124,13 +124,10 @@ def normalised(encoder: list, A: np.ndarray, B: np.ndarray, offset: np.ndarray,
                              speed_knots=KNOTS)
 
 
-def write_artefact(path: Path, bilinear: bool = True) -> KoopmanModel:
-    """The test artefact at ``path`` (.npz + .json), left as it is when its content is the
-    same (np.savez stamps the time: a rewrite would rebuild the firmware every run)."""
-    physical = physical_model(bilinear)
-    staging = path.parent / f".{path.name}-new"
-    save_artifact(staging, normalised(*physical), {"ts": TS, "state_names": list(STATES),
-                                                   "input_names": list(INPUTS)})
+def replace_unless_same(staging: Path, path: Path) -> None:
+    """Move the artefact ``staging`` (.npz + .json) to ``path``, or drop it where ``path``
+    holds the same content already (np.savez stamps the time: a rewrite would rebuild the
+    firmware built for ``path`` every run)."""
     same = path.with_suffix(".npz").is_file() and path.with_suffix(".json").is_file()
     if same:
         with np.load(staging.with_suffix(".npz")) as new, np.load(path.with_suffix(".npz")) as old:
@@ -142,6 +139,37 @@ def write_artefact(path: Path, bilinear: bool = True) -> KoopmanModel:
             staging.with_suffix(suffix).unlink()
         else:
             staging.with_suffix(suffix).replace(path.with_suffix(suffix))
+
+
+def build_firmware(build: Path, model: Path) -> None:
+    """``make firmware`` into ``build`` for the artefact ``model`` (both under ROOT; a no-op
+    when up to date)."""
+    done = subprocess.run(["make", "-s", "--no-print-directory", "firmware", f"FW_DIR={build.relative_to(ROOT)}",
+                           f"FW_MODEL={model.relative_to(ROOT)}"], cwd=ROOT, capture_output=True, text=True,
+                          check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def native_on(library: Path):
+    """firmware_sim.native on ``library`` while the generator runs (a fixture's body). The
+    module loads one library per process: the default build's (if another test loaded it)
+    is set aside and put back afterwards (the libraries' static cores are separate)."""
+    from firmware_sim import native as module
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(module, "_library", None)
+        module.load_library(library)
+        yield module
+
+
+def write_artefact(path: Path, bilinear: bool = True) -> KoopmanModel:
+    """The test artefact at ``path`` (.npz + .json), left as it is when its content is the
+    same (np.savez stamps the time: a rewrite would rebuild the firmware every run)."""
+    physical = physical_model(bilinear)
+    staging = path.parent / f".{path.name}-new"
+    save_artifact(staging, normalised(*physical), {"ts": TS, "state_names": list(STATES),
+                                                   "input_names": list(INPUTS)})
+    replace_unless_same(staging, path)
     model = KoopmanModel.load(path)
     # the folding round-trips: the loaded model is the physical one designed above
     _, A, B, offset, N = physical
@@ -158,24 +186,14 @@ def bilinear_build() -> Path:
     """The firmware for the test artefact (build/firmware-bilinear), up to date."""
     BUILD.mkdir(parents=True, exist_ok=True)
     write_artefact(MODEL)
-    build = subprocess.run(["make", "-s", "--no-print-directory", "firmware", f"FW_DIR={BUILD.relative_to(ROOT)}",
-                            f"FW_MODEL={MODEL.relative_to(ROOT)}"], cwd=ROOT, capture_output=True, text=True,
-                           check=False)
-    assert build.returncode == 0, build.stdout + build.stderr
+    build_firmware(BUILD, MODEL)
     return BUILD
 
 
 @pytest.fixture(scope="module")
 def bilinear_core(bilinear_build: Path):
-    """firmware_sim.native on the bilinear build's libecu.so. The module loads one library
-    per process: the default build's (if another test loaded it) is set aside here and put
-    back after this module (the two libraries' static cores are separate)."""
-    from firmware_sim import native as module
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(module, "_library", None)
-        module.load_library(bilinear_build / "libecu.so")
-        yield module
+    """firmware_sim.native on the bilinear build's libecu.so (native_on)."""
+    yield from native_on(bilinear_build / "libecu.so")
 
 
 def test_the_build_is_for_the_steer_bilinear_form(bilinear_build: Path) -> None:

@@ -12,6 +12,8 @@
 /* Sum of the encoder's weight counts (layer i: width_i x width_{i-1}, width_{-1} = NX). */
 #define ECU_ENCODER_MAX (ECU_NX * ECU_HIDDEN_MAX + (ECU_N_LAYERS) * ECU_HIDDEN_MAX * ECU_HIDDEN_MAX)
 #define ECU_NDICT_MAX (ECU_NDICT > 0 ? ECU_NDICT : 1)
+/* At least one: an edmdc-linear model has no encoder layers, and C has no zero-size arrays. */
+#define ECU_N_LAYERS_MAX (ECU_N_LAYERS > 0 ? ECU_N_LAYERS : 1)
 
 /* One controller's table of controller/tuning.toml (ecu_data.py TUNING_FIELDS). */
 typedef struct {
@@ -59,10 +61,10 @@ typedef struct {
     double value[ECU_ENCODER_MAX];
     float single[2 * ECU_ENCODER_MAX];
   } weights;
-  int weights_single[ECU_N_LAYERS];
-  double biases[ECU_N_LAYERS * ECU_HIDDEN_MAX];
-  int layer_in[ECU_N_LAYERS], layer_out[ECU_N_LAYERS];
-  int weight_at[ECU_N_LAYERS], bias_at[ECU_N_LAYERS];
+  int weights_single[ECU_N_LAYERS_MAX];
+  double biases[ECU_N_LAYERS_MAX * ECU_HIDDEN_MAX];
+  int layer_in[ECU_N_LAYERS_MAX], layer_out[ECU_N_LAYERS_MAX];
+  int weight_at[ECU_N_LAYERS_MAX], bias_at[ECU_N_LAYERS_MAX];
 } ecu_config_t;
 
 /* Read the data file into cfg; 0, or -1 with one line in err. Start-up only: the record

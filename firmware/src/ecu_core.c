@@ -34,7 +34,8 @@ const char *ecu_build_shapes(void) {
   snprintf(text, sizeof text,
            "n_x %d, n_u %d, n_z %d, dictionary %d, knots %d, form %d, encoder %d layers (last %d), "
            "Np/Nc eso-dkmpc %d/%d dkmpc %d/%d lmpc %d/%d",
-           ECU_NX, ECU_NU, ECU_NZ, ECU_NDICT, ECU_NK, ECU_FORM, ECU_N_LAYERS, widths[ECU_N_LAYERS - 1],
+           ECU_NX, ECU_NU, ECU_NZ, ECU_NDICT, ECU_NK, ECU_FORM, ECU_N_LAYERS,
+           widths[ECU_N_LAYERS > 0 ? ECU_N_LAYERS - 1 : 0], /* {0} without layers */
            ECU_NP_ESO_DKMPC, ECU_NC_ESO_DKMPC, ECU_NP_DKMPC, ECU_NC_DKMPC, ECU_NP_LMPC, ECU_NC_LMPC);
   return text;
 }

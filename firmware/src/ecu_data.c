@@ -345,9 +345,13 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
     else if (missing == BILINEAR_BIT)
       snprintf(err, err_len, "%s: record koopman.N missing (this build is for the scheduled form with the "
                "steer-bilinear term N(v))", path);
-    else
+    else {
+      /* The encoder's bits: w0..w(L-1), then b0..b(L-1). No `% ECU_N_LAYERS`: a build without
+       * encoder layers (edmdc-linear) has L = 0 and never gets here, but must still compile. */
+      int layer = missing - 13, is_bias = layer >= ECU_N_LAYERS;
       snprintf(err, err_len, "%s: encoder record koopman.%c%d missing (this build's encoder has %d layers)",
-               path, missing - 13 < ECU_N_LAYERS ? 'w' : 'b', (missing - 13) % ECU_N_LAYERS, ECU_N_LAYERS);
+               path, is_bias ? 'b' : 'w', is_bias ? layer - ECU_N_LAYERS : layer, ECU_N_LAYERS);
+    }
     status = -1;
   }
   if (status == 0 && !(cfg->ts > 0.0 && cfg->torque_min < cfg->torque_max && cfg->mass > 0.0 &&
