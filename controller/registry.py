@@ -67,6 +67,10 @@ MODEL_FILE_KINDS: dict[str, str] = {"eso-dkmpc": "koopman", "dkmpc": "koopman",
                                     "lmpc": "bicycle", "lmpc-eso": "bicycle"}
 #: The states and inputs an ECU model must have (the frames carry nothing else).
 ECU_MODEL_INPUTS = ("torque", "steer")
+#: The sample time (s) an ECU model must have: the contract's control period (25 ms).
+ECU_MODEL_TS = 0.025
+#: How far (s) a model's ts may be from ECU_MODEL_TS: rounding only (the C core's too).
+ECU_MODEL_TS_TOLERANCE = 1e-9
 
 
 def load_controller_model(name: str, model_path: str | Path) -> object:
@@ -89,7 +93,22 @@ def load_controller_model(name: str, model_path: str | Path) -> object:
     from models.koopman import KoopmanModel
     model = KoopmanModel.load(model_path)
     check_ecu_model_names(model.state_names, model.input_names, str(model_path))
+    check_ecu_model_ts(model.ts, str(Path(model_path).with_suffix(".json")))
     return model
+
+
+def check_ecu_model_ts(ts: float, where: str) -> None:
+    """Refuse a Koopman model whose sample time is not the contract's control period: the
+    MPC steps the model once a control period, and the C core's pose prediction uses the
+    model's ts, so a model of another ts would steer differently in the two ECUs.
+
+    Raises:
+        ModelFileError: ``WHERE: the model's sample time ts ...``, the text the C core's data
+            reader (firmware/src/ecu_data.c) gives for such a data file.
+    """
+    if not abs(ts - ECU_MODEL_TS) <= ECU_MODEL_TS_TOLERANCE:
+        raise ModelFileError(f"{where}: the model's sample time ts {ts:g} s differs from the control period "
+                             f"{ECU_MODEL_TS:g} s (train it with --ts {ECU_MODEL_TS:g})")
 
 
 def check_ecu_model_names(states: Sequence[str], inputs: Sequence[str], where: str) -> None:

@@ -216,6 +216,21 @@ def test_a_data_file_with_a_non_finite_value_is_refused(native, record: str, ind
         assert f"{file}: record {record}: value {flat} is not finite ({value})" in str(error.value)
 
 
+@pytest.mark.parametrize("ts", [0.05, 0.0125])
+def test_a_data_file_of_another_sample_time_is_refused(native, ts: float, tmp_path: Path) -> None:
+    """A data file whose model ts is not the control period (a model trained with --ts
+    0.05, written past ecu_data.py's check): a load failure naming the file and the value,
+    the Python ECU's text (tests/test_input_files.py)."""
+    ecu_data = _tool("ecu_data")
+    records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
+    file = tmp_path / "slow.bin"
+    ecu_data.write_data(dict(records, ts=np.array([ts])), file)
+    with pytest.raises(ConfigError) as error:
+        native.NativeController("dkmpc", file)
+    assert (f"{file}: the model's sample time ts {ts:g} s differs from the control period 0.025 s "
+            "(train it with --ts 0.025)") in str(error.value)
+
+
 def test_cli_native_refuses_a_model_of_another_shape(native) -> None:
     """--native --model with an artefact of another shape: both shapes named, exit 2."""
     path = ROOT / "hil" / "paths" / "dlc.csv"

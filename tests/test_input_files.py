@@ -63,6 +63,34 @@ def test_the_ecu_latches_fault_for_a_model_with_an_infinite_encoder_weight(tmp_p
         bus.shutdown()
 
 
+def test_the_ecus_refuse_a_model_of_another_sample_time(tmp_path: Path, capsys) -> None:
+    """A Koopman model trained with --ts 0.05 (the artefact's ts as stored): the Python ECU
+    latches FAULT, as for any model that fails to load, and the C data-file writer refuses
+    it, both with the C core's text (tests/test_firmware_c_core.py: the data file)."""
+    import json
+
+    from test_firmware_c_core import _tool
+
+    model = tmp_path / "slow"
+    shutil.copy(ARTIFACT.with_suffix(".npz"), model.with_suffix(".npz"))
+    meta = json.loads(ARTIFACT.with_suffix(".json").read_text())
+    meta["ts"] = 0.05
+    model.with_suffix(".json").write_text(json.dumps(meta))
+    expected = (f"{model}.json: the model's sample time ts 0.05 s differs from the control period 0.025 s "
+                "(train it with --ts 0.025)")
+    bus = can.Bus(interface="virtual", channel="slow-model")
+    try:
+        ecu = Ecu(bus, "dkmpc", {1: ROOT / "hil" / "paths" / "dlc.csv"},
+                  controller_factory=model_controller_factory("dkmpc", model))
+        assert ecu.mode is CtrlMode.FAULT
+        assert ecu.load_error == f"controller 'dkmpc' failed to load: {expected}"
+    finally:
+        bus.shutdown()
+    assert _tool("ecu_data").main(["--out", str(tmp_path / "slow.bin"), "--model", str(model)]) == 2
+    assert capsys.readouterr().err == f"error: {expected}\n"
+    assert not (tmp_path / "slow.bin").exists()
+
+
 def test_koopman_train_never_overwrites_an_output_without_replace(tmp_path: Path, capsys) -> None:
     """``--out`` is required (no default at the committed artefact), an existing artefact
     or a ``--logs`` folder holding its outputs needs ``--replace``, and ``--out`` is never

@@ -10,6 +10,7 @@
 #include <string.h>
 
 #include "ecu_config.h"
+#include "ecu_contract.h"
 
 #define NAME_BYTES 48
 #define N_TUNING_VALUES 29
@@ -352,6 +353,14 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
       snprintf(err, err_len, "%s: encoder record koopman.%c%d missing (this build's encoder has %d layers)",
                path, is_bias ? 'b' : 'w', is_bias ? layer - ECU_N_LAYERS : layer, ECU_N_LAYERS);
     }
+    status = -1;
+  }
+  /* The MPC steps the model once a control period and the pose prediction uses ts: a model
+   * of another sample time would steer otherwise (controller/registry.py check_ecu_model_ts,
+   * the same text and tolerance). */
+  if (status == 0 && !(fabs(cfg->ts - CONTROL_PERIOD_MS / 1000.0) <= 1e-9)) {
+    snprintf(err, err_len, "%s: the model's sample time ts %g s differs from the control period %g s "
+             "(train it with --ts %g)", path, cfg->ts, CONTROL_PERIOD_MS / 1000.0, CONTROL_PERIOD_MS / 1000.0);
     status = -1;
   }
   if (status == 0 && !(cfg->ts > 0.0 && cfg->torque_min < cfg->torque_max && cfg->mass > 0.0 &&

@@ -34,6 +34,7 @@ import numpy as np
 
 from controller.errors import ControllerError
 from controller.lifted_mpc import MEASURED_STATES
+from controller.registry import check_ecu_model_ts
 from controller.tuning import ControllerTuning, load_tuning
 from models.bicycle import NominalModelParams, nominal_model_params
 from models.errors import ModelError
@@ -131,6 +132,7 @@ def collect(tuning_path: Path | None, model_path: Path, bicycle_path: Path | Non
     """Every record of the data file, by name (``bicycle_path``: a fitted bicycle for LMPC)."""
     tuning = load_tuning(tuning_path)
     model = KoopmanModel.load(model_path)
+    check_ecu_model_ts(model.ts, str(Path(model_path).with_suffix(".json")))  # as the C core's reader
     bicycle = bicycle_params(bicycle_path)
     records: dict[str, np.ndarray] = {
         "ts": np.array([model.ts]),
