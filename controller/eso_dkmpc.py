@@ -19,7 +19,6 @@ import numpy as np
 from controller.base import Command, VehicleSample
 from controller.lifted_mpc import VEHICLE_STATES, LiftedMpc, PredictionMaps, decayed_sums
 from controller.observed_mpc import ObservedMpc, innovation_bound
-from controller.steady_slip import steady_slip_map
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains
 from models.eso_dk import observer_params
@@ -46,16 +45,14 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
     def __init__(self, model: "KoopmanModel", tuning: EsoDkmpcTuning, longitudinal: LongitudinalTuning) -> None:
         self._eso_tuning = tuning
         # Per linear model (one, or one per speed quantum of a scheduled model): observer
-        # parameters, the disturbance's horizon map C_P D_i (Np + 1, n_x, n_z) and its
-        # steady vy map (n_z,) (``controller.steady_slip``).
-        self._observer_cache: dict[int, tuple["KoopmanModel", EsoParams, np.ndarray, np.ndarray]] = {}
+        # parameters and the disturbance's horizon map C_P D_i (Np + 1, n_x, n_z).
+        self._observer_cache: dict[int, tuple["KoopmanModel", EsoParams, np.ndarray]] = {}
         super().__init__(model, tuning, longitudinal)
-        params, _, _ = self._observer_for(self.prediction_maps(model.speed_knots[0] if self._scheduled else 0.0))
+        params, _ = self._observer_for(self.prediction_maps(model.speed_knots[0] if self._scheduled else 0.0))
         self.observer = ExtendedStateObserver(params)
 
-    def _observer_for(self, maps: PredictionMaps) -> tuple[EsoParams, np.ndarray, np.ndarray]:
-        """(ESO parameters, disturbance map, steady vy map) of the linear model behind
-        ``maps``, cached.
+    def _observer_for(self, maps: PredictionMaps) -> tuple[EsoParams, np.ndarray]:
+        """(ESO parameters, disturbance map) of the linear model behind ``maps``, cached.
 
         The matrix-structured gains beta1 = (p1 + p2 - 1) I - A place the error poles of
         eq. 24 whatever A is, so every speed's observer has the same error dynamics.
@@ -76,20 +73,15 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
                 horizon_map = local.C_P[:len(VEHICLE_STATES)] @ decayed
             if len(self._observer_cache) > 2048:
                 self._observer_cache.clear()
-            # the steady state holds vx and the yaw rate, the torque and the steer are free
-            slip_map = steady_slip_map(local.A, local.B, VEHICLE_STATES.index("vy"),
-                                       VEHICLE_STATES.index("yaw_rate"), VEHICLE_STATES.index("vx"))
-            cached = self._observer_cache[id(local)] = (local, params, horizon_map, slip_map)
-        return cached[1], cached[2], cached[3]
+            cached = self._observer_cache[id(local)] = (local, params, horizon_map)
+        return cached[1], cached[2]
 
     def disturbance_response(self, lifted_state: np.ndarray, maps: PredictionMaps) -> np.ndarray:
         """States' share (Np + 1, 3) of w_hat, shaped over the horizon by the decay; the
         observer runs on the model of this step's speed (scheduled form)."""
-        params, free_from_disturbance, slip_map = self._observer_for(maps)
+        params, free_from_disturbance = self._observer_for(maps)
         self.observer.params = params
-        estimate = self.disturbance(lifted_state)
-        self.note_steady_slip(slip_map, estimate, float(lifted_state[0]))
-        return free_from_disturbance @ estimate
+        return free_from_disturbance @ self.disturbance(lifted_state)
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
         self.observe(self.lifted_state, np.array([command.drive_torque, command.steer_angle]))

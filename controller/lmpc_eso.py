@@ -25,7 +25,6 @@ from controller.base import Command, VehicleSample
 from controller.lifted_mpc import decayed_sums
 from controller.lmpc import MIN_MODEL_SPEED, SPEED_QUANTUM, DiscreteLateralModel, Lmpc
 from controller.observed_mpc import ObservedMpc, innovation_bound
-from controller.steady_slip import steady_slip_map
 from controller.tuning import ControllerTuning, EsoQpMpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains
 
@@ -42,9 +41,8 @@ class LmpcEso(ObservedMpc, Lmpc):
     def __init__(self, bicycle: DiscreteLateralModel, tuning: EsoQpMpcTuning,
                  longitudinal: LongitudinalTuning) -> None:
         self._eso_tuning = tuning
-        # Speed quantum -> (observer parameters, disturbance horizon map D_i (Np + 1, 2, 2),
-        # steady vy map (2,) of ``controller.steady_slip``).
-        self._observer_cache: dict[int, tuple[EsoParams, np.ndarray, np.ndarray]] = {}
+        # Speed quantum -> (observer parameters, disturbance horizon map D_i (Np + 1, 2, 2)).
+        self._observer_cache: dict[int, tuple[EsoParams, np.ndarray]] = {}
         super().__init__(bicycle, tuning, longitudinal)
         self.observer = ExtendedStateObserver(self._observer_for(MIN_MODEL_SPEED)[0])
         self.lateral_state: np.ndarray | None = None  # [vy, yaw_rate] of the last step
@@ -56,9 +54,8 @@ class LmpcEso(ObservedMpc, Lmpc):
 
         return cls(LinearBicycle(), tuning.lmpc_eso, tuning.longitudinal)
 
-    def _observer_for(self, vx: float) -> tuple[EsoParams, np.ndarray, np.ndarray]:
-        """(ESO parameters, disturbance horizon map (Np + 1, 2, 2), steady vy map (2,)) of
-        the bicycle at vx,
+    def _observer_for(self, vx: float) -> tuple[EsoParams, np.ndarray]:
+        """(ESO parameters, disturbance horizon map (Np + 1, 2, 2)) of the bicycle at vx,
         on LMPC's speed grid, cached. The matrix-structured gains place the error poles of
         eq. 24 at the tuning's poles whatever the speed's A is."""
         key = round(max(vx, MIN_MODEL_SPEED) / SPEED_QUANTUM)
@@ -74,19 +71,16 @@ class LmpcEso(ObservedMpc, Lmpc):
         if len(self._observer_cache) >= _OBSERVER_CACHE_SIZE:
             self._observer_cache.clear()
         cached = self._observer_cache[key] = (
-            params, decayed_sums(a, tuning.prediction_horizon, tuning.disturbance_decay),
-            steady_slip_map(a, params.B, 0, 1))  # the yaw rate held, the steer free
+            params, decayed_sums(a, tuning.prediction_horizon, tuning.disturbance_decay))
         return cached
 
     def disturbance_response(self, sample: VehicleSample) -> np.ndarray:
         """The estimate's share of [vy, yaw_rate] at steps 0..Np, (Np + 1, 2); the observer
         runs on the bicycle at this step's speed."""
-        params, horizon_map, slip_map = self._observer_for(sample.vx)
+        params, horizon_map = self._observer_for(sample.vx)
         self.observer.params = params
         self.lateral_state = np.array([sample.vy, sample.yaw_rate])
-        estimate = self.disturbance(self.lateral_state)
-        self.note_steady_slip(slip_map, estimate, sample.vx)
-        return horizon_map @ estimate
+        return horizon_map @ self.disturbance(self.lateral_state)
 
     def predict_states(self, sample: VehicleSample, drive_torque: float) -> tuple[np.ndarray, np.ndarray]:
         """LMPC's free (Np + 1, 3) plus the disturbance share on [vy, yaw_rate]; gain

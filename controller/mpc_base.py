@@ -18,6 +18,7 @@ from controller.base import (STEER_LIMIT_RAD, Command, Controller, SolverStatus,
                              sample_is_finite)
 from controller.longitudinal import SpeedController
 from controller.reference import PathTracker, ReferencePath
+from controller.steady_slip import measured_slip, reference_bend, slip_target
 from controller.tuning import LongitudinalTuning, MpcTuning
 
 #: Control period of the paper and of the CAN contract (s).
@@ -60,6 +61,7 @@ class SteeringMpc(Controller):
         self._plan_steer: np.ndarray | None = None  # last good steer sequence (Nc,)
         self._plan_age = 0  # steps since that plan was computed
         self._last_command: Command | None = None
+        self.slip_target = 0.0  # rad: how far the last step moved the heading target
         if self._tracker is not None:
             self._tracker.reset()
 
@@ -72,7 +74,7 @@ class SteeringMpc(Controller):
         reference = self._tracker.horizon_reference(projection.progress, sample.vx,
                                                     self.tuning.prediction_horizon, self.ts, sample.yaw)
         self._observer_reset = False
-        plan = self._plan(sample, torque, reference)
+        plan = self._plan(sample, torque, self.target_reference(reference, sample))
         if plan.status not in _GOOD or not (math.isfinite(plan.steer.sum()) and math.isfinite(plan.cost)):
             return self._fallback(plan.status, torque, plan, sample)
         self._plan_steer = np.clip(plan.steer, -STEER_LIMIT_RAD, STEER_LIMIT_RAD)
@@ -85,10 +87,27 @@ class SteeringMpc(Controller):
                                   predicted_state=plan.predicted_state, fallback=False,
                                   slack_max=plan.slack_max, observer_reset=self._observer_reset)
 
+    def target_reference(self, reference: np.ndarray, sample: VehicleSample) -> np.ndarray:
+        """The poses (Np, 3) the cost pulls towards: the path's, with the heading moved by
+        the sample's side slip, bounded and faded (``controller.steady_slip``), so that the
+        yaw cost holds the course on the path. With ``slip_target_limit`` 0 (off) the path's
+        poses as they are, at no cost per step."""
+        tuning = self.tuning
+        if tuning.slip_target_limit == 0.0:
+            return reference
+        self.slip_target = slip_target(measured_slip(sample.vy, sample.vx), reference_bend(reference[:, 2]),
+                                       tuning.slip_target_limit, tuning.slip_target_gate)
+        if self.slip_target == 0.0:
+            return reference
+        target = reference.copy()
+        target[:, 2] -= self.slip_target
+        return target
+
     # -- for subclasses ------------------------------------------------------------------
     @abstractmethod
     def _plan(self, sample: VehicleSample, drive_torque: float, reference: np.ndarray) -> Plan:
-        """Solve the MPC for this sample; ``reference`` (Np, 3) poses at steps 1..Np."""
+        """Solve the MPC for this sample; ``reference`` (Np, 3) the target poses at steps
+        1..Np (the path's, its heading moved by ``target_reference``)."""
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
         """Hook after a command was produced for a valid sample (observer update)."""

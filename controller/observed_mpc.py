@@ -17,10 +17,6 @@ disturbance), so the lifted observer, the prediction and the pose rows all see t
 corrected rate. The estimate restarts at zero on ``reset()`` only (it is a property of the
 sensor, not of the manoeuvre); a gap in the samples only skips its update.
 
-The MPC's heading target moves by the steady side slip the estimate implies
-(``controller.steady_slip``): under a constant disturbance the car holds the path with its
-velocity, not its heading, along it (``slip_target_limit`` 0: the path's heading).
-
 "x" here is the observer's state, whatever the subclass's model calls its state.
 """
 from __future__ import annotations
@@ -33,11 +29,7 @@ from controller.base import Command, SolverStatus, StepDebug, VehicleSample
 from controller.mpc_base import Plan, SteeringMpc
 from controller.tuning import EsoQpMpcTuning
 from models.eso import ExtendedStateObserver, InnovationSaturation, innovated_disturbance
-from controller.steady_slip import reference_bend, slip_target
 from models.yaw_rate_bias import YawRateBiasState, yaw_rate_bias_update
-
-#: Speed (m/s) below which the side slip vy / vx is taken at this speed instead.
-SLIP_MIN_SPEED = 1.0
 
 
 def innovation_bound(tuning: EsoQpMpcTuning, lateral_rows: tuple[int, int]) -> InnovationSaturation:
@@ -61,8 +53,6 @@ class ObservedMpc(SteeringMpc):
         """Forget plans, progress, the observer state and the yaw-rate bias estimate."""
         self._observer_running = False
         self._yaw_rate_bias = YawRateBiasState()
-        self._steady_slip = 0.0
-        self.slip_target = 0.0
         super().reset()
 
     @property
@@ -87,30 +77,6 @@ class ObservedMpc(SteeringMpc):
             self._observer_reset = True
             return self.observer.disturbance_estimate
         return innovated_disturbance(self.observer.state, observed_state, self.observer.params)
-
-    def note_steady_slip(self, slip_map: np.ndarray, estimate: np.ndarray, vx: float) -> None:
-        """Keep the steady side slip (rad) that ``estimate`` (n,) implies at speed ``vx``:
-        slip_map @ estimate / vx, with ``slip_map`` (n,) the model's steady vy per unit of
-        w (``controller.steady_slip.steady_slip_map``). With the target off
-        (``slip_target_limit`` 0) it stays 0 and costs nothing per step."""
-        if self._eso_tuning.slip_target_limit == 0.0:
-            return
-        self._steady_slip = float(slip_map @ estimate) / max(vx, SLIP_MIN_SPEED)
-
-    def target_reference(self, reference: np.ndarray) -> np.ndarray:
-        """The path's poses (Np, 3) with the heading moved by the bounded, faded steady
-        side slip (``controller.steady_slip.slip_target``): the cost then holds the course,
-        heading plus slip, on the path's heading."""
-        tuning = self._eso_tuning
-        if tuning.slip_target_limit == 0.0:  # off: no bend to measure (slip_target would be 0)
-            return reference
-        self.slip_target = slip_target(self._steady_slip, reference_bend(reference[:, 2]),
-                                       tuning.slip_target_limit, tuning.slip_target_gate)
-        if self.slip_target == 0.0:
-            return reference
-        target = reference.copy()
-        target[:, 2] -= self.slip_target
-        return target
 
     def observe(self, observed_state: np.ndarray, model_input: np.ndarray) -> None:
         """Advance the observer with the step's state (n,) and the input applied (n_u,); a

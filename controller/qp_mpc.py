@@ -39,14 +39,8 @@ class QpSteeringMpc(SteeringMpc):
     def predict_states(self, sample: VehicleSample, drive_torque: float) -> tuple[np.ndarray, np.ndarray]:
         """Affine state prediction: free (Np + 1, 3) and gain (Np + 1, 3, Nc) for steps 0..Np."""
 
-    def target_reference(self, reference: np.ndarray) -> np.ndarray:
-        """The poses (Np, 3) the cost pulls towards: the path's (an observer's MPC moves
-        the heading by the disturbance's steady side slip, ``controller.observed_mpc``)."""
-        return reference
-
     def _plan(self, sample: VehicleSample, drive_torque: float, reference: np.ndarray) -> Plan:
         free, gain = self.predict_states(sample, drive_torque)
-        reference = self.target_reference(reference)  # after the prediction: it sets the estimate
         nominal = self.shifted_plan(sample)
         n_pred = self.tuning.prediction_horizon
         empty = np.zeros((0, 3))

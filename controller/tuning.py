@@ -59,6 +59,11 @@ class MpcTuning:
     ``low_speed_q_yaw``, ``low_speed_r_steer``; at and above ``weight_schedule_speeds[1]``
     ``q_position``, ``q_yaw``, ``r_steer``; linearly in the measured vx between. With the
     low-speed weights equal to the others there is no schedule (the paper's fixed weights).
+
+    Heading target (``controller.steady_slip``): ``slip_target_limit`` (rad; 0: off) bounds
+    the measured side slip vy / vx by which the yaw cost's target moves, so that the cost
+    holds the course (heading plus slip) on the path; ``slip_target_gate`` (rad) is the bend
+    of the horizon's reference at which that target has faded to zero.
     """
 
     prediction_horizon: int
@@ -75,6 +80,8 @@ class MpcTuning:
     low_speed_q_yaw: float
     low_speed_r_steer: float
     weight_schedule_speeds: tuple[float, float]
+    slip_target_limit: float
+    slip_target_gate: float
 
     def __post_init__(self) -> None:
         low, high = self.weight_schedule_speeds
@@ -128,9 +135,6 @@ class EsoDkmpcTuning(QpMpcTuning):
     step (``models.eso.InnovationSaturation`` on the vy and yaw-rate entries, m/s and
     rad/s; 0: no bound). ``yaw_rate_bias_pole`` is the pole of the yaw-rate sensor bias
     estimate from the heading (``models.yaw_rate_bias``; 1: no estimate).
-    ``slip_target_limit`` (rad; 0: off) bounds the steady side slip by which the estimate
-    moves the heading target, ``slip_target_gate`` (rad) is the bend of the horizon's
-    reference at which that target has faded to zero (``controller.steady_slip``).
     """
 
     eso_pole: float
@@ -138,8 +142,6 @@ class EsoDkmpcTuning(QpMpcTuning):
     disturbance_decay: float
     eso_innovation_limit: float
     yaw_rate_bias_pole: float
-    slip_target_limit: float
-    slip_target_gate: float
 
 
 #: The same fields for every QP MPC with the eq. 13 observer: ESO-DKMPC and the ablations

@@ -23,9 +23,11 @@ evaluation.
 
 A second stage, ``--stage slip-target`` (``make tune-slip-target``, after this one), runs
 the same procedure over :data:`SLIP_TARGET_GRID`: the bound and the fade of the heading
-target's steady side slip (``controller.steady_slip``), every other field (the observer
-fields just chosen included) at the tuning file's value. It writes
-``observer_tuning_slip_target.md`` and ``.json``.
+target's measured side slip (``controller.steady_slip``), every other field (the observer
+fields just chosen included) at the tuning file's value. The target is a part of every
+MPC's cost, not of the observer, so this stage tunes every MPC (DKMPC, LMPC and NMPC
+too): no baseline keeps the heading cost that the disturbances punish while the observer's
+controllers lose it. It writes ``observer_tuning_slip_target.md`` and ``.json``.
 
 Usage: ``python -m studies.observer_tuning [--stage observer|slip-target] [--controllers ...]
 [--workers N] [--out DIR] [--no-write] [--no-progress]``.
@@ -44,6 +46,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from controller.registry import MPC_NAMES
 from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
 from hil.errors import HilError
 from hil.scenario import Scenario
@@ -64,26 +67,28 @@ OBSERVER_GRID = SweepGrid((
     ("eso_innovation_limit", (0.0, 0.003, 0.01)),
     ("yaw_rate_bias_pole", (1.0, 0.99)),
 ))
-#: The second stage: the heading target's steady side slip, bounded (0: off) and faded
-#: with the reference's bend.
+#: The second stage: the heading target's measured side slip, bounded (0: off) and faded
+#: with the reference's bend. 0.04 rad is about the slip of a 1 kN crosswind at 50 km/h.
 SLIP_TARGET_GRID = SweepGrid((
-    ("slip_target_limit", (0.0, 0.01, 0.02)),
+    ("slip_target_limit", (0.0, 0.01, 0.02, 0.04)),
     ("slip_target_gate", (0.003, 0.01)),
 ))
 
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
-    """One stage of the observer tuning: its grid, report name and make target."""
+    """One stage of the observer tuning: its grid, report name, make target and the
+    controllers it tunes by default."""
 
     grid: SweepGrid
     report: str
     target: str
+    controllers: tuple[str, ...]
 
 
 STAGES = {
-    "observer": Stage(OBSERVER_GRID, "observer_tuning", "tune-observer"),
-    "slip-target": Stage(SLIP_TARGET_GRID, "observer_tuning_slip_target", "tune-slip-target"),
+    "observer": Stage(OBSERVER_GRID, "observer_tuning", "tune-observer", OBSERVED_CONTROLLERS),
+    "slip-target": Stage(SLIP_TARGET_GRID, "observer_tuning_slip_target", "tune-slip-target", MPC_NAMES),
 }
 #: One constant disturbance per tuning manoeuvre (``[disturbances]`` keys of
 #: ``models.disturbance``), acting from the start.
@@ -200,8 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stage", choices=sorted(STAGES), default="observer",
                         help="observer: the poles, decay, bound and bias (default); slip-target: the heading "
                              "target's side slip, after it")
-    parser.add_argument("--controllers", nargs="+", default=list(OBSERVED_CONTROLLERS),
-                        choices=OBSERVED_CONTROLLERS, help="controllers to tune (default: all with an observer)")
+    parser.add_argument("--controllers", nargs="+", choices=MPC_NAMES,
+                        help="controllers to tune (default: the observer stage's, those with an observer; "
+                             "the slip-target stage's, every MPC)")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (Ray)")
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
     parser.add_argument("--tuning", type=Path, default=DEFAULT_TUNING_PATH, help="tuning file read and written")
@@ -212,12 +218,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --out {args.out}: no such folder", file=sys.stderr)
         return 1
     stage = STAGES[args.stage]
+    controllers = args.controllers or list(stage.controllers)
     started = time.perf_counter()
     try:
         tuning = load_tuning(args.tuning)
         scenarios = disturbed_tuning_set()
-        previous = {name: _previous(tuning, name, stage.grid) for name in args.controllers}
-        results = tune(args.controllers, scenarios, tuning, workers=args.workers, progress=not args.no_progress,
+        previous = {name: _previous(tuning, name, stage.grid) for name in controllers}
+        results = tune(controllers, scenarios, tuning, workers=args.workers, progress=not args.no_progress,
                        grid=stage.grid)
     except HilError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -4,6 +4,7 @@ without a standing offset under a constant disturbance, and the C core's twin of
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 from pathlib import Path
 
@@ -11,7 +12,6 @@ import numpy as np
 import pytest
 
 from controller.eso_dkmpc import LATERAL_ROWS
-from controller.registry import create_controller
 from models.eso import EsoShapeError, InnovationSaturation
 from models.koopman import KoopmanModel
 from models.yaw_rate_bias import YawRateBiasState, yaw_rate_bias_update
@@ -146,20 +146,20 @@ def test_eso_dkmpc_settles_without_a_standing_offset(tmp_path: Path, disturbance
     assert settled.max() < 0.005
 
 
-def _c_core_with(native, folder: Path, **observer: float) -> "object":
-    """The C core's ESO-DKMPC on the build's data file with the given fields of its tuning
-    table replaced, as ``eso_dkmpc(**observer)`` replaces them in Python."""
+def _c_core_with(native, folder: Path, controller: str = "eso-dkmpc", **observer: float) -> "object":
+    """The C core's ``controller`` on the build's data file with the given fields of its
+    tuning table replaced, as ``eso_dkmpc(**observer)`` replaces them in Python."""
     from test_firmware_c_core import _tool
 
     ecu_data = _tool("ecu_data")
     records = ecu_data.collect(None, ecu_data.DEFAULT_ARTIFACT)
-    table = records["tuning.eso-dkmpc"].copy()
+    table = records[f"tuning.{controller}"].copy()
     fields = list(ecu_data.TUNING_FIELDS)
     for name, value in observer.items():
         table[len(table) - len(fields) + fields.index(name)] = value  # after the 3-vector bounds
-    path = folder / f"{'-'.join(observer) or 'tuning'}.bin"
-    ecu_data.write_data(dict(records, **{"tuning.eso-dkmpc": table}), path)
-    return native.NativeController("eso-dkmpc", path)
+    path = folder / f"{controller}-{'-'.join(observer) or 'tuning'}.bin"
+    ecu_data.write_data(dict(records, **{f"tuning.{controller}": table}), path)
+    return native.NativeController(controller, path)
 
 
 def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offset(native, tmp_path: Path) -> None:
@@ -179,28 +179,36 @@ def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offs
     assert abs(python.yaw_rate_bias) > 0.005  # the estimate moved: the corrected path ran
 
 
-def test_c_core_equals_python_with_the_slip_target_under_a_crosswind(native, tmp_path: Path) -> None:
-    """The heading target's steady side slip in the C core (ecu_steady_slip.c): under an
-    800 N crosswind on a straight, with the target on in both (the shipped tuning leaves it
-    off), the same commands, status, iterations and predictions as the Python ESO-DKMPC step
-    for step; two invalid samples restart the observer (the slip falls to zero and returns)."""
+@pytest.mark.parametrize("controller", ["eso-dkmpc", "dkmpc", "lmpc"])
+def test_c_core_equals_python_with_the_slip_target_under_a_crosswind(native, tmp_path: Path, controller: str) -> None:
+    """The heading target's measured side slip in the C core (ecu_steady_slip.c), for each
+    of its MPCs: under an 800 N crosswind on a straight, with the target on in both (the
+    shipped tuning leaves it off), the same commands, status, iterations and predictions as
+    the Python controller step for step; two invalid samples restart the observer."""
+    from controller.registry import CONTROLLERS
+    from controller.tuning import load_tuning
     from studies.closed_loop import run_closed_loop
 
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "crosswind_force_n = 800.0\ncrosswind_cp_m = 0.6"),
                                    duration_s=6.0)
     observer = {"slip_target_limit": 0.02, "slip_target_gate": 0.003}
-    python = eso_dkmpc(**observer)
-    twin = Twin(python, _c_core_with(native, tmp_path, **observer), frozenset({60, 61}))
+    tuning = load_tuning()
+    table = dataclasses.replace(tuning.for_controller(controller), **observer)
+    module, class_name = CONTROLLERS[controller]
+    python = getattr(importlib.import_module(module), class_name).from_tuning(
+        dataclasses.replace(tuning, **{controller.replace("-", "_"): table}))
+    twin = Twin(python, _c_core_with(native, tmp_path, controller, **observer), frozenset({60, 61}))
     result = run_closed_loop(scenario, twin)
     assert result.completed, result.failure
-    assert_twin_steps_equal("eso-dkmpc", twin)
+    assert_twin_steps_equal(controller, twin)
     print(f"slip target at the end {python.slip_target:.5f} rad")
     assert abs(python.slip_target) > 1e-4  # the target moved: the shifted reference ran
 
 
-@pytest.mark.parametrize("field, value", [("slip_target_limit", 0.25), ("slip_target_limit", -0.01),
-                                          ("slip_target_gate", 0.0), ("slip_target_gate", 1.5)])
-def test_c_core_refuses_the_slip_target_fields_python_refuses(native, tmp_path: Path, field: str,
+@pytest.mark.parametrize("controller, field, value", [
+    ("eso-dkmpc", "slip_target_limit", 0.25), ("eso-dkmpc", "slip_target_limit", -0.01),
+    ("dkmpc", "slip_target_gate", 0.0), ("lmpc", "slip_target_gate", 1.5)])
+def test_c_core_refuses_the_slip_target_fields_python_refuses(native, tmp_path: Path, controller: str, field: str,
                                                               value: float) -> None:
     """Out of its range, a heading target field is refused by both loaders with one message
     naming it (controller.tuning's rule); the ends of the ranges load in both."""
@@ -211,14 +219,14 @@ def test_c_core_refuses_the_slip_target_fields_python_refuses(native, tmp_path: 
     from firmware_sim.errors import ConfigError
 
     document = tomllib.loads(Path(DEFAULT_TUNING_PATH).read_text())
-    document["eso-dkmpc"][field] = value
+    document[controller][field] = value
     with pytest.raises(TuningError) as python_error:
         parse_tuning(document)
     with pytest.raises(ConfigError) as c_error:
-        _c_core_with(native, tmp_path, **{field: value})
+        _c_core_with(native, tmp_path, controller, **{field: value})
     print(c_error.value)
     assert str(python_error.value) in str(c_error.value)
     assert f"] {field} must be in" in str(python_error.value)
-    document["eso-dkmpc"].update(slip_target_limit=0.2, slip_target_gate=1.0)
+    document[controller].update(slip_target_limit=0.2, slip_target_gate=1.0)
     parse_tuning(document)
-    _c_core_with(native, tmp_path, slip_target_limit=0.2, slip_target_gate=1.0)
+    _c_core_with(native, tmp_path, controller, slip_target_limit=0.2, slip_target_gate=1.0)

@@ -1,60 +1,50 @@
-"""The heading target's steady side slip (controller/steady_slip.py): the steady-state map
-against a direct solve, the reference's bend, the bound and the fade, and the MPC's heading
-target moved by it."""
+"""The heading target's side slip (controller/steady_slip.py): the measured slip, the
+reference's bend, the bound and the fade, and every MPC's heading target moved by it."""
 from __future__ import annotations
 
+import dataclasses
+import importlib
 import math
 
 import numpy as np
 import pytest
 
-from controller.steady_slip import reference_bend, slip_target, steady_slip_map
-from models.bicycle import LinearBicycle
+from controller.base import STEER_LIMIT_RAD, VehicleSample
+from controller.reference import ReferencePath
+from controller.registry import CONTROLLERS, MPC_NAMES
+from controller.steady_slip import SLIP_MIN_SPEED, measured_slip, reference_bend, slip_target
+from controller.tuning import load_tuning
 
 
-def _steady_vy(A: np.ndarray, B: np.ndarray, drift: np.ndarray, held: dict[int, float], vy_row: int = 1) -> float:
-    """vy of the steady state x = A x + B u + drift with the states ``held`` (row -> value)
-    fixed and the inputs free, by a direct least-squares solve of the stacked system."""
-    n, m = B.shape
-    rows = [np.hstack([np.eye(n) - A, -B])]
-    rhs = [drift]
-    for row, value in held.items():
-        pick = np.zeros((1, n + m))
-        pick[0, row] = 1.0
-        rows.append(pick)
-        rhs.append(np.array([value]))
-    solution = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
-    return float(solution[vy_row])
+def test_the_measured_slip_is_vy_over_vx_with_a_floor_on_the_speed() -> None:
+    assert measured_slip(0.14, 14.0) == pytest.approx(0.01)
+    assert measured_slip(-0.2, 0.0) == -0.2 / SLIP_MIN_SPEED
+    assert measured_slip(0.1, -3.0) == 0.1 / SLIP_MIN_SPEED
 
 
-def test_the_map_gives_the_steady_vy_a_constant_disturbance_adds() -> None:
-    rng = np.random.default_rng(3)
-    n = 6
-    A = 0.6 * np.eye(n) + 0.05 * rng.standard_normal((n, n))
-    B = rng.standard_normal((n, 2))
-    offset, w = rng.standard_normal(n), rng.standard_normal(n)
-    slip_map = steady_slip_map(A, B, vy_row=1, yaw_rate_row=2, vx_row=0)
-    held = {2: 0.0, 0: 7.5}  # a straight road at the present speed
-    expected = _steady_vy(A, B, offset + w, held) - _steady_vy(A, B, offset, held)
-    assert slip_map @ w == pytest.approx(expected, rel=1e-9)
+def _with_target(name: str, limit: float) -> object:
+    """Controller ``name`` built from the tuning file with ``slip_target_limit`` ``limit``."""
+    tuning = load_tuning()
+    table = dataclasses.replace(tuning.for_controller(name), slip_target_limit=limit, slip_target_gate=0.003)
+    module, class_name = CONTROLLERS[name]
+    return getattr(importlib.import_module(module), class_name).from_tuning(
+        dataclasses.replace(tuning, **{name.replace("-", "_"): table}))
 
 
-def test_the_bicycle_crabs_into_a_side_force_and_a_singular_model_gives_no_slip() -> None:
-    """The bicycle at 15 m/s pushed along +y by a constant w on vy: to hold a straight
-    (no yaw rate) it must steer, and its steady vy is the model's answer, whatever its sign."""
-    a, b = LinearBicycle().discrete_matrices(15.0, 0.025)
-    a, b = np.asarray(a, float), np.asarray(b, float).reshape(2, 1)
-    slip_map = steady_slip_map(a, b, vy_row=0, yaw_rate_row=1)
-    w = np.array([0.01, 0.0])
-    direct = np.linalg.solve(np.block([[np.eye(2) - a, -b], [np.array([[0.0, 1.0, 0.0]])]]),
-                             np.array([0.01, 0.0, 0.0]))[0]
-    assert slip_map @ w == pytest.approx(direct, rel=1e-9)
-    assert slip_map @ w == pytest.approx(_steady_vy(a, b, w, {1: 0.0}, vy_row=0), rel=1e-9)
-    assert abs(direct) > 1e-4
-    # no steady state (the yaw rate cannot be held without an input): no slip
-    assert np.array_equal(steady_slip_map(a, np.zeros((2, 1)), 0, 1), np.zeros(2))
-    with pytest.raises(ValueError, match="held states"):
-        steady_slip_map(a, np.zeros((2, 2)), 0, 1)
+@pytest.mark.parametrize("name", MPC_NAMES)
+def test_every_mpc_moves_its_heading_target_by_the_measured_slip_on_a_straight(name: str) -> None:
+    """With the target on, a sample crabbing on a straight (vy 0.14 m/s at 14 m/s) moves
+    the heading target by 0.01 rad; with it off (limit 0), not at all."""
+    x = np.linspace(0.0, 200.0, 401)
+    path = ReferencePath.from_arrays(x, np.zeros_like(x), np.zeros_like(x))
+    sample = VehicleSample(vx=14.0, vy=0.14, yaw_rate=0.0, x=10.0, y=0.0, yaw=0.0, steer_angle=0.0,
+                           drive_torque=0.0, target_speed=14.0)
+    for limit, expected in ((0.02, 0.01), (0.0, 0.0)):
+        controller = _with_target(name, limit)
+        controller.set_path(path)
+        command, _ = controller.step(sample)
+        assert controller.slip_target == pytest.approx(expected, abs=1e-12)
+        assert abs(command.steer_angle) <= STEER_LIMIT_RAD
 
 
 def test_the_bend_is_zero_on_a_straight_and_an_arc_and_grows_in_a_lane_change() -> None:

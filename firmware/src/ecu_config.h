@@ -25,7 +25,7 @@ typedef struct {
   double eps_abs, eps_rel;
   double eso_pole, eso_second_pole, disturbance_decay; /* NaN where the table has none */
   double eso_innovation_limit, yaw_rate_bias_pole;     /* NaN where the table has none */
-  double slip_target_limit, slip_target_gate;          /* NaN where the table has none */
+  double slip_target_limit, slip_target_gate;          /* the heading target (every MPC) */
   /* Speed schedule of q_position, q_yaw, r_steer (MpcTuning.weights_at): the low_ weights
    * at vx <= schedule_low, the others at vx >= schedule_high, linear between (m/s). */
   double low_q_position, low_q_yaw, low_r_steer, schedule_low, schedule_high;

@@ -43,7 +43,8 @@ const char *ecu_build_shapes(void) {
 /* ------------------------------------------------------------------ start-up */
 /* The heading target's fields, with controller.tuning's rules and message: 0, or -1 with
  * the field named in err. */
-static int check_slip_fields(const char *data_path, const ecu_tuning_t *t, char *err, size_t err_len) {
+static int check_slip_fields(const char *data_path, const char *name, const ecu_tuning_t *t, char *err,
+                             size_t err_len) {
   const double limit = t->slip_target_limit, gate = t->slip_target_gate;
   const struct {
     const char *name, *rule;
@@ -55,7 +56,7 @@ static int check_slip_fields(const char *data_path, const ecu_tuning_t *t, char 
     if (fields[i].ok) continue;
     char got[32];
     py_repr(got, sizeof got, fields[i].value);
-    snprintf(err, err_len, "%s: [eso-dkmpc] %s %s, got %s", data_path, fields[i].name, fields[i].rule, got);
+    snprintf(err, err_len, "%s: [%s] %s %s, got %s", data_path, name, fields[i].name, fields[i].rule, got);
     return -1;
   }
   return 0;
@@ -82,7 +83,7 @@ int ecu_core_load(ecu_core_t *core, const char *data_path, const char *name, cha
              data_path);
     return -1;
   }
-  if (id == ECU_ESO_DKMPC && check_slip_fields(data_path, t, err, err_len) != 0) return -1;
+  if (check_slip_fields(data_path, NAMES[id], t, err, err_len) != 0) return -1;
   if (ecu_qp_init(&core->qp, id, t, err, err_len) != 0) return -1;
   core->controller = id;
   core->tun = t;
@@ -212,11 +213,12 @@ static void shifted_plan(const ecu_core_t *core, const ecu_sample_t *sample, dou
 
 /* ObservedMpc.target_reference: the reference's heading (Np,) moved by the steady side slip
  * of the step's estimate, bounded and faded out as the horizon's reference bends. */
-static void target_reference(const ecu_core_t *core, double reference[][3]) {
+static void target_reference(const ecu_core_t *core, const ecu_sample_t *sample, double reference[][3]) {
   const ecu_tuning_t *t = core->tun;
   if (t->slip_target_limit == 0.0) return; /* off: no bend to measure (the target would be 0) */
   double bend = ecu_reference_bend(&reference[0][2], core->n_pred, 3);
-  double target = ecu_slip_target(core->observer.steady_slip, bend, t->slip_target_limit, t->slip_target_gate);
+  double target = ecu_slip_target(ecu_measured_slip(sample->vy, sample->vx), bend, t->slip_target_limit,
+                                  t->slip_target_gate);
   if (target != 0.0)
     for (int i = 0; i < core->n_pred; i++) reference[i][2] -= target;
 }
@@ -230,13 +232,13 @@ static void make_plan(ecu_core_t *core, const ecu_sample_t *sample, double torqu
   double nominal[NC], sum = 0.0;
   ecu_qp_solution_t solution;
   memset(plan, 0, sizeof *plan);
+  target_reference(core, sample, reference);
   if (core->controller == ECU_LMPC) {
     ecu_predict_bicycle(&core->cfg, core->tun, sample, free, gain);
   } else {
     ecu_observer_t *observer = core->controller == ECU_ESO_DKMPC ? &core->observer : NULL;
     ecu_predict_koopman(&core->cfg, core->tun, observer, core->decay_power, sample, torque, &core->model,
                         core->lifted, free, gain);
-    if (observer != NULL) target_reference(core, reference); /* after the prediction: it sets the estimate */
   }
   shifted_plan(core, sample, nominal);
   for (int i = 0; i <= n_pred; i++)

@@ -82,7 +82,7 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->slip_target_limit = v[27];
   t->slip_target_gate = v[28];
   for (int i = 2; i < N_TUNING_VALUES; i++) {
-    if ((i >= 17 && i < 20) || i >= 25) continue; /* the observer fields: NaN where the table has none */
+    if ((i >= 17 && i < 20) || i == 25 || i == 26) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {
       snprintf(err, err_len, "%s: [%s] value %d is not finite", path, CONTROLLER_NAMES[id], i);
       return -1;

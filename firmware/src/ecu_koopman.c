@@ -134,7 +134,6 @@ void ecu_koopman_at_speed(const ecu_config_t *cfg, double speed, ecu_local_model
     memcpy(model->N, cfg->N[0], sizeof model->N);
 #endif
     transpose_a(model);
-    model->slip_valid = 0;
     model->key = 0.0;
     model->valid = 1;
     return;
@@ -157,7 +156,6 @@ void ecu_koopman_at_speed(const ecu_config_t *cfg, double speed, ecu_local_model
 #endif
   }
   transpose_a(model);
-  model->slip_valid = 0;
   model->key = key;
   model->valid = 1;
 }

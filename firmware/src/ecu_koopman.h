@@ -15,10 +15,6 @@ typedef struct {
 #endif
   /* A transposed (At[b][a] = A[a][b]): the prediction's sums over b for all a at once. */
   double At[ECU_NZ][ECU_NZ];
-  /* The steady vy map of A and B (ecu_steady_slip_map, vy_steady = slip_map . w): the
-   * observer's controller computes it on first use; slip_valid = 0 whenever A and B change. */
-  double slip_map[ECU_NZ];
-  int slip_valid;
   /* The speed quantum these matrices are of (ecu_koopman_at_speed recomputes them only when
    * it changes); valid = 0 (at load) forces the next computation. */
   double key;

@@ -14,7 +14,6 @@ void ecu_observer_reset(ecu_observer_t *observer) {
   observer->reset = 0;
   observer->yaw_rate_bias = 0.0;
   observer->has_bias_previous = 0;
-  observer->steady_slip = 0.0;
 }
 
 /* models.eso.InnovationSaturation, the observer's g2: the innovation z_tilde (n_z,) scaled

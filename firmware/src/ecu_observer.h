@@ -17,9 +17,6 @@ typedef struct {
    * has_bias_previous 0: none (start, or after a gap). */
   double yaw_rate_bias, bias_previous_yaw, bias_previous_rate;
   int has_bias_previous;
-  /* ObservedMpc._steady_slip: the steady side slip (rad) the step's estimate implies
-   * (ecu_predict_koopman; 0 after a reset). */
-  double steady_slip;
 } ecu_observer_t;
 
 /* Controller.reset: both observers start again. */

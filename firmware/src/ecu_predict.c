@@ -7,14 +7,12 @@
 #include <string.h>
 
 #include "ecu_predict.h"
-#include "ecu_steady_slip.h"
 
 #define NP ECU_NP_MAX
 #define NC ECU_NC_MAX
 #define NZ ECU_NZ
 #define LMPC_SPEED_QUANTUM 0.01    /* m/s: controller.lmpc.SPEED_QUANTUM */
 #define LMPC_MIN_MODEL_SPEED 1.0   /* m/s: controller.lmpc.MIN_MODEL_SPEED */
-#define SLIP_MIN_SPEED 1.0         /* m/s: controller.observed_mpc.SLIP_MIN_SPEED */
 /* Rows of vx, vy and the yaw rate in the lifted state (controller.lifted_mpc.VEHICLE_STATES). */
 #define ROW_VX 0
 #define ROW_VY 1
@@ -49,16 +47,6 @@ void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ec
   int observed = observer != NULL;
   if (observed) {
     ecu_observer_disturbance(observer, tuning, lifted, w);
-    /* EsoDkmpc.disturbance_response's note_steady_slip; the map of the model's base B (the
-     * steady state holds vx and the yaw rate, the torque and the steer free) */
-    if (tuning->slip_target_limit != 0.0) { /* off: the slip stays 0 and costs nothing */
-      if (!model->slip_valid) {
-        ecu_steady_slip_map(NZ, ECU_NU, &model->A[0][0], &model->B[0][0], ROW_VY, ROW_YAW_RATE, ROW_VX,
-                            model->slip_map);
-        model->slip_valid = 1;
-      }
-      observer->steady_slip = ecu_dot(model->slip_map, w, NZ) / fmax(lifted[ROW_VX], SLIP_MIN_SPEED);
-    }
   }
   memcpy(f, lifted, sizeof f);
   for (int x = 0; x < 3; x++) free[0][x] = f[x];

@@ -1,5 +1,5 @@
 /*
- * The heading target's steady side slip (see ecu_steady_slip.h), as controller/steady_slip.py.
+ * The heading target's side slip (see ecu_steady_slip.h), as controller/steady_slip.py.
  */
 #include <math.h>
 #include <string.h>
@@ -7,64 +7,11 @@
 #include "ecu_pyfloat.h"
 #include "ecu_steady_slip.h"
 
-#define SYSTEM_MAX (ECU_NZ + ECU_NU) /* the largest n + m */
+#define SLIP_MIN_SPEED 1.0       /* m/s: controller.steady_slip.SLIP_MIN_SPEED */
 #define PI 3.141592653589793     /* math.pi: numpy.unwrap's discont, period / 2 */
 #define TWO_PI 6.283185307179586 /* 2.0 * math.pi: numpy.unwrap's period */
 
-/* Solve t y = rhs in place (rhs becomes y) by LU with partial pivoting (the first largest
- * pivot of each column, as LAPACK's dgetrf): 0, or -1 at a zero pivot. t is overwritten. */
-static int lu_solve(int size, double t[SYSTEM_MAX][SYSTEM_MAX], double rhs[SYSTEM_MAX]) {
-  for (int k = 0; k < size; k++) {
-    int pivot = k;
-    for (int i = k + 1; i < size; i++)
-      if (fabs(t[i][k]) > fabs(t[pivot][k])) pivot = i;
-    if (t[pivot][k] == 0.0) return -1;
-    if (pivot != k) {
-      double row[SYSTEM_MAX], value = rhs[k];
-      memcpy(row, t[k], sizeof row);
-      memcpy(t[k], t[pivot], sizeof row);
-      memcpy(t[pivot], row, sizeof row);
-      rhs[k] = rhs[pivot];
-      rhs[pivot] = value;
-    }
-    for (int i = k + 1; i < size; i++) {
-      double factor = t[i][k] / t[k][k];
-      for (int j = k + 1; j < size; j++) t[i][j] -= factor * t[k][j];
-      rhs[i] -= factor * rhs[k];
-    }
-  }
-  for (int k = size - 1; k >= 0; k--) {
-    double sum = rhs[k];
-    for (int j = k + 1; j < size; j++) sum -= t[k][j] * rhs[j];
-    rhs[k] = sum / t[k][k];
-  }
-  return 0;
-}
-
-int ecu_steady_slip_map(int n, int m, const double *A, const double *B, int vy_row, int yaw_rate_row, int vx_row,
-                        double *L) {
-  double t[SYSTEM_MAX][SYSTEM_MAX], y[SYSTEM_MAX];
-  int held[2] = {yaw_rate_row, vx_row}, n_held = vx_row < 0 ? 1 : 2, size = n + m;
-  if (n < 1 || n > ECU_NZ || m < 1 || m > ECU_NU || n_held != m || vy_row < 0 || vy_row >= n ||
-      yaw_rate_row < 0 || yaw_rate_row >= n || vx_row >= n) {
-    for (int i = 0; i < n && i < ECU_NZ; i++) L[i] = 0.0;
-    return -1;
-  }
-  /* The transpose of [[I - A, -B], [selector rows of the held states]]: one solve with it
-   * gives e_vy^T system^-1, whose first n entries map [w; 0] to the steady vy. */
-  memset(t, 0, sizeof t);
-  memset(y, 0, sizeof y);
-  for (int i = 0; i < n; i++) {
-    for (int j = 0; j < n; j++) t[j][i] = (i == j ? 1.0 : 0.0) - A[i * n + j];
-    for (int j = 0; j < m; j++) t[n + j][i] = -B[i * m + j];
-  }
-  for (int k = 0; k < m; k++) t[held[k]][n + k] = 1.0;
-  y[vy_row] = 1.0;
-  int ok = lu_solve(size, t, y) == 0;
-  for (int i = 0; ok && i < n; i++) ok = isfinite(y[i]);
-  for (int i = 0; i < n; i++) L[i] = ok ? y[i] : 0.0;
-  return ok ? 0 : -1;
-}
+double ecu_measured_slip(double vy, double vx) { return vy / fmax(vx, SLIP_MIN_SPEED); }
 
 /* numpy.unwrap's correction of one step dd of the heading: 0 below pi, else the multiple of
  * 2 pi that brings dd into [-pi, pi] (+pi for a positive dd on the boundary). */
