@@ -48,6 +48,7 @@ from pathlib import Path
 
 import cantools
 
+from can_defs.log_reader import LogFileError, read_log_frames
 from studies import provenance
 
 #: The entry points of the smoke runs: ``eso-hil run`` and the Python ECU's command line.
@@ -223,39 +224,43 @@ def smoke_runs(tree: Path, out: Path, progress: bool = True) -> list[Path]:
 
 # ---------------------------------------------------------------------------- comparison
 
-_CANDUMP = re.compile(r"\((\d+)\.(\d{6})\)\s+\S+\s+([0-9A-Fa-f]+)#([0-9A-Fa-f]*)\s*(\S*)")
-
-
 def behaviour_frames(log: Path, database: cantools.database.can.Database) -> list[tuple]:
     """The frames of a candump log as (time since the first frame in units of
-    :data:`TIME_RESOLUTION_US`, identifier, payload or decoded signals, direction), sorted by
-    time and identifier, the wall-clock signals of :data:`WALL_CLOCK_SIGNALS` left out and
-    the frames of :data:`UNTIMED_FRAMES` at time -1 (first, in payload order).
-    Raises RestampError for a line it cannot read."""
+    :data:`TIME_RESOLUTION_US`, identifier, payload or decoded signals, direction ``"R"`` or
+    ``"T"``), sorted by time and identifier, the wall-clock signals of
+    :data:`WALL_CLOCK_SIGNALS` left out and the frames of :data:`UNTIMED_FRAMES` at time -1
+    (first, in payload order). The log is read by the product's reader
+    (`can_defs.log_reader.read_log_frames`). Raises RestampError for a log it cannot read
+    whole: a skipped line or a cut file is no proof of the same behaviour."""
+    try:
+        read = read_log_frames(log)
+    except LogFileError as exc:
+        raise RestampError(str(exc)) from exc
+    if not read.complete:
+        raise RestampError(f"{log}: {'; '.join(read.warnings)}")
     frames: list[tuple] = []
     first = None
-    for number, line in enumerate(log.read_text().splitlines(), 1):
-        match = _CANDUMP.fullmatch(line.strip())
-        if match is None:
-            raise RestampError(f"{log}: line {number} is not a candump frame: {line[:80]!r}")
-        stamp_us = int(match.group(1)) * 1_000_000 + int(match.group(2))
+    for message in read.messages:
+        # whole microseconds, as the log writes them: a double of ~1.7e9 s parses to within
+        # 0.2 us, so rounding gives back the written digits exactly
+        stamp_us = round(message.timestamp * 1_000_000)
         first = stamp_us if first is None else first
-        arbitration_id, data = int(match.group(3), 16), bytes.fromhex(match.group(4))
+        arbitration_id, data = message.arbitration_id, bytes(message.data)
         payload: object = data
         try:
-            message = database.get_message_by_frame_id(arbitration_id)
+            definition = database.get_message_by_frame_id(arbitration_id)
         except KeyError:
-            message = None
-        if message is not None and message.name in WALL_CLOCK_SIGNALS:
-            signals = message.decode(data, decode_choices=False, scaling=False)
+            definition = None
+        if definition is not None and definition.name in WALL_CLOCK_SIGNALS:
+            signals = definition.decode(data, decode_choices=False, scaling=False)
             payload = tuple(sorted((k, v) for k, v in signals.items()
-                                   if k not in WALL_CLOCK_SIGNALS[message.name]))
+                                   if k not in WALL_CLOCK_SIGNALS[definition.name]))
         # the log's stamps are wall-clock start + virtual time in a double: a few
         # microseconds of rounding that is not behaviour, below the 1 ms of a lockstep tick
         time = round((stamp_us - first) / TIME_RESOLUTION_US)
-        if message is not None and message.name in UNTIMED_FRAMES:
+        if definition is not None and definition.name in UNTIMED_FRAMES:
             time = -1
-        frames.append((time, arbitration_id, payload, match.group(5)))
+        frames.append((time, arbitration_id, payload, "R" if message.is_rx else "T"))
     # nodes' frames of one tick reach the recorder in thread order (an ACK stamped before a
     # plant frame may be logged after it): compare in time order, then by identifier
     return sorted(frames, key=lambda frame: (frame[0], frame[1], frame[3], repr(frame[2])))

@@ -51,8 +51,14 @@ def test_a_changed_command_or_iteration_count_is_named(tmp_path: Path) -> None:
 def test_an_unreadable_line_is_an_error(tmp_path: Path) -> None:
     broken = tmp_path / "broken.log"
     broken.write_text("not a frame\n")
-    with pytest.raises(restamp.RestampError, match="line 1 is not a candump frame"):
+    with pytest.raises(restamp.RestampError, match="not candump frames were skipped: line 1"):
         restamp.behaviour_frames(broken, DATABASE)
+    # beside good frames too: a log read in part proves nothing
+    partly = _log(tmp_path / "partly.log", 1700000000.0, _diag(120, 900))
+    lines = partly.read_text().splitlines(keepends=True)
+    partly.write_text(lines[0] + "not a frame\n" + "".join(lines[1:]))
+    with pytest.raises(restamp.RestampError, match="not candump frames were skipped: line 2"):
+        restamp.behaviour_frames(partly, DATABASE)
 
 
 #: The fake project's code that its smoke runs.
