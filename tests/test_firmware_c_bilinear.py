@@ -10,8 +10,6 @@ plain scheduled form or without the N record, naming the problem.
 """
 from __future__ import annotations
 
-import json
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -22,12 +20,11 @@ from controller.registry import create_controller
 from firmware_sim.errors import ConfigError
 from models.bicycle import LinearBicycle
 from models.koopman import KoopmanModel, MinMaxScaling, NormalisedKoopman, save_artifact
-from test_firmware_c_core import Twin, _tool, assert_twin_steps_equal
+from c_twin import firmware_for, native_on, replace_unless_same, requires_c_toolchain, run_twin_on_dlc_smoke
+from test_firmware_c_core import _tool
 from test_firmware_c_core import native  # noqa: F401 (the fixture: the default firmware built)
 
-_MISSING_TOOLS = [tool for tool in ("gcc", "cmake") if shutil.which(tool) is None]
-pytestmark = pytest.mark.skipif(bool(_MISSING_TOOLS), reason=f"no {' or '.join(_MISSING_TOOLS)}: the C core cannot be "
-                                "built here (make firmware-deps installs gcc and cmake as root)")
+pytestmark = requires_c_toolchain
 
 ROOT = Path(__file__).resolve().parent.parent
 BUILD = ROOT / "build" / "firmware-bilinear"
@@ -124,44 +121,6 @@ def normalised(encoder: list, A: np.ndarray, B: np.ndarray, offset: np.ndarray,
                              speed_knots=KNOTS)
 
 
-def replace_unless_same(staging: Path, path: Path) -> None:
-    """Move the artefact ``staging`` (.npz + .json) to ``path``, or drop it where ``path``
-    holds the same content already (np.savez stamps the time: a rewrite would rebuild the
-    firmware built for ``path`` every run)."""
-    same = path.with_suffix(".npz").is_file() and path.with_suffix(".json").is_file()
-    if same:
-        with np.load(staging.with_suffix(".npz")) as new, np.load(path.with_suffix(".npz")) as old:
-            same = sorted(new.files) == sorted(old.files) and all(np.array_equal(new[k], old[k]) for k in new.files)
-        same = same and (json.loads(staging.with_suffix(".json").read_text())
-                         == json.loads(path.with_suffix(".json").read_text()))
-    for suffix in (".npz", ".json"):
-        if same:
-            staging.with_suffix(suffix).unlink()
-        else:
-            staging.with_suffix(suffix).replace(path.with_suffix(suffix))
-
-
-def build_firmware(build: Path, model: Path) -> None:
-    """``make firmware`` into ``build`` for the artefact ``model`` (both under ROOT; a no-op
-    when up to date)."""
-    done = subprocess.run(["make", "-s", "--no-print-directory", "firmware", f"FW_DIR={build.relative_to(ROOT)}",
-                           f"FW_MODEL={model.relative_to(ROOT)}"], cwd=ROOT, capture_output=True, text=True,
-                          check=False)
-    assert done.returncode == 0, done.stdout + done.stderr
-
-
-def native_on(library: Path):
-    """firmware_sim.native on ``library`` while the generator runs (a fixture's body). The
-    module loads one library per process: the default build's (if another test loaded it)
-    is set aside and put back afterwards (the libraries' static cores are separate)."""
-    from firmware_sim import native as module
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(module, "_library", None)
-        module.load_library(library)
-        yield module
-
-
 def write_artefact(path: Path, bilinear: bool = True) -> KoopmanModel:
     """The test artefact at ``path`` (.npz + .json), left as it is when its content is the
     same (np.savez stamps the time: a rewrite would rebuild the firmware every run)."""
@@ -184,10 +143,7 @@ def write_artefact(path: Path, bilinear: bool = True) -> KoopmanModel:
 @pytest.fixture(scope="module")
 def bilinear_build() -> Path:
     """The firmware for the test artefact (build/firmware-bilinear), up to date."""
-    BUILD.mkdir(parents=True, exist_ok=True)
-    write_artefact(MODEL)
-    build_firmware(BUILD, MODEL)
-    return BUILD
+    return firmware_for(MODEL, write_artefact)
 
 
 @pytest.fixture(scope="module")
@@ -213,10 +169,7 @@ def test_bilinear_step_equals_python_in_closed_loop(bilinear_core, name: str, tm
 
     python = create_controller(name, model_path=MODEL)
     assert python.model.scheduled_bilinear
-    twin = Twin(python, bilinear_core.NativeController(name, BUILD / "ecu_data.bin"), frozenset({40, 41, 90}))
-    result = run_closed_loop(load_scenario("dlc_smoke"), twin)
-    assert result.completed, result.failure
-    assert_twin_steps_equal(name, twin)
+    twin, result = run_twin_on_dlc_smoke(name, python, bilinear_core.NativeController(name, BUILD / "ecu_data.bin"))
     if name == "eso-dkmpc":  # the observer restarts on the first valid sample after NaN
         assert twin.pairs[42][3].observer_reset and twin.pairs[0][3].observer_reset
     # the same model without its bilinear term: another closed loop, other commands

@@ -10,7 +10,6 @@ and tolerances.
 """
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pytest
@@ -20,13 +19,10 @@ from models.koopman import KoopmanModel
 from models.koopman_artifact import save_artifact
 from models.koopman_settings import TrainingSettings
 from models.lifted_least_squares import fit_least_squares
-from test_firmware_c_bilinear import build_firmware, native_on, replace_unless_same
-from test_firmware_c_core import Twin, assert_twin_steps_equal
+from c_twin import firmware_for, native_on, replace_unless_same, requires_c_toolchain, run_twin_on_dlc_smoke
 from test_koopman_synthetic import synthetic_runs
 
-_MISSING_TOOLS = [tool for tool in ("gcc", "cmake") if shutil.which(tool) is None]
-pytestmark = pytest.mark.skipif(bool(_MISSING_TOOLS), reason=f"no {' or '.join(_MISSING_TOOLS)}: the C core cannot be "
-                                "built here (make firmware-deps installs gcc and cmake as root)")
+pytestmark = requires_c_toolchain
 
 ROOT = Path(__file__).resolve().parent.parent
 BUILD = ROOT / "build" / "firmware-edmdc"
@@ -42,17 +38,15 @@ def write_artefact(path: Path) -> KoopmanModel:
     staging = path.parent / f".{path.name}-new"
     save_artifact(staging, result.learned, result.model.metadata)
     replace_unless_same(staging, path)
-    return KoopmanModel.load(path)
+    model = KoopmanModel.load(path)
+    assert model.form == "linear" and model.n_features == 0 and model.dictionary  # a lift without an encoder
+    return model
 
 
 @pytest.fixture(scope="module")
 def edmdc_build() -> Path:
     """The firmware for the test artefact (build/firmware-edmdc), up to date."""
-    BUILD.mkdir(parents=True, exist_ok=True)
-    model = write_artefact(MODEL)
-    assert model.form == "linear" and model.n_features == 0 and model.dictionary  # a lift without an encoder
-    build_firmware(BUILD, MODEL)
-    return BUILD
+    return firmware_for(MODEL, write_artefact)
 
 
 @pytest.fixture(scope="module")
@@ -71,11 +65,5 @@ def test_edmdc_linear_step_equals_python_in_closed_loop(edmdc_core, name: str) -
     """On dlc_smoke (160 steps, 3 of them with a NaN sample): the C core of the edmdc-linear
     build and the Python controller on the same artefact give the same commands to 1e-9 rad,
     status, iterations, predictions and cost (assert_twin_steps_equal)."""
-    from hil.scenario import load_scenario
-    from studies.closed_loop import run_closed_loop
-
-    twin = Twin(create_controller(name, model_path=MODEL), edmdc_core.NativeController(name, BUILD / "ecu_data.bin"),
-                frozenset({40, 41, 90}))
-    result = run_closed_loop(load_scenario("dlc_smoke"), twin)
-    assert result.completed, result.failure
-    assert_twin_steps_equal(name, twin)
+    run_twin_on_dlc_smoke(name, create_controller(name, model_path=MODEL),
+                          edmdc_core.NativeController(name, BUILD / "ecu_data.bin"))
