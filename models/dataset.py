@@ -7,8 +7,9 @@ applied from that sample to the next (zero-order hold), i.e. the model input u.
 
 ``load_dataset`` reads every ``*.csv`` of a directory in name order, checks it and
 resamples it to ``ts``: states linearly (yaw unwrapped first), inputs as a zero-order
-hold, because a command is a step signal. Malformed files raise ``DatasetError`` naming
-the file and the column.
+hold, because a command is a step signal (``torque`` and ``steer`` by default; a data set
+of other inputs, as a throttle and a brake, names them in ``held``). Malformed files raise
+``DatasetError`` naming the file and the column.
 """
 from __future__ import annotations
 
@@ -117,12 +118,13 @@ def read_run_csv(path: Path, columns: Iterable[str] = RUN_COLUMNS) -> Run:
     return Run(name=path.stem, columns=data)
 
 
-def resample(run: Run, ts: float = DEFAULT_TS) -> Run:
+def resample(run: Run, ts: float = DEFAULT_TS, held: Sequence[str] = INPUT_COLUMNS) -> Run:
     """``run`` on the grid t0 + k ts within its time span.
 
     States are interpolated linearly (``yaw`` unwrapped first, so it stays continuous);
-    ``INPUT_COLUMNS`` are held (zero-order hold), since a command is constant between
-    samples. A run already on the grid is returned with unchanged values.
+    the columns ``held`` (the inputs, ``INPUT_COLUMNS`` by default) are held (zero-order
+    hold), since a command is constant between samples. A run already on the grid is
+    returned with unchanged values.
     """
     if not (math.isfinite(ts) and ts > 0.0):
         raise DatasetError(f"{run.name}: ts must be > 0, got {ts!r}")
@@ -131,12 +133,12 @@ def resample(run: Run, ts: float = DEFAULT_TS) -> Run:
     grid = time[0] + ts * np.arange(count)
     out: dict[str, np.ndarray] = {"time": grid}
     # Index of the last sample at or before each grid time (tolerant to rounding).
-    held = np.clip(np.searchsorted(time, grid + 1e-9 * ts, side="right") - 1, 0, len(time) - 1)
+    held_index = np.clip(np.searchsorted(time, grid + 1e-9 * ts, side="right") - 1, 0, len(time) - 1)
     for name, values in run.columns.items():
         if name == "time":
             continue
-        if name in INPUT_COLUMNS:
-            out[name] = values[held]
+        if name in held:
+            out[name] = values[held_index]
         else:
             source = np.unwrap(values) if name == "yaw" else values
             out[name] = np.interp(grid, time, source)
@@ -144,8 +146,9 @@ def resample(run: Run, ts: float = DEFAULT_TS) -> Run:
 
 
 def load_dataset(directory: str | Path = DEFAULT_DATASET_DIR, ts: float = DEFAULT_TS,
-                 columns: Sequence[str] = RUN_COLUMNS) -> list[Run]:
-    """Every ``*.csv`` run in ``directory`` (name order), checked and resampled to ``ts``.
+                 columns: Sequence[str] = RUN_COLUMNS, held: Sequence[str] = INPUT_COLUMNS) -> list[Run]:
+    """Every ``*.csv`` run in ``directory`` (name order), checked and resampled to ``ts``
+    (the columns ``held`` as a zero-order hold, see ``resample``).
 
     Raises ``DatasetError`` for a missing directory, no CSV files, or a malformed file
     (missing column, non-numeric or NaN value, non-monotonic time, gap).
@@ -156,4 +159,4 @@ def load_dataset(directory: str | Path = DEFAULT_DATASET_DIR, ts: float = DEFAUL
     files = sorted(directory.glob("*.csv"))
     if not files:
         raise DatasetError(f"{directory}: no *.csv runs in the data set directory")
-    return [resample(read_run_csv(path, columns), ts) for path in files]
+    return [resample(read_run_csv(path, columns), ts, held) for path in files]

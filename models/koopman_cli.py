@@ -2,28 +2,27 @@
 
 Its arguments (``build_parser``), the checks of its inputs and outputs before any training
 (``check_outputs``: ``--out`` given, never an input, an existing artefact only with
-``--replace``; each ``--logs`` file bounded), the ``--logs`` output folder, the comparison
-with a reference artefact's test errors (``--compare-with``) and the command itself
-(``main``). torch-free: the training (``models/koopman_train.py``) is imported when the
-command runs; ``models.koopman_train`` re-exports ``main`` and ``build_parser``.
+``--replace``; each ``--logs`` file bounded), the ``--logs`` output folder and the command
+itself (``main``): the data from ``--data`` or ``--logs``, then one path for both (the
+settings fitted to the data, ``models.koopman_settings.settings_for_data``; the other
+artefact of ``--compare-with``, ``models/koopman_compare.py``; the fit). torch-free: the
+training (``models/koopman_train.py``) is imported when the command runs;
+``models.koopman_train`` re-exports ``main`` and ``build_parser``.
 """
 from __future__ import annotations
 
 import argparse
 import functools
-import dataclasses
-import json
 import sys
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
-
-from models.koopman import DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, KoopmanError
+from models.koopman import DICTIONARY, MODEL_FORMS, KoopmanError
 from models.koopman_artifact import save_artifact
+from models.koopman_compare import compare_with_reference, load_reference
 from models.koopman_data import dataset_hash, load_trajectories
 from models.koopman_metrics import OPEN_LOOP_STEPS
-from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings, knots_in_range, missing_columns
+from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings, settings_for_data
 from models.lifted_least_squares import LEAST_SQUARES_FORMS, fit_least_squares
 from models.local_lateral_fit import friction_of_runs
 
@@ -70,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed-knots", type=lambda t: tuple(float(v) for v in t.split(",")),
                    default=None, help="speed knots in m/s of the scheduled form, comma-separated (default: "
                                       f"those of {list(defaults.speed_knots)} inside the data's speed range, "
-                                      "or the range's ends where fewer than two are)")
+                                      "or the range's ends where fewer than two are; --data and --logs alike)")
     p.add_argument("--small-signal-accel", type=float, default=defaults.small_signal_accel, metavar="A0",
                    help="weigh windows by 1 / (1 + (peak |vx r| / A0)^2), A0 in m/s^2; 0 (default) for off")
     p.add_argument("--unscheduled-states", type=lambda t: tuple(n for n in t.split(",") if n),
@@ -104,8 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=defaults.seed)
     p.add_argument("--threads", type=int, default=defaults.threads, help="torch CPU threads (part of the result)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=defaults.device)
-    p.add_argument("--compare-with", type=Path, default=None,
-                   help="artefact JSON whose test errors this run must reproduce within 10%% (exit 3 if not)")
+    p.add_argument("--compare-with", type=Path, default=None, metavar="OTHER.json",
+                   help="another artefact: trained with the same settings on the same test runs, its recorded "
+                        "test errors must be reproduced within 10%% (exit 3 if not); otherwise (another form, a "
+                        "least-squares lift, another seed, ...) OTHER.npz is run on this training's test runs and both "
+                        "models' RMSEs are printed side by side. Its states, inputs and ts must be the data's")
     p.add_argument("--logs", type=Path, nargs="+", default=None, metavar="LOG",
                    help="train from CAN logs of the contract's bus (or named-column CSVs with "
                         "--mapping); --out is then a folder (docs/identification.md)")
@@ -148,34 +150,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             from models.log_identification import load_log_runs, write_log_products
             out_folder = _log_out_folder(args.out)
             runs, meta, warnings, ts = load_log_runs(args.logs, args.ts, args.log_inputs, args.mapping, args.dbc)
-            result = fit(runs, ts, settings, progress=not args.no_progress, metadata=meta)
+            friction = None
+        else:
+            data_dir = Path(args.data)
+            if not data_dir.is_dir():
+                raise KoopmanError(f"data directory not found: {data_dir}")
+            runs, ts = load_trajectories(data_dir, args.states, args.inputs, args.ts), args.ts
+            meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
+            friction = friction_of_runs(data_dir)
+        # One path for both sources from here: the options' columns, the knots of the data's speeds.
+        settings, notes = settings_for_data(settings, runs, knots_given=args.speed_knots is not None,
+                                            closed_form=least_squares)
+        for note in notes:
+            print(f"note: {note}")
+        reference = None if args.compare_with is None else load_reference(args.compare_with, runs, ts)
+        result = fit(runs, ts, settings, progress=not args.no_progress, metadata=meta, friction=friction)
+        if args.logs:
             npz_path, json_path = save_artifact(out_folder / "koopman", result.learned, result.model.metadata)
             for path in write_log_products(out_folder, result.model, runs, result.test_runs, ts,
                                            args.vehicle, meta, warnings):
                 print(f"wrote {path}")
         else:
-            data_dir = Path(args.data)
-            if not data_dir.is_dir():
-                raise KoopmanError(f"data directory not found: {data_dir}")
-            if (tuple(args.states)[:3] != DICTIONARY_STATES and args.dictionary == defaults.dictionary
-                    and not least_squares):
-                # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
-                print(f"note: states {args.states} are not {DICTIONARY_STATES}: training without the dictionary")
-                settings = dataclasses.replace(settings, dictionary=())
-            problems = missing_columns(settings, args.states, args.inputs)
-            if problems:
-                raise KoopmanError("; ".join(problems))
-            runs = load_trajectories(data_dir, args.states, args.inputs, args.ts)
-            if args.speed_knots is None and settings.form == "scheduled" and not least_squares:
-                speeds = np.concatenate([run.states[:, 0] for run in runs])
-                knots = knots_in_range(settings.speed_knots, float(speeds.min()), float(speeds.max()))
-                if knots != settings.speed_knots:
-                    print(f"note: speed knots {list(knots)} (the data's {args.states[0]} spans "
-                          f"{speeds.min():.2f}-{speeds.max():.2f}; --speed-knots to choose others)")
-                settings = dataclasses.replace(settings, speed_knots=knots)
-            meta = {"data_dir": str(data_dir), "data_hash": dataset_hash(data_dir), "n_runs": len(runs)}
-            result = fit(runs, args.ts, settings, progress=not args.no_progress, metadata=meta,
-                         friction=friction_of_runs(data_dir))
             npz_path, json_path = save_artifact(args.out, result.learned, result.model.metadata)
     except Exception as e:  # noqa: BLE001 - CLI boundary: one line unless --debug
         if args.debug or not _is_input_error(e):
@@ -192,15 +187,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"  test {name:>10}: one-step max/avg/rmse {figures['one_step_max']:.4f} / "
               f"{figures['one_step_avg']:.4f} / {figures['one_step_rmse']:.4f}, "
               f"{OPEN_LOOP_STEPS}-step rmse {figures['open_loop_rmse']:.4f}")
-    if args.compare_with is not None:
-        reference = json.loads(Path(args.compare_with).read_text())
-        if reference.get("settings") != meta.get("settings"):
-            # Another form or other settings: its figures are not a reference for this one.
-            changed = sorted(k for k in set(reference.get("settings", {})) | set(meta["settings"])
-                             if reference.get("settings", {}).get(k) != meta["settings"].get(k))
-            print(f"not compared with {args.compare_with}: its training settings differ ({', '.join(changed)})")
-            return 0
-        return 0 if compare_test_errors(meta["test_errors"], args.compare_with) else 3
+    if reference is not None:
+        by_name = {run.name: run for run in runs}
+        return compare_with_reference(meta, [by_name[name] for name in result.test_runs], reference)
     return 0
 
 
@@ -255,25 +244,6 @@ def _log_out_folder(out: str | Path) -> Path:
         raise KoopmanError(f"--out {folder}: folder {folder.parent} does not exist")
     folder.mkdir(exist_ok=True)
     return folder
-
-
-def compare_test_errors(test_errors: dict, reference_json: Path, tolerance: float = 0.10) -> bool:
-    """Print the relative change of every test figure against a reference artefact JSON.
-
-    Returns True when all are within ``tolerance`` (relative).
-    """
-    reference = json.loads(Path(reference_json).read_text())["test_errors"]
-    worst = 0.0
-    for name, figures in test_errors.items():
-        for key, value in figures.items():
-            ref = reference[name][key]
-            change = abs(value - ref) / max(abs(ref), 1e-12)
-            worst = max(worst, change)
-            print(f"  {name:>10} {key:<21} {value:.5f} vs {ref:.5f} ({100 * change:+.1f} %)")
-    ok = worst <= tolerance
-    print(f"largest relative change vs {reference_json}: {100 * worst:.1f} % "
-          f"({'within' if ok else 'OUTSIDE'} {100 * tolerance:.0f} %)")
-    return ok
 
 
 def _is_input_error(e: Exception) -> bool:

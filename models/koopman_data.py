@@ -126,10 +126,14 @@ def load_trajectories(
     inputs: Sequence[str] = DEFAULT_INPUTS,
     ts: float = 0.025,
 ) -> list[Trajectory]:
-    """Named-column CSV runs (``models.dataset.load_dataset``) -> trajectories."""
+    """Named-column CSV runs (``models.dataset.load_dataset``) -> trajectories.
+
+    Every one of ``inputs`` is held between samples when resampled to ``ts``, whatever its
+    name (a throttle and a brake as the torque and the steer); the states are interpolated.
+    """
     from models.dataset import load_dataset  # the CSV reader belongs to the data package
 
     columns = ("time", *states, *inputs)
-    runs = load_dataset(directory, ts=ts, columns=columns)
+    runs = load_dataset(directory, ts=ts, columns=columns, held=tuple(inputs))
     return [Trajectory(run.name, run.array(list(states)), run.array(list(inputs)), tuple(states), tuple(inputs))
             for run in runs]

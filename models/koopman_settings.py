@@ -8,10 +8,17 @@ is ``models/koopman_train.py``.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
-from models.koopman import DEFAULT_SPEED_KNOTS, DICTIONARY, MODEL_FORMS, KoopmanError
+import numpy as np
+
+from models.koopman import DEFAULT_SPEED_KNOTS, DICTIONARY, DICTIONARY_STATES, MODEL_FORMS, KoopmanError
+
+if TYPE_CHECKING:
+    from models.koopman_metrics import Trajectory
 
 #: The measured front wheel angle (the steering actuator's state) joins the vehicle states:
 #: with it the lift sees the tyres' slip angles and the actuator lag (docs/koopman.md).
@@ -174,3 +181,33 @@ def knots_in_range(knots: Sequence[float], low: float, high: float) -> tuple[flo
     if not high > low:
         raise KoopmanError(f"the data's speed spans [{low:g}, {high:g}] m/s: a scheduled model needs a range")
     return (float(low), float(high))
+
+
+def settings_for_data(settings: TrainingSettings, runs: Sequence["Trajectory"], *, knots_given: bool,
+                      closed_form: bool) -> tuple[TrainingSettings, list[str]]:
+    """``settings`` fitted to the data of ``runs``, whichever way they were read (``--data``
+    runs or ``--logs`` pieces, so both get the same checks and knots): an option on whose
+    columns the data lack is refused (``missing_columns``); the scheduled form's speed knots,
+    unless given (``knots_given``), are those of ``settings.speed_knots`` inside the range of
+    the first state (``knots_in_range``). ``closed_form``: a least-squares fit, which takes
+    no knots and chooses its own dictionary. Returns the settings and the notes to print.
+
+    Raises:
+        KoopmanError: one line per option on whose columns the data lack, ``;``-joined.
+    """
+    states, inputs = runs[0].state_names, runs[0].input_names
+    problems = missing_columns(settings, states, inputs)
+    if problems:
+        raise KoopmanError("; ".join(problems))
+    notes = []
+    if not closed_form and not settings.dictionary and tuple(states[:3]) != DICTIONARY_STATES:
+        # The dictionary's formulas are for [vx, vy, yaw_rate]; other data go without it.
+        notes.append(f"states {tuple(states)} are not {DICTIONARY_STATES}: training without the dictionary")
+    if not closed_form and not knots_given and settings.form == "scheduled":
+        speeds = np.concatenate([run.states[:, 0] for run in runs])
+        knots = knots_in_range(settings.speed_knots, float(speeds.min()), float(speeds.max()))
+        if knots != settings.speed_knots:
+            notes.append(f"speed knots {list(knots)} (the data's {states[0]} spans {speeds.min():.2f}-"
+                         f"{speeds.max():.2f}; --speed-knots to choose others)")
+        settings = dataclasses.replace(settings, speed_knots=knots)
+    return settings, notes
