@@ -62,6 +62,11 @@ class EcuConfig:
             (*contract*: 100 ms).
         planner_timeout_ms: PLANNER_REQ missing longer than this -> STANDBY
             (*contract*: 100 ms).
+        controller_failed_cycles: a controller whose step falls back (FAULTS bit 2) on
+            this many consecutive control tasks is a failing controller -> SAFE_STOP
+            (*contract*, rev. 2: 4 tasks, the 100 ms of ``sample_lost_ms`` at the 25 ms
+            period: as long as the ECU drives without a good sample, it drives on no good
+            command).
         steer_limit_rad: |STEER_ANGLE_CMD| limit (*contract*: 0.3 rad, eq. 22).
         drive_torque_limit_nm: |DRIVE_TORQUE_CMD| limit enforced by the guard; at most the
             DBC's representable range.
@@ -85,6 +90,7 @@ class EcuConfig:
     sample_stale_ms: int = 20
     sample_lost_ms: int = 100
     planner_timeout_ms: int = 100
+    controller_failed_cycles: int = 4
     steer_limit_rad: float = 0.3
     drive_torque_limit_nm: float = 3000.0
     safe_stop_brake_torque_nm: float = 1500.0
@@ -96,7 +102,8 @@ class EcuConfig:
 
     def __post_init__(self) -> None:
         for name in ("control_period_ms", "tick_ms", "sample_stale_ms", "sample_lost_ms",
-                     "planner_timeout_ms", "max_catch_up_tasks", "timing_capacity", "solver_budget_ms"):
+                     "planner_timeout_ms", "controller_failed_cycles", "max_catch_up_tasks",
+                     "timing_capacity", "solver_budget_ms"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ConfigError(f"EcuConfig.{name} must be a positive integer, got {value!r}")

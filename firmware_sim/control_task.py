@@ -3,7 +3,8 @@ guard -> TX of STEER_TORQUE_CMD and CTRL_DIAG.
 
 ``ControlTask`` is a part of ``firmware_sim.ecu.Ecu`` (a base class of it): the request of
 each mode (the controller's step, dead reckoning in DEGRADED, the safe stop), the FAULTS
-bits of the cycle, the identification excitation and the cycle's timing record. It works
+bits of the cycle, the streak of fallbacks that makes a failing controller (contract rev. 2),
+the identification excitation and the cycle's timing record. It works
 on the node's state that ``Ecu.__init__`` and ``Ecu._reset_run`` set up (inputs ``_rx``,
 transmitter ``_tx``, ``_controller``, ``_paths``, ``_config``, ``mode``); the time bases
 that release it are ``Ecu._on_tick`` (lockstep) and ``Ecu.poll`` (real time). It never
@@ -83,7 +84,8 @@ class ControlTask:
             sample_fresh=fresh, sample_lost=lost, planner_ok=planner_ok,
             engage=planner is not None and planner.engage,
             path_known=planner is not None and planner.path_id in self._paths,
-            rearmed=not self._awaiting_disengage, standstill=standstill)
+            rearmed=not self._awaiting_disengage, standstill=standstill,
+            controller_failed=self._fallback_streak >= cfg.controller_failed_cycles)
         return events, sample_age
 
     def _select_path(self, path_id: int) -> bool:
@@ -149,6 +151,7 @@ class ControlTask:
                 _LOG.log(level, "guard refused the command: %s", guarded.refused)
         self._guard_refusing = guarded.refused is not None
         self._previous_valid_steer = guarded.steer_angle
+        self._count_fallback(faults)
         self._tx.send_command(self.mode, self.mode in VALID_COMMAND_MODES,
                               guarded.steer_angle, guarded.drive_torque)
         tx_ns = None if self.lockstep else clock_ns(self._clock)
@@ -158,6 +161,16 @@ class ControlTask:
             overruns=min(self.overruns, OVERRUNS_MAX), faults=int(faults)))
         self._record_timing(release_jitter_s, time.perf_counter() - started,
                             request.solve_time_s, now_ns, tx_ns)
+
+    def _count_fallback(self, faults: int) -> None:
+        """Consecutive control tasks whose command was the fallback (FAULTS bit 2) while
+        the law ran (ACTIVE / DEGRADED): the next task's ``controller_failed`` event (contract
+        rev. 2, a failing controller). Any other task ends the streak."""
+        law_ran = self.mode in (CtrlMode.ACTIVE, CtrlMode.DEGRADED)
+        if law_ran and faults & FaultBit.SOLVER_FALLBACK:
+            self._fallback_streak += 1
+        else:
+            self._fallback_streak = 0
 
     def _update_mode(self, events: ModeEvents) -> CtrlMode:
         """Apply the transition; returns the previous mode."""

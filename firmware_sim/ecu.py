@@ -19,7 +19,8 @@ Revision 2 of the contract: only classic data frames with 11-bit IDs are contrac
 plausible (``rx.py``); a TICK more than 100 ms ahead is a jump of virtual time (adopted,
 STANDBY, controller and observer reset, FAULTS bits 1 and 3); a lost bus (end of the
 interface's stream, or receive errors for 100 ms) is logged at most once a second and
-reopened every second. Lines that could repeat every cycle go through `RateLimitedLog`.
+reopened every second; a controller whose step falls back (FAULTS bit 2) on 4 control
+tasks in a row is a failing controller: SAFE_STOP. Lines that could repeat every cycle go through `RateLimitedLog`.
 
 Parts, one job each: this module the node (construction, run state, the frames in and the
 two time bases that release the control task), `firmware_sim.control_task` (`ControlTask`,
@@ -166,6 +167,7 @@ class Ecu(ControlTask, BusLoop):
         self._active_path_id: int | None = None
         self._controller_failing = False
         self._guard_refusing = False
+        self._fallback_streak = 0   # control tasks in a row that sent the fallback (rev. 2)
         self._pending_model_reset = False
         self.overruns = 0
         self.cycles = 0
@@ -247,6 +249,7 @@ class Ecu(ControlTask, BusLoop):
         self._rx.drop_sample()
         self._rx.e2e_error = True
         self._pending_model_reset = True
+        self._fallback_streak = 0    # the controller starts afresh: no failing streak spans the jump
         self._active_path_id = None  # re-engaging selects the path again (reset included)
         if self._controller is not None:
             try:

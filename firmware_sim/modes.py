@@ -7,8 +7,10 @@ one transition per evaluation:
 - INIT -> STANDBY once the first consistent plant sample has arrived.
 - STANDBY -> ACTIVE when ENGAGE = 1, the PATH_ID is loaded, PLANNER_REQ is on time, the
   plant sample is fresh and, after a SAFE_STOP, ENGAGE has been 0 in between (``rearmed``).
-- ACTIVE / DEGRADED -> SAFE_STOP when no good sample for > 100 ms (this wins over the
-  planner's reasons: SAFE_STOP is not left by ENGAGE = 0 while moving either); otherwise
+- ACTIVE / DEGRADED -> SAFE_STOP when no good sample for > 100 ms, or when the controller
+  fell back (FAULTS bit 2) on the last 4 control tasks in a row (rev. 2: a failing
+  controller); either wins over the planner's reasons (SAFE_STOP is not left by ENGAGE = 0
+  while moving either); otherwise
   -> STANDBY on ENGAGE = 0, an unknown PATH_ID or a PLANNER_REQ timeout; otherwise
   -> DEGRADED when the sample is older than 20 ms, -> ACTIVE when it is fresh again.
 - SAFE_STOP -> STANDBY only at standstill and on ENGAGE = 0, an unknown PATH_ID or a
@@ -36,6 +38,7 @@ class Reason(enum.Enum):
     PLANNER_TIMEOUT = "PLANNER_REQ missing > 100 ms"
     SAMPLE_STALE = "plant sample older than 20 ms"
     SAMPLE_LOST = "no good plant sample for > 100 ms"
+    CONTROLLER_FAILED = "solver fallback on 4 control tasks in a row"
     SAMPLE_RECOVERED = "fresh plant sample again"
     STANDSTILL = "vehicle stands still"
 
@@ -54,6 +57,8 @@ class ModeEvents:
         path_known: PATH_ID of the newest PLANNER_REQ is loaded.
         rearmed: ENGAGE has been 0 since the last SAFE_STOP (True when none happened).
         standstill: a fresh sample shows |vx| below the standstill speed.
+        controller_failed: the controller's step fell back (FAULTS bit 2) on the last
+            ``EcuConfig.controller_failed_cycles`` control tasks in a row (rev. 2).
     """
 
     load_failed: bool = False
@@ -65,6 +70,7 @@ class ModeEvents:
     path_known: bool = True
     rearmed: bool = True
     standstill: bool = False
+    controller_failed: bool = False
 
 
 def _disengage_reasons(events: ModeEvents) -> tuple[Reason, ...]:
@@ -99,10 +105,13 @@ def transition(mode: CtrlMode, events: ModeEvents) -> tuple[CtrlMode, tuple[Reas
         if disengage and events.standstill:
             return CtrlMode.STANDBY, disengage + (Reason.STANDSTILL,)
         return mode, ()
-    # ACTIVE or DEGRADED. A lost sample goes first: SAFE_STOP is not left on ENGAGE = 0
-    # while moving, so disengaging must not bypass it when both happen in one cycle.
-    if events.sample_lost:
-        return CtrlMode.SAFE_STOP, (Reason.SAMPLE_LOST,)
+    # ACTIVE or DEGRADED. A lost sample or a failing controller goes first: SAFE_STOP is
+    # not left on ENGAGE = 0 while moving, so disengaging must not bypass it when both
+    # happen in one cycle (STANDBY would leave the plant holding the failed steer, coasting).
+    stop = ((Reason.SAMPLE_LOST,) if events.sample_lost else ()) + \
+        ((Reason.CONTROLLER_FAILED,) if events.controller_failed else ())
+    if stop:
+        return CtrlMode.SAFE_STOP, stop
     if disengage:
         return CtrlMode.STANDBY, disengage
     if not events.sample_fresh:

@@ -20,7 +20,9 @@ from controller.base import Command, Controller, SolverStatus, StepDebug, Vehicl
 @dataclass
 class ScriptedController(Controller):
     """Controller double: steer = ``gain * sample.y`` (clipped to 0.3 rad), torque =
-    ``torque``; records every call. ``raise_on_step`` / ``nan_command`` inject failures."""
+    ``torque``; records every call. ``raise_on_step`` / ``nan_command`` inject failures;
+    ``fall_back``: the law's own fallback (its last command again, ``debug.fallback``, as
+    an MPC whose solver failed)."""
 
     name: str = "scripted"
     gain: float = -0.01
@@ -28,10 +30,12 @@ class ScriptedController(Controller):
     raise_on_step: bool = False
     nan_command: bool = False
     command_override: Command | None = None
+    fall_back: bool = False
     solve_time_s: float = 0.0012
     samples: list[VehicleSample] = field(default_factory=list)
     paths: list[object] = field(default_factory=list)
     resets: int = 0
+    last_command: Command = Command(0.0, 0.0)
 
     def set_path(self, path: object) -> None:
         self.paths.append(path)
@@ -47,8 +51,11 @@ class ScriptedController(Controller):
             return Command(math.nan, self.torque), StepDebug(SolverStatus.NUMERICAL_ERROR)
         if self.command_override is not None:
             return self.command_override, StepDebug(SolverStatus.SOLVED, 7, self.solve_time_s)
+        if self.fall_back:
+            return self.last_command, StepDebug(SolverStatus.MAX_ITERATIONS, 7, self.solve_time_s, fallback=True)
         steer = min(max(self.gain * sample.y, -0.3), 0.3)
-        return Command(steer, self.torque), StepDebug(SolverStatus.SOLVED, 7, self.solve_time_s)
+        self.last_command = Command(steer, self.torque)
+        return self.last_command, StepDebug(SolverStatus.SOLVED, 7, self.solve_time_s)
 
 
 def pump(ecu: object, bus: can.BusABC) -> int:

@@ -413,6 +413,74 @@ def test_refused_or_failed_command_becomes_fallback_with_bit_2(buses, failure):
     assert not rig.diag_at(50).faults & 0b0100
 
 
+FAILURES = {"law_fallback": "fall_back", "raise": "raise_on_step", "nan": "nan_command"}
+
+
+@pytest.mark.parametrize("failure", FAILURES)
+def test_a_controller_falling_back_on_4_tasks_in_a_row_ends_in_safe_stop(buses, failure):
+    """Contract rev. 2, a failing controller: the law's own fallback, an exception or a
+    refused command on 4 control tasks in a row (FAULTS bit 2, steer held) -> SAFE_STOP at
+    the 5th, steering back towards straight at 0.2 rad/s and braking, CMD_VALID = 1; the
+    planner's ENGAGE = 1 does not bring ACTIVE back."""
+    controller = ScriptedController(gain=-1.0)
+    rig = Rig(*buses, controller=controller)
+    rig.handshake()
+    rig.run(0, 50)
+    held = rig.command_at(50).steer_angle_cmd
+    setattr(controller, FAILURES[failure], True)
+    rig.run(55, 300)
+    tasks = range(75, 301, 25)
+    sent = [rig.command_at(t) for t in tasks]
+    faults = [rig.diag_at(t).faults for t in tasks]
+    print(f"{failure}: held {held}; modes {[c.ctrl_mode.name for c in sent]}; "
+          f"steer {[c.steer_angle_cmd for c in sent]}")
+    assert [c.ctrl_mode for c in sent] == [CtrlMode.ACTIVE] * 4 + [CtrlMode.SAFE_STOP] * (len(tasks) - 4)
+    assert all(f & 0b0100 for f in faults[:4]) and not any(f & 0b0100 for f in faults[4:])
+    assert all(c.cmd_valid for c in sent)
+    step = 0.2 * 0.025   # the safe stop's rate over one task
+    assert [c.steer_angle_cmd for c in sent] == pytest.approx(
+        [held] * 4 + [held + k * step for k in range(1, len(tasks) - 3)], abs=1e-4)
+    assert all(c.drive_torque_cmd == -1500.0 for c in sent[4:])
+    steps_by_the_law = len(controller.samples)
+    rig.run(305, 350)   # SAFE_STOP runs no law
+    assert len(controller.samples) == steps_by_the_law
+    assert rig.command_at(350).ctrl_mode is CtrlMode.SAFE_STOP
+
+
+def test_fallbacks_broken_by_a_good_step_keep_active(buses):
+    """3 fallbacks in every 4 tasks are no failing controller: a good step ends the streak."""
+    controller = ScriptedController(gain=-1.0)
+    rig = Rig(*buses, controller=controller)
+    rig.handshake()
+    rig.run(0, 50)
+    for t in range(55, 405, 5):
+        controller.fall_back = (t // 25) % 4 != 0
+        rig.tick(t)
+    tasks = range(75, 401, 25)
+    fallbacks = sum(bool(rig.diag_at(t).faults & 0b0100) for t in tasks)
+    print(f"{fallbacks} fallbacks in {len(tasks)} tasks")
+    assert fallbacks == 3 * len(tasks) // 4
+    assert all(rig.command_at(t).ctrl_mode is CtrlMode.ACTIVE for t in tasks)
+
+
+def test_after_a_failing_controllers_safe_stop_the_ecu_engages_afresh_through_standby(buses):
+    """SAFE_STOP for a failing controller is left as any SAFE_STOP: at standstill on
+    ENGAGE = 0 (STANDBY); ENGAGE = 1 again engages a controller that works again and keeps
+    it ACTIVE (no streak of fallbacks carried over)."""
+    controller = ScriptedController(gain=-1.0, fall_back=True)
+    rig = Rig(*buses, controller=controller)
+    rig.handshake()
+    rig.run(0, 175)
+    assert rig.command_at(175).ctrl_mode is CtrlMode.SAFE_STOP
+    at_rest = lambda t: {"vx": 0.0, "x": 1.75, "y": 0.175}   # noqa: E731
+    rig.run(180, 225, plant=at_rest, planner=lambda t: {"engage": False})
+    assert rig.command_at(225).ctrl_mode is CtrlMode.STANDBY
+    controller.fall_back = False
+    rig.run(230, 400, plant=at_rest)
+    modes = [rig.command_at(t).ctrl_mode for t in range(250, 401, 25)]
+    assert modes == [CtrlMode.ACTIVE] * len(modes)
+
+
 def test_load_failure_latches_fault_with_cmd_valid_0(buses):
     ecu_bus, peer_bus = buses
 

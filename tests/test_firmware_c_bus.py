@@ -117,6 +117,38 @@ def test_probe_path_files_latch_the_same_fault_in_both_ecus(native, probe: str, 
     assert all(int(decode(FrameId.STEER_TORQUE_CMD, d).frame.ctrl_mode) == 5 for _, d in runs["c"][0])
 
 
+def test_a_failing_controller_ends_in_the_same_safe_stop_in_both_ecus(native, tmp_path: Path) -> None:
+    """Contract rev. 2, a failing controller, closed loop on the hub: the model with its
+    lifted dynamics A(v) x 1e6 (finite, so it loads; the fault campaign's "model A x 1e6")
+    makes every step fall back. Both ECUs (the C one on its data file converted from the
+    same artefact) send the same frames: FAULTS bit 2 on the first 4 tasks in ACTIVE, then
+    SAFE_STOP to the end, every command with CMD_VALID = 1 within the limits."""
+    from hil.fault_cases.input_cases import write_bad_input
+    from hil.fault_cases.verdicts import check_commands
+    from hil.scenario import load_scenario
+
+    path_file = Path(load_scenario("dlc_smoke").path_file)
+    runs = {}
+    for which in ("python", "c"):
+        folder = tmp_path / which
+        folder.mkdir()
+        bad = write_bad_input("dynamics A x 1e6", folder, path_file, which)
+        extra = ("--model", str(bad.model)) if which == "python" else ("--data", str(bad.data))
+        raw, _, status, output = run_on_hub(which, "dlc_smoke", "eso-dkmpc", tmp_path / f"{which}.log",
+                                            executable=ECU, duration_s=1.0, extra=extra)
+        assert status == 0, output[-2000:]
+        assert check_commands(raw)[0] == 0, check_commands(raw)
+        runs[which] = commands_and_diags(raw)
+    (py_commands, py_diags), (c_commands, c_diags) = runs["python"], runs["c"]
+    assert c_commands == py_commands and c_diags == py_diags
+    modes = [int(decode(FrameId.STEER_TORQUE_CMD, d).frame.ctrl_mode) for _, d in c_commands]
+    fallbacks = [bool(fields[3] & 0b0100) for _, fields in c_diags]
+    engaged = modes.index(2)
+    print(f"modes from the engagement {modes[engaged:engaged + 8]}, fallbacks {fallbacks[engaged:engaged + 8]}")
+    assert modes[engaged:engaged + 4] == [2] * 4 and all(fallbacks[engaged:engaged + 4])
+    assert set(modes[engaged + 4:]) == {4} and not any(fallbacks[engaged + 4:])
+
+
 #: Conformance cases (contract rev. 2 faults), each from 1.5 s of dlc_smoke: name -> the
 #: ``[faults]`` table or a jump of virtual time. The first ones run in make test.
 CONFORMANCE_CASES = {

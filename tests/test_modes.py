@@ -12,7 +12,7 @@ EVENT_FIELDS = [f.name for f in dataclasses.fields(ModeEvents)]
 
 
 def all_events() -> list[ModeEvents]:
-    """Every combination of the boolean events (2**9)."""
+    """Every combination of the boolean events (2**10)."""
     return [ModeEvents(**dict(zip(EVENT_FIELDS, values)))
             for values in itertools.product((False, True), repeat=len(EVENT_FIELDS))]
 
@@ -29,8 +29,9 @@ def contract_oracle(mode: CtrlMode, e: ModeEvents) -> CtrlMode:
         return CtrlMode.ACTIVE if ok else CtrlMode.STANDBY
     if mode is CtrlMode.SAFE_STOP:                      # left only through STANDBY at standstill
         return CtrlMode.STANDBY if (not request_stands and e.standstill) else CtrlMode.SAFE_STOP
-    if e.sample_lost:                                   # > 100 ms without a good sample
-        return CtrlMode.SAFE_STOP                       # (SAFE_STOP dominates disengaging)
+    if e.sample_lost or e.controller_failed:            # > 100 ms without a good sample, or
+        return CtrlMode.SAFE_STOP                       # 4 fallbacks in a row (rev. 2); both
+                                                        # dominate disengaging
     if not request_stands:                              # ENGAGE=0 / unknown path / timeout
         return CtrlMode.STANDBY
     return CtrlMode.ACTIVE if e.sample_fresh else CtrlMode.DEGRADED
@@ -47,7 +48,7 @@ def test_transition_matches_contract_table_for_every_mode_and_event_combination(
             assert all(isinstance(reason, Reason) for reason in reasons)
             checked += 1
     print(f"checked {checked} (mode, events) combinations")
-    assert checked == len(CtrlMode) * 2 ** len(EVENT_FIELDS) == 3072
+    assert checked == len(CtrlMode) * 2 ** len(EVENT_FIELDS) == 6144
 
 
 def test_safe_stop_never_returns_directly_to_control():
@@ -89,6 +90,21 @@ def test_named_transitions_give_their_reasons():
     assert transition(CtrlMode.SAFE_STOP, ModeEvents(standstill=True))[0] is CtrlMode.SAFE_STOP
     # after a SAFE_STOP, ENGAGE must have been 0 before ACTIVE again
     assert transition(CtrlMode.STANDBY, ModeEvents(rearmed=False))[0] is CtrlMode.STANDBY
+
+
+def test_a_failing_controller_leaves_active_and_degraded_for_safe_stop():
+    """Rev. 2: a fallback on 4 control tasks in a row is a failing controller; it stops the
+    vehicle from ACTIVE and DEGRADED even when the planner disengages in the same cycle.
+    From STANDBY and SAFE_STOP the event changes nothing (no law runs there)."""
+    failed = ModeEvents(controller_failed=True)
+    for mode in (CtrlMode.ACTIVE, CtrlMode.DEGRADED):
+        assert transition(mode, failed) == (CtrlMode.SAFE_STOP, (Reason.CONTROLLER_FAILED,))
+        assert transition(mode, ModeEvents(controller_failed=True, engage=False, sample_fresh=False)) == \
+            (CtrlMode.SAFE_STOP, (Reason.CONTROLLER_FAILED,))
+    assert transition(CtrlMode.ACTIVE, ModeEvents(controller_failed=True, sample_lost=True)) == \
+        (CtrlMode.SAFE_STOP, (Reason.SAMPLE_LOST, Reason.CONTROLLER_FAILED))
+    assert transition(CtrlMode.SAFE_STOP, failed)[0] is CtrlMode.SAFE_STOP
+    assert transition(CtrlMode.STANDBY, failed)[0] is CtrlMode.ACTIVE
 
 
 def test_valid_command_modes_are_the_contracts():

@@ -12,6 +12,9 @@
 #define SAMPLE_STALE_MS 20
 #define SAMPLE_LOST_MS 100
 #define PLANNER_TIMEOUT_MS 100
+/* A failing controller (rev. 2): its step fell back (FAULTS bit 2) on this many control
+ * tasks in a row -> SAFE_STOP; 4 tasks = the 100 ms of SAMPLE_LOST_MS at the period. */
+#define CONTROLLER_FAILED_CYCLES 4
 #define STEER_LIMIT 0.3        /* rad, also inside the DBC's range */
 #define TORQUE_LIMIT 3000.0    /* N m */
 #define SAFE_STOP_BRAKE 1500.0 /* N m */

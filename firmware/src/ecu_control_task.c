@@ -92,6 +92,7 @@ void ecu_control_task(ecu_node_t *node, int64_t now_ns, double release_jitter_s,
   e.engage = rx->has_planner && rx->planner_engage;
   e.path_known = rx->has_planner && ecu_paths_has(node->paths, rx->planner_path_id);
   e.rearmed = !node->awaiting_disengage;
+  e.controller_failed = node->fallback_streak >= CONTROLLER_FAILED_CYCLES;
   int previous_mode = node->mode;
   node->mode = ecu_mode_transition(previous_mode, &e);
   if (node->mode != previous_mode && node->mode == ECU_SAFE_STOP) {
@@ -114,6 +115,9 @@ void ecu_control_task(ecu_node_t *node, int64_t now_ns, double release_jitter_s,
   if (ecu_guard_command(&steer, &torque, node->previous_valid_steer)) faults |= ECU_SOLVER_FALLBACK;
   node->previous_valid_steer = steer;
   int mode = node->mode;
+  /* a failing controller (rev. 2): the fallback on consecutive tasks of the law's modes */
+  int law_ran = mode == ECU_ACTIVE || mode == ECU_DEGRADED;
+  node->fallback_streak = law_ran && (faults & ECU_SOLVER_FALLBACK) ? node->fallback_streak + 1 : 0;
   ecu_tx_command(&node->tx, mode, mode == ECU_ACTIVE || mode == ECU_DEGRADED || mode == ECU_SAFE_STOP, steer, torque);
   ecu_when_t tx = {node->realtime, node->realtime ? os_monotonic_ns() : 0};
   ecu_tx_diag(&node->tx, r.qp_status, r.solve_time_s, wall_seconds() - started_s, r.iterations, node->overruns, faults);

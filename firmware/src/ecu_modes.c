@@ -14,7 +14,7 @@ int ecu_mode_transition(int from, const ecu_events_t *e) {
   int disengage = !e->planner_ok || !e->engage || !e->path_known;
   if (from == ECU_STANDBY) return !disengage && e->rearmed && e->sample_fresh ? ECU_ACTIVE : ECU_STANDBY;
   if (from == ECU_SAFE_STOP) return disengage && e->standstill ? ECU_STANDBY : ECU_SAFE_STOP;
-  if (e->sample_lost) return ECU_SAFE_STOP;
+  if (e->sample_lost || e->controller_failed) return ECU_SAFE_STOP; /* before disengaging, as in Python */
   if (disengage) return ECU_STANDBY;
   if (!e->sample_fresh) return ECU_DEGRADED;
   return ECU_ACTIVE;

@@ -10,7 +10,8 @@
 
 /* ModeEvents of one control task. */
 typedef struct {
-  int load_failed, sample_seen, sample_fresh, sample_lost, planner_ok, engage, path_known, rearmed, standstill;
+  int load_failed, sample_seen, sample_fresh, sample_lost, planner_ok, engage, path_known, rearmed, standstill,
+      controller_failed;
 } ecu_events_t;
 
 /* modes.transition: the mode after `from` (enum ecu_mode) on these events. */

@@ -21,6 +21,7 @@ static void reset_run(ecu_node_t *node) {
   node->previous_valid_steer = 0.0;
   node->active_path_id = -1;
   node->pending_model_reset = 0;
+  node->fallback_streak = 0;
   node->overruns = 0;
   node->cycles = 0;
 }
@@ -74,6 +75,7 @@ static void on_tick(ecu_node_t *node, uint32_t tick) {
     ecu_rx_state_drop_sample(rx);
     rx->e2e_error = 1;
     node->pending_model_reset = 1;
+    node->fallback_streak = 0; /* the core starts afresh: no failing streak spans the jump */
     node->active_path_id = -1;
     ecu_core_reset(node->core);
     due_first = t;

@@ -25,6 +25,7 @@ typedef struct {
   ecu_rx_state_t rx;
   /* Ecu */
   int mode, awaiting_disengage, active_path_id, pending_model_reset, overruns, cycles;
+  int fallback_streak; /* control tasks in a row whose command was the fallback in ACTIVE / DEGRADED */
   double previous_valid_steer;
   int synchronised;
   ecu_when_t last_tick;

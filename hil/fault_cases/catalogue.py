@@ -74,6 +74,10 @@ JUMP_STANDBY = Expect(0, "STANDBY at the jump TICK", mode=CtrlMode.STANDBY)
 JUMP_BIT_1 = Expect(0, "bit 1 in the next CTRL_DIAG", bit=1)
 JUMP_BIT_3 = Expect(0, "bit 3 (controller/observer reset) in the next CTRL_DIAG", bit=3)
 JUMP_REENGAGE = Expect(35, "re-engaged by the usual rule", recover=True)
+# Rev. 2, a failing controller: fallbacks (FAULTS bit 2) on 4 control tasks in a row, the
+# first at t0 and the last at t0 + 75 ms, make the task at t0 + 100 ms SAFE_STOP; one task
+# of margin (the input-file case "model A x 1e6", hil.fault_cases.input_runs).
+CONTROLLER_FAILED_BOUND_MS = 125
 # Lockstep: a lost bus stops virtual time (no tick arrives), so once the bus is back the
 # run goes on with no reaction in virtual time.
 LOCKSTEP_PAUSE = Expect(500, "lockstep: no tick while the bus is lost, no input timeout",

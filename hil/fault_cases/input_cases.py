@@ -1,12 +1,15 @@
 """The fault campaign's input-file cases (`INPUT_CASES`, registered as campaign cases by
 ``hil.fault_cases.catalogue.input_cases``): a bad file given to the ECU at start-up, and the
 verdict both ECUs must give for it. Each case's ``ecu_fault`` (`InputCase.ecu_fault`) is
-``{"kind": "input", "defect": NAME, "expect": "refused" | "fault", "says": TEXT}``:
+``{"kind": "input", "defect": NAME, "expect": "refused" | "fault" | "safe_stop", "says": TEXT}``:
 
 - ``refused``: the ECU refuses to start: exit status 2, one ``error:`` line holding
   ``says``, no frame on the bus;
 - ``fault``: the ECU starts, latches FAULT at its first control task and sends
-  CMD_VALID = 0 throughout; its ``FAULT latched`` line holds ``says``.
+  CMD_VALID = 0 throughout; its ``FAULT latched`` line holds ``says``;
+- ``safe_stop``: the file loads (nothing in it is out of range) but the controller falls
+  back on every step; the ECU must take it for a failing controller (contract rev. 2:
+  fallbacks on 4 control tasks in a row) and go to SAFE_STOP (``says`` unused).
 
 ``says`` may hold ``{file}``: the bad file's name. The files are written
 per run by `write_bad_input` (the defect's writer in `WRITERS`), for the ECU that runs:
@@ -30,6 +33,9 @@ CONTROLLER = "eso-dkmpc"
 BAD_PATH_LINE = 3
 #: Bytes added to that line: over the 4,096-byte line limit of both ECUs.
 PADDING_BYTES = 4200
+#: Factor on the model's lifted dynamics A(v) of the failing-controller case: finite (the
+#: model loads) but absurd (every step's QP fails or gives no finite plan).
+ABSURD_A_SCALE = 1e6
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,32 @@ def _chirp_1e308(folder: Path, path_file: Path, ecu: str) -> BadInput:
     return BadInput(program, excite=str(program))
 
 
+def _artefact_copy(folder: Path, name: str, change: Callable[[dict[str, Any]], None]) -> Path:
+    """A copy of the default Koopman artefact as ``folder/name`` (.npz + .json, returned
+    without its suffix) whose arrays (name -> ``np.ndarray``) ``change`` edited in place."""
+    import numpy as np
+
+    from models.koopman import DEFAULT_ARTIFACT
+
+    model = folder / name
+    shutil.copy(DEFAULT_ARTIFACT.with_suffix(".json"), model.with_suffix(".json"))
+    with np.load(DEFAULT_ARTIFACT.with_suffix(".npz")) as weights:
+        arrays = {key: weights[key].copy() for key in weights.files}
+    change(arrays)
+    np.savez(model.with_suffix(".npz"), **arrays)
+    return model
+
+
+def _first_encoder_weight_infinite(arrays: dict[str, Any]) -> None:
+    """``encoder_w0[0, 0]`` (192, 4) = inf."""
+    arrays["encoder_w0"][0, 0] = math.inf
+
+
+def _dynamics_scaled(arrays: dict[str, Any]) -> None:
+    """``A_n`` (knots, n_z, n_z) times `ABSURD_A_SCALE`."""
+    arrays["A_n"] *= ABSURD_A_SCALE
+
+
 def _infinite_encoder(folder: Path, path_file: Path, ecu: str) -> BadInput:
     """The default model with its first encoder weight infinite: for the Python ECU a copy
     of the Koopman artefact (``encoder_w0[0, 0]``), for the C ECU a copy of the build's
@@ -66,16 +98,22 @@ def _infinite_encoder(folder: Path, path_file: Path, ecu: str) -> BadInput:
         data = folder / "infinite_encoder.bin"
         data.write_bytes(set_record_value(DEFAULT_DATA.read_bytes(), "koopman.w0", math.inf))
         return BadInput(data, data=data)
-    import numpy as np
+    model = _artefact_copy(folder, "infinite_encoder", _first_encoder_weight_infinite)
+    return BadInput(model.with_suffix(".npz"), model=model)
 
-    from models.koopman import DEFAULT_ARTIFACT
 
-    model = folder / "infinite_encoder"
-    shutil.copy(DEFAULT_ARTIFACT.with_suffix(".json"), model.with_suffix(".json"))
-    with np.load(DEFAULT_ARTIFACT.with_suffix(".npz")) as weights:
-        arrays = {key: weights[key].copy() for key in weights.files}
-    arrays["encoder_w0"][0, 0] = math.inf
-    np.savez(model.with_suffix(".npz"), **arrays)
+def _absurd_dynamics(folder: Path, path_file: Path, ecu: str) -> BadInput:
+    """The default model with its lifted dynamics A(v) (``A_n``, every knot) times
+    `ABSURD_A_SCALE`: finite, so both ECUs load it, but no step's QP gives a usable plan.
+    The Python ECU gets the artefact; the C ECU its data file, converted from that artefact
+    by firmware/tools/ecu_data.py as ``hil run --ecu c --model`` converts one, so both run
+    the same model."""
+    model = _artefact_copy(folder, "absurd_dynamics", _dynamics_scaled)
+    if ecu == "c":
+        from firmware_sim.native import data_file_for_model
+
+        data = data_file_for_model(model.with_suffix(".npz"), folder)
+        return BadInput(model.with_suffix(".npz"), data=data)
     return BadInput(model.with_suffix(".npz"), model=model)
 
 
@@ -95,6 +133,7 @@ def _spoilt_path(name: str, spoil: Callable[[bytes], bytes]) -> Callable[[Path, 
 WRITERS: dict[str, Callable[[Path, Path, str], BadInput]] = {
     "chirp 1e308": _chirp_1e308,
     "infinite encoder weight": _infinite_encoder,
+    "dynamics A x 1e6": _absurd_dynamics,
     "path line over 4096 bytes": _spoilt_path("long_line", lambda line: line + b" " * PADDING_BYTES),
     "path line with a NUL byte": _spoilt_path("nul", lambda line: line[:1] + b"\x00" + line[1:]),
 }
@@ -129,7 +168,8 @@ def set_record_value(data: bytes, record: str, value: float) -> bytes:
 @dataclass(frozen=True)
 class InputCase:
     """One input-file case: its name in the campaign, the defect (a key of `WRITERS`), the
-    verdict expected ("refused", "fault"), what the ECU's line must hold, and a note."""
+    verdict expected ("refused", "fault", "safe_stop"), what the ECU's line must hold, and
+    a note."""
 
     name: str
     defect: str
@@ -156,4 +196,8 @@ INPUT_CASES = (
               "the path file's line 3 padded past the 4,096-byte line limit"),
     InputCase("path line with a NUL byte", "path line with a NUL byte", "fault",
               "{file}: line 3: holds a NUL byte", "a NUL byte in the path file's line 3"),
+    InputCase("model A x 1e6", "dynamics A x 1e6", "safe_stop", "",
+              "--model with the lifted dynamics A(v) x 1e6 (Python: the Koopman artefact's A_n; C: --data "
+              "converted from it): finite, so it loads, but every step falls back; a fallback on 4 control "
+              "tasks in a row is a failing controller: SAFE_STOP"),
 )

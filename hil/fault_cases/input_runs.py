@@ -8,7 +8,11 @@ case expects:
   from it. An ECU that answers the handshake has started: not refused;
 - a latched FAULT (`_fault_rows`): the whole scenario, judged by ``evaluate`` as every run
   is, plus rows of its own: FAULT at every control task, CMD_VALID = 0 in every command, a
-  ``FAULT latched`` line naming what the case says.
+  ``FAULT latched`` line naming what the case says;
+- a failing controller (`_safe_stop_rows`): the whole scenario, judged by ``evaluate``, plus
+  rows of its own: SAFE_STOP within `CONTROLLER_FAILED_BOUND_MS` of the first fallback,
+  held to the end with CMD_VALID = 1, and the safe stop's command (steering towards
+  straight at the bounded rate, no drive torque).
 
 Both ECUs run as processes, so that the Python ECU's exit status is its command line's, as
 the C ECU's is.
@@ -27,7 +31,7 @@ import can
 import numpy as np
 
 from can_defs.frames import CtrlMode, FrameId
-from hil.fault_cases.catalogue import SCENARIO, FaultCase
+from hil.fault_cases.catalogue import CONTROLLER_FAILED_BOUND_MS, SCENARIO, FaultCase
 from hil.fault_cases.input_cases import BadInput, write_bad_input
 from hil.fault_cases.verdicts import Verdict, evaluate
 
@@ -37,6 +41,9 @@ EXIT_USAGE = 2
 ECU_FRAME_IDS = frozenset({FrameId.HIL_SYNC_ACK, FrameId.STEER_TORQUE_CMD, FrameId.CTRL_DIAG})
 #: Wall clock an ECU process may take to start (a loaded machine, the Python ECU's imports).
 START_TIMEOUT_S = 60.0
+#: The safe stop's steering step per control task (contract: towards straight at a bounded
+#: rate; the ECU's 0.2 rad/s over 25 ms) plus one LSB of STEER_ANGLE_CMD.
+SAFE_STOP_STEER_STEP_RAD = 0.2 * 0.025 + 1e-4
 
 
 def _ecu_command(rig: Any, ecu: str, bad: BadInput) -> tuple[list[str], dict[str, str]]:
@@ -165,10 +172,43 @@ def _fault_rows(result: Any, output: str, says: str) -> list[dict[str, Any]]:
     ]
 
 
+def _safe_stop_rows(result: Any) -> list[dict[str, Any]]:
+    """The rows of a case whose controller falls back on every step (see the module
+    docstring); ``result`` None (the run raised): no task seen, every row missed."""
+    fields = ("time", "ctrl_mode", "cmd_valid", "steer_angle_cmd", "drive_torque_cmd", "faults")
+    trace = result.ecu_trace if result is not None else {key: np.zeros(0) for key in fields}
+    times_ms = np.round(trace["time"] * 1000).astype(int)
+    modes = trace["ctrl_mode"].astype(int)
+    law = (modes == int(CtrlMode.ACTIVE)) | (modes == int(CtrlMode.DEGRADED))
+    fallbacks = np.flatnonzero(law & ((trace["faults"].astype(int) >> 2) & 1 == 1))
+    stops = np.flatnonzero(modes == int(CtrlMode.SAFE_STOP))
+    first = int(stops[0]) if len(stops) else len(modes)
+    reaction = (int(times_ms[first] - times_ms[fallbacks[0]])
+                if len(fallbacks) and len(stops) and first > fallbacks[0] else None)
+    stopping = (modes[first:] == int(CtrlMode.SAFE_STOP)) & (trace["cmd_valid"][first:] != 0)
+    # the safe stop's steering, from the last command before it
+    steer = trace["steer_angle_cmd"][max(first - 1, 0):] if len(stops) else np.zeros(0)
+    step = float(np.max(np.abs(np.diff(steer)), initial=0.0))
+    towards_straight = bool(np.all(np.abs(steer[1:]) <= np.abs(steer[:-1]) + 1e-9))
+    torque = float(np.max(trace["drive_torque_cmd"][first:], initial=0.0))
+    return [
+        {"expect": f"SAFE_STOP <= {CONTROLLER_FAILED_BOUND_MS} ms after the first fallback",
+         "why": "a fallback on 4 control tasks in a row is a failing controller (contract rev. 2)",
+         "at_ms": reaction, "met": reaction is not None and reaction <= CONTROLLER_FAILED_BOUND_MS},
+        {"expect": "SAFE_STOP to the end, CMD_VALID = 1",
+         "why": "left only through STANDBY: the planner's ENGAGE = 1 does not re-engage", "at_ms": None,
+         "shown": f"{int(np.sum(stopping))} of {len(stopping)} tasks from the first SAFE_STOP",
+         "met": len(stopping) > 0 and bool(np.all(stopping))},
+        {"expect": "steer towards straight <= 0.2 rad/s, no drive torque", "why": "the SAFE_STOP command",
+         "at_ms": None, "shown": f"largest step {step:.4f} rad, largest torque {torque:.1f} N m",
+         "met": len(stopping) > 0 and step <= SAFE_STOP_STEER_STEP_RAD and towards_straight and torque <= 0.0},
+    ]
+
+
 def run_input_case(case: FaultCase, controller: str, scenario_name: str = SCENARIO,
                    duration_s: float | None = None, ecu: str = "python") -> Verdict:
     """Run an input-file case against ``ecu`` ("python", "c") and judge it by the verdict
-    the case expects (``case.ecu_fault["expect"]``: "refused" or "fault")."""
+    the case expects (``case.ecu_fault["expect"]``: "refused", "fault" or "safe_stop")."""
     from hil.scenario import load_scenario
     from hil.session import reference_path
 
@@ -192,8 +232,11 @@ def run_input_case(case: FaultCase, controller: str, scenario_name: str = SCENAR
         unexpected = sum("unexpected error" in line for line in output.splitlines())
         verdict = evaluate(case, controller, result, error, unexpected, 0, description,
                            reference_path(scenario), onset_ms=0, frames_hit=1)
-        verdict.expects.extend(_fault_rows(result, output, says))
-        if verdict.crashes == 0 and verdict.expects_met:
-            verdict.outcome = "FAULT latched"
+        if fault["expect"] == "safe_stop":   # the usual outcome: a safe stop, at standstill
+            verdict.expects.extend(_safe_stop_rows(result))
+        else:
+            verdict.expects.extend(_fault_rows(result, output, says))
+            if verdict.crashes == 0 and verdict.expects_met:
+                verdict.outcome = "FAULT latched"
     verdict.ecu = ecu
     return verdict
