@@ -181,7 +181,10 @@ def base_checkout(revision: str, workdir: Path, root: Path = provenance.ROOT) ->
     subprocess.run(["git", "worktree", "prune"], cwd=root, check=True, capture_output=True)
     subprocess.run(["git", "worktree", "add", "--detach", str(base), resolved.stdout.strip()],
                    cwd=root, check=True, capture_output=True)
-    (base / ".venv").symlink_to((root / ".venv").resolve())
+    link = base / ".venv"
+    if link.is_symlink():  # a revision that tracked a .venv link: point it at this environment
+        link.unlink()
+    link.symlink_to((root / ".venv").resolve())
     build_firmware(base)
     return base
 
