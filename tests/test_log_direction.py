@@ -104,12 +104,13 @@ def test_candump_lines_say_t_and_cantools_decodes_them(tmp_path: Path) -> None:
     assert " R ::\nVEH_DYN(" in decoded
 
 
-def _with_directions(path: Path) -> Path:
-    """A copy of the shipped lockstep log (every frame Rx) as the recorder now writes it."""
+def _with_directions(path: Path, marked: bool = True) -> Path:
+    """A copy of the shipped lockstep log as the recorder now writes it (``marked``: the
+    ECU's frames Tx) or as older recorders did (every frame Rx)."""
     tx = transmitted_ids()
     with can.Logger(path) as writer:
         for message in read_log(LOCKSTEP).messages:
-            message.is_rx = message.arbitration_id not in tx
+            message.is_rx = not marked or message.arbitration_id not in tx
             writer.on_message_received(message)
     path.with_name(path.name + ".json").write_text(
         (LOGS / "lockstep_lmpc.log.json").read_text())
@@ -123,7 +124,8 @@ def _frames(messages: list[can.Message]) -> list[tuple]:
 def test_old_and_new_logs_read_and_identify_the_same(tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     marked = _with_directions(tmp_path / "marked.log")
-    old, new = read_log(LOCKSTEP), read_log(marked)
+    unmarked = _with_directions(tmp_path / "unmarked.log", marked=False)
+    old, new = read_log(unmarked), read_log(marked)
     print("old", sum(not m.is_rx for m in old.messages), "Tx frames; new",
           sum(not m.is_rx for m in new.messages))
     assert all(m.is_rx for m in old.messages) and not all(m.is_rx for m in new.messages)
@@ -131,7 +133,7 @@ def test_old_and_new_logs_read_and_identify_the_same(tmp_path: Path,
     assert new.frames_by_id == old.frames_by_id and new.has_ecu_frames
     assert frame_times(new.messages) == frame_times(old.messages)
     monkeypatch.setattr(can_log_data, "MIN_SEGMENT_S", 1.0)  # the log is a 2 s drive
-    datasets = [can_log_data.load_logs([log], min_data_s=0.5) for log in (LOCKSTEP, marked)]
+    datasets = [can_log_data.load_logs([log], min_data_s=0.5) for log in (unmarked, marked)]
     assert len(datasets[0].trajectories) == len(datasets[1].trajectories) > 0
     for a, b in zip(datasets[0].trajectories, datasets[1].trajectories):
         assert np.array_equal(a.states, b.states) and np.array_equal(a.inputs, b.inputs)
