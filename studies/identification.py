@@ -19,7 +19,8 @@ actuator lag x3) drives the identification drive over CAN with LMPC and the
 ``prbs-torque`` excitation while the bus is recorded; the Koopman model and the linear
 bicycle are identified from that log alone (``python -m models.koopman_train --logs``);
 then Tables II and III run on the changed plant with the nominal and the re-identified
-models, for ESO-DKMPC and LMPC alike, beside the nominal plant with the nominal models.
+models, for ESO-DKMPC, DKMPC and LMPC alike, and NMPC with its nominal single track, beside
+the nominal plant with the nominal models.
 The fitted bicycle is compared with the nominal one and with the changed plant's own
 flat-track stiffnesses at its static loads (the extra mass moves the tyres along their
 degressive load curve, so the axles' stiffness changes are not exactly 0 % and -20 %).
@@ -270,16 +271,22 @@ def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path,
 
 def table_runs(model_dir: Path) -> list[dict[str, Any]]:
     """Tables II and III: per scenario, the nominal plant with the nominal models, then the
-    changed plant with the nominal and the identified models (ESO-DKMPC, LMPC)."""
+    changed plant with the nominal and the identified models (ESO-DKMPC, DKMPC, LMPC) and
+    NMPC with its nominal model."""
     from controller.registry import create_controller
     from hil.scenario import load_scenario
     from models.vehicle import FourWheelVehicle, VehicleCommand
     from studies.closed_loop import run_closed_loop
     from studies.paper_tables import run_summary
 
+    # DKMPC (the same model without the observer) and NMPC (the nominal single track) on the
+    # changed plant say whether a failure of ESO-DKMPC with the nominal model is the
+    # observer's or every nominal-model MPC's.
     variants = [("nominal", "eso-dkmpc", None), ("nominal", "lmpc", None),
                 ("changed", "eso-dkmpc", None), ("changed", "eso-dkmpc", model_dir / "koopman"),
-                ("changed", "lmpc", None), ("changed", "lmpc", model_dir / "bicycle.json")]
+                ("changed", "dkmpc", None), ("changed", "dkmpc", model_dir / "koopman"),
+                ("changed", "lmpc", None), ("changed", "lmpc", model_dir / "bicycle.json"),
+                ("changed", "nmpc", None)]
     runs = []
     for name in TABLE_SCENARIOS:
         scenario = load_scenario(name)
@@ -301,9 +308,14 @@ def table_runs(model_dir: Path) -> list[dict[str, Any]]:
 
 
 def _label(plant_kind: str, controller: str, identified: bool) -> str:
-    law = {"eso-dkmpc": "ESO-DKMPC", "lmpc": "LMPC"}[controller]
-    model = ("identified Koopman" if controller == "eso-dkmpc" else "fitted bicycle") if identified \
-        else ("nominal Koopman (dk_d5)" if controller == "eso-dkmpc" else "nominal bicycle")
+    law = {"eso-dkmpc": "ESO-DKMPC", "dkmpc": "DKMPC", "lmpc": "LMPC", "nmpc": "NMPC"}[controller]
+    koopman = controller in ("eso-dkmpc", "dkmpc")
+    if controller == "nmpc":
+        model = "nominal single track"
+    elif identified:
+        model = "identified Koopman" if koopman else "fitted bicycle"
+    else:
+        model = "nominal Koopman (dk_d5)" if koopman else "nominal bicycle"
     return f"{law}, {model}, {plant_kind} plant"
 
 
