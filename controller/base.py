@@ -18,6 +18,8 @@ from models.measurement import VehicleMeasurement
 
 #: Physical steering limit of eq. 22 (rad); the contract's STEER_ANGLE_CMD limit too.
 STEER_LIMIT_RAD = 0.3
+#: Control period Ts of the paper and of the CAN contract (s).
+CONTROL_PERIOD_S = 0.025
 
 
 @dataclass(frozen=True)

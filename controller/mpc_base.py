@@ -14,15 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controller.base import (STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug, VehicleSample,
-                             sample_is_finite)
+from controller.base import (CONTROL_PERIOD_S, STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug,
+                             VehicleSample, sample_is_finite)
 from controller.longitudinal import SpeedController
 from controller.reference import PathTracker, ReferencePath
 from controller.steady_slip import measured_slip, reference_bend, slip_target
 from controller.tuning import LongitudinalTuning, MpcTuning
 
 #: Control period of the paper and of the CAN contract (s).
-TS = 0.025
+TS = CONTROL_PERIOD_S
 _GOOD = (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE)
 
 

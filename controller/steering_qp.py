@@ -9,6 +9,8 @@ the dynamic states are affine in U, so eq. 15 becomes
          s >= 0
          x_min - s <= state_i(U) <= x_max + s,  i in soft steps     (eq. 21, soft)
 
+         |U_j - U_{j-1}| <= qp_steer_rate_limit * Ts,  j < Nc           (rate rows, when on)
+
 D U - d are the increments U_j - U_{j-1} with U_{-1} = the previous command. The slack
 makes the QP always feasible; with the L1 weight large it is an exact penalty: the slack
 is zero whenever the hard constraints can be met.
@@ -34,6 +36,12 @@ of step c, the last one held from step Nc - 1 on), so the entries with c >= i ar
 construction and are left out of the pattern (at Np 30, Nc 8: 28 of the 176 entries of the
 22 soft state rows; a smaller KKT matrix to factor every step, the same QP).
 
+Rate rows (``MpcTuning.qp_steer_rate_limit`` > 0, issue 37): Nc hard rows on the
+increments, appended after the soft rows, so that with the limit 0 (off) the problem, its
+pattern and every iterate are those without them. Row 0 bounds U_0 - U_{-1}: its bounds are
+moved by the previous command each step. The QP stays feasible: U held at the previous
+command (within the steer limit) meets every row.
+
 OSQP runs unscaled (``scaling=0``, :data:`OSQP_SCALING_ITERATIONS`): P and A change every
 step, and with scaling on OSQP re-runs its Ruiz equilibration on every update, about 40 %
 of the C firmware's step (docs/firmware.md, Timing). The firmware's solver is generated
@@ -47,7 +55,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sparse
 
-from controller.base import STEER_LIMIT_RAD, SolverStatus
+from controller.base import CONTROL_PERIOD_S, STEER_LIMIT_RAD, SolverStatus
 from controller.tuning import QpMpcTuning, StageWeights
 
 N_SOFT_STATES = 3  # vx, vy, yaw_rate: one slack each (the decision vector's last 3 entries)
@@ -128,7 +136,8 @@ class QpSolution:
 class SteeringQp:
     """OSQP problem of fixed size and sparsity for horizons (Np, Nc); updated in place."""
 
-    def __init__(self, tuning: QpMpcTuning, steer_limit: float = STEER_LIMIT_RAD) -> None:
+    def __init__(self, tuning: QpMpcTuning, steer_limit: float = STEER_LIMIT_RAD,
+                 control_period_s: float = CONTROL_PERIOD_S) -> None:
         n_pred, n_ctrl = tuning.prediction_horizon, tuning.control_horizon
         self.n_pred, self.n_ctrl = n_pred, n_ctrl
         self.tuning = tuning
@@ -136,7 +145,10 @@ class SteeringQp:
         self._soft_rows = soft_state_rows(n_pred)
         n_soft_rows = 2 * self._soft_rows.size
         self._n_var = n_ctrl + N_SOFT_STATES
-        n_con = n_ctrl + N_SOFT_STATES + n_soft_rows
+        # The rate rows (none when off): the largest steer move per step (rad).
+        self._max_steer_step = tuning.qp_steer_rate_limit * control_period_s
+        n_rate_rows = n_ctrl if self._max_steer_step > 0.0 else 0
+        n_con = n_ctrl + N_SOFT_STATES + n_soft_rows + n_rate_rows
         # Increment operator: (D U)_j = U_j - U_{j-1}; U_{-1} enters through the linear term.
         difference = np.eye(n_ctrl) - np.eye(n_ctrl, k=-1)
         self._rate_hessian = tuning.p_steer_rate * difference.T @ difference
@@ -164,16 +176,22 @@ class SteeringQp:
         # (-s), 1 = lower (+s).
         soft_first = n_ctrl + N_SOFT_STATES
         self._soft_first = soft_first
+        self._rate_first = soft_first + n_soft_rows
         position = np.arange(self._soft_rows.size)  # r
         indices, indptr = [], [0]
         gain_source, gain_slot = [], []  # state_gain.ravel() index -> A data slot
+        rate_slots, rate_values = [], []  # U column j: +1 in rate row j, -1 in rate row j + 1
         for j in range(n_ctrl):
             causal = self._soft_rows >= N_SOFT_STATES * min(j, n_pred)
             state_rows, r = self._soft_rows[causal], position[causal]
-            indices.append(np.concatenate(([j], soft_first + np.stack((2 * r, 2 * r + 1), 1).ravel())))
+            rate_rows = [j, j + 1][:min(n_rate_rows - j, 2)] if n_rate_rows else []
+            indices.append(np.concatenate(([j], soft_first + np.stack((2 * r, 2 * r + 1), 1).ravel(),
+                                           self._rate_first + np.array(rate_rows, dtype=int))))
             gain_source.append(np.repeat(state_rows * n_ctrl + j, 2))
             gain_slot.append(indptr[-1] + 1 + np.arange(2 * state_rows.size))
-            indptr.append(indptr[-1] + 1 + 2 * state_rows.size)
+            rate_slots.extend(indptr[-1] + 1 + 2 * state_rows.size + np.arange(len(rate_rows)))
+            rate_values.extend([1.0, -1.0][:len(rate_rows)])
+            indptr.append(indptr[-1] + 1 + 2 * state_rows.size + len(rate_rows))
         u_nnz = indptr[-1]
         self._gain_source, self._gain_slot = np.concatenate(gain_source), np.concatenate(gain_slot)
         slack_signs = []
@@ -185,6 +203,7 @@ class SteeringQp:
         a_indices = np.concatenate(indices)
         self._a_data = np.concatenate((np.zeros(u_nnz), *slack_signs))
         self._a_data[indptr[:n_ctrl]] = 1.0  # the steer bound rows
+        self._a_data[np.array(rate_slots, dtype=int)] = rate_values
 
         self._q = np.zeros(self._n_var)
         self._q[n_ctrl:] = tuning.slack_l1
@@ -194,10 +213,12 @@ class SteeringQp:
         self._lower[n_ctrl:soft_first] = 0.0
         self._state_min = np.tile(tuning.state_min, n_pred)[self._soft_rows]
         self._state_max = np.tile(tuning.state_max, n_pred)[self._soft_rows]
-        self._soft_upper = self._upper[soft_first::2]  # views, (n_rows,)
-        self._soft_lower = self._lower[soft_first + 1::2]
+        self._soft_upper = self._upper[soft_first:self._rate_first:2]  # views, (n_rows,)
+        self._soft_lower = self._lower[soft_first + 1:self._rate_first:2]
         self._soft_upper[:] = self._state_max
         self._soft_lower[:] = self._state_min
+        self._lower[self._rate_first:] = -self._max_steer_step  # row 0 moved by U_{-1} per step
+        self._upper[self._rate_first:] = self._max_steer_step
 
         self._p_upper[:] = self._fixed_hessian[self._triu_rows, self._triu_cols]
         hessian = sparse.csc_matrix((self._p_data.copy(), p_indices, p_indptr),
@@ -257,6 +278,9 @@ class SteeringQp:
         free = state_free.ravel()[self._soft_rows]
         self._soft_upper[:] = self._state_max - free
         self._soft_lower[:] = self._state_min - free
+        if self._rate_first < self._lower.size:  # U_0 - U_{-1} within the step
+            self._lower[self._rate_first] = previous_steer - self._max_steer_step
+            self._upper[self._rate_first] = previous_steer + self._max_steer_step
 
         solver = self._solver
         solver.update(q=self._q, l=self._lower, u=self._upper, Px=self._p_data, Ax=self._a_data)
@@ -272,7 +296,9 @@ class SteeringQp:
         if status in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE):
             # Measured: restarting the multipliers at the inactive-constraint values halves the
             # iterations while no state constraint is active, and doubles them while one is.
-            self._constraints_were_active = bool(np.max(np.abs(result.y[self._soft_first:])) > 1.0)
+            # The soft rows only (not the rate rows): the dual start above is theirs.
+            soft_duals = result.y[self._soft_first:self._rate_first]
+            self._constraints_were_active = bool(np.max(np.abs(soft_duals)) > 1.0)
         else:
             # Do not start the next solve from the failed iterate's multipliers.
             solver.warm_start(y=self._initial_dual)

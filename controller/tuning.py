@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping, TypeVar
 
@@ -64,6 +64,17 @@ class MpcTuning:
     the measured side slip vy / vx by which the yaw cost's target moves, so that the cost
     holds the course (heading plus slip) on the path; ``slip_target_gate`` (rad) is the bend
     of the horizon's reference at which that target has faded to zero.
+
+    Actuator terms (issue 37; both 0 = off, the default, and optional in the TOML):
+    ``qp_steer_rate_limit`` (rad/s) adds the hard rows |U_j - U_(j-1)| <= limit * Ts over
+    the Nc moves (U_(-1) the previous command) to the steering QP
+    (``controller.steering_qp``); the steering actuator's own rate is the plant's
+    ``[actuators] steer_rate_limit`` (models/vehicle.toml, 1.0 rad/s).
+    ``delay_compensation_s`` (s) is the fixed part of the delay from a sample to the
+    command's effect (the actuator's dead time plus the expected task time); with it on, the
+    QP MPCs predict the measured state forward over it plus the sample's age
+    (``VehicleSample.sample_age_s``) through their own model with the commands already sent
+    (``controller.delay_compensation``). Not tuned: turning either on is the tuning's job.
     """
 
     prediction_horizon: int
@@ -82,6 +93,10 @@ class MpcTuning:
     weight_schedule_speeds: tuple[float, float]
     slip_target_limit: float
     slip_target_gate: float
+    # Keyword-only with a default, so that they may follow the subclasses' required fields
+    # and stay optional in the TOML (0: off, every committed table).
+    qp_steer_rate_limit: float = field(default=0.0, kw_only=True)
+    delay_compensation_s: float = field(default=0.0, kw_only=True)
 
     def __post_init__(self) -> None:
         low, high = self.weight_schedule_speeds
@@ -155,6 +170,13 @@ class NmpcTuning(MpcTuning):
 
     ipopt_max_iter: int
     ipopt_tol: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        # NMPC has no QP and no delay compensation (yet): refuse rather than ignore.
+        for name in ("qp_steer_rate_limit", "delay_compensation_s"):
+            if getattr(self, name) != 0.0:
+                raise TuningError(f"{name} must be 0 for NMPC (not implemented there), got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
@@ -253,6 +275,9 @@ _RULES: dict[str, _Rule] = {
     "yaw_rate_gain": _NON_NEGATIVE,
     "steer_rate_limit": _POSITIVE,
     "steer_time_constant": _NON_NEGATIVE,
+    # The C core's reader (firmware/src/ecu_data.c, read_tuning) applies the same two ranges.
+    "qp_steer_rate_limit": (lambda v: 0.0 <= v <= 100.0, "must be in [0, 100] rad/s (0: off)"),
+    "delay_compensation_s": (lambda v: 0.0 <= v <= 0.1, "must be in [0, 0.1] s (0: off)"),
 }
 
 
@@ -290,11 +315,14 @@ def _build(cls: type, table_name: str, table: Any) -> Any:
     unknown = sorted(set(table) - set(names))
     if unknown:
         raise TuningError(f"[{table_name}] unknown field(s) {unknown}; expected {names}")
-    missing = [n for n in names if n not in table]
+    # Fields with a default (the actuator terms, 0 = off) may be left out.
+    missing = [f.name for f in fields(cls) if f.name not in table and f.default is MISSING]
     if missing:
         raise TuningError(f"[{table_name}] missing field(s) {missing}")
     values = {}
     for f in fields(cls):
+        if f.name not in table:
+            continue
         value = _convert(table_name, f.name, str(f.type), table[f.name])
         rule = _RULES.get(f.name)
         if rule is not None and not rule[0](value):

@@ -21,6 +21,9 @@ FW_DIR := build/firmware
 # make firmware FW_DIR=build/firmware-bilinear FW_MODEL=build/firmware-bilinear/scheduled_bilinear
 # (tests/test_firmware_c_bilinear.py); the default is the committed model.
 FW_MODEL := models/artifacts/dk_d5
+# The tuning file the QPs are generated for and the data file carries: another one (the
+# actuator terms on, tests/test_firmware_c_actuator.py) is another build, as for FW_MODEL.
+FW_TUNING := controller/tuning.toml
 FW_GEN := $(FW_DIR)/gen
 FW_CC ?= gcc
 # -O3: the step 5-10 % faster than -O2 with the same results to the bit (no -ffast-math;
@@ -45,7 +48,7 @@ FW_HEADERS := $(wildcard firmware/src/*.h)
 # The generators (firmware/tools/footprint.py only reports on the build).
 FW_TOOLS := firmware/tools/ecu_data.py firmware/tools/generate.py
 # Generator inputs: a change of any regenerates (their hashes are in ecu_version()).
-FW_GEN_INPUTS := $(FW_TOOLS) controller/tuning.toml controller/steering_qp.py models/vehicle.toml can_defs/vehicle.dbc \
+FW_GEN_INPUTS := $(FW_TOOLS) $(FW_TUNING) controller/steering_qp.py models/vehicle.toml can_defs/vehicle.dbc \
 	$(FW_MODEL).npz $(FW_MODEL).json
 FW_PACKAGES := gcc cmake
 
@@ -69,11 +72,11 @@ firmware-deps:
 	else echo "note: not root; the firmware needs: sudo apt-get install $(FW_PACKAGES)"; fi
 
 $(FW_GEN)/stamp: $(FW_GEN_INPUTS) | $(STAMP)
-	$(PY) firmware/tools/generate.py --out $(FW_GEN) --model $(FW_MODEL)
+	$(PY) firmware/tools/generate.py --out $(FW_GEN) --model $(FW_MODEL) --tuning $(FW_TUNING)
 	touch $@
 
 $(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) | $(STAMP)
-	$(PY) firmware/tools/ecu_data.py --out $@ --model $(FW_MODEL)
+	$(PY) firmware/tools/ecu_data.py --out $@ --model $(FW_MODEL) --tuning $(FW_TUNING)
 
 # One shared object from the core, the generated version source and the OSQP sources.
 # (mk/firmware.mk too: a change of the compiler flags rebuilds)

@@ -29,6 +29,9 @@ typedef struct {
   /* Speed schedule of q_position, q_yaw, r_steer (MpcTuning.weights_at): the low_ weights
    * at vx <= schedule_low, the others at vx >= schedule_high, linear between (m/s). */
   double low_q_position, low_q_yaw, low_r_steer, schedule_low, schedule_high;
+  /* The actuator terms (MpcTuning, issue 37; 0: off): the QP's steer-rate rows (rad/s) and
+   * the fixed part of the delay the prediction starts after (s). */
+  double qp_steer_rate_limit, delay_compensation_s;
 } ecu_tuning_t;
 
 typedef struct {

@@ -13,7 +13,7 @@
 #include "ecu_contract.h"
 
 #define NAME_BYTES 48
-#define N_TUNING_VALUES 29
+#define N_TUNING_VALUES 31
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
 /* The bit of record koopman.N in ecu_read_data's `seen` (after the encoder's records). */
@@ -81,12 +81,25 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->yaw_rate_bias_pole = v[26];
   t->slip_target_limit = v[27];
   t->slip_target_gate = v[28];
+  t->qp_steer_rate_limit = v[29];
+  t->delay_compensation_s = v[30];
   for (int i = 2; i < N_TUNING_VALUES; i++) {
     if ((i >= 17 && i < 20) || i == 25 || i == 26) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {
       snprintf(err, err_len, "%s: [%s] value %d is not finite", path, CONTROLLER_NAMES[id], i);
       return -1;
     }
+  }
+  /* The ranges of controller/tuning.py's _RULES: the same verdict as the Python loader. */
+  if (!(t->qp_steer_rate_limit >= 0.0 && t->qp_steer_rate_limit <= 100.0)) {
+    snprintf(err, err_len, "%s: [%s] qp_steer_rate_limit must be in [0, 100] rad/s (0: off), got %g", path,
+             CONTROLLER_NAMES[id], t->qp_steer_rate_limit);
+    return -1;
+  }
+  if (!(t->delay_compensation_s >= 0.0 && t->delay_compensation_s <= 0.1)) {
+    snprintf(err, err_len, "%s: [%s] delay_compensation_s must be in [0, 0.1] s (0: off), got %g", path,
+             CONTROLLER_NAMES[id], t->delay_compensation_s);
+    return -1;
   }
   if (!(t->schedule_low >= 0.0 && t->schedule_low < t->schedule_high)) {
     snprintf(err, err_len, "%s: [%s] weight_schedule_speeds [%g, %g] must be 0 <= low < high", path,

@@ -13,7 +13,8 @@
  * states of ECU_SOFT_STATE_MASK; all generated into ecu_build.h from SOFT_LEADING_STEPS,
  * SOFT_STEP_STRIDE and SOFT_STATES). A's U column c holds
  * the gain's causal entries only, the rows of the steps i > c (SteeringQp's pattern: the
- * entries of c >= i are zero).
+ * entries of c >= i are zero). With qp_steer_rate_limit > 0, Nc rate rows follow the soft
+ * rows: row j bounds U_j - U_{j-1} (U_{-1} the previous command: row 0's bounds move).
  */
 #include <math.h>
 #include <string.h>
@@ -24,6 +25,7 @@
 
 #define N_SOFT ECU_QP_N_SOFT
 #define STEER_LIMIT 0.3 /* rad, eq. 22 (controller.base.STEER_LIMIT_RAD) */
+#define CONTROL_PERIOD 0.025 /* s, Ts of the rate rows (controller.base.CONTROL_PERIOD_S) */
 #define NP ECU_NP_MAX
 #define NC ECU_NC_MAX
 #if ECU_SOFT_STRIDE < 1 || ECU_SOFT_LEADING_STEPS < 0 || (ECU_SOFT_STATE_MASK & ~7)
@@ -112,13 +114,20 @@ int ecu_qp_init(ecu_qp_t *qp, int controller, const ecu_tuning_t *tuning, char *
       soft_count[k]++;
     }
   }
+  qp->max_steer_step = tuning->qp_steer_rate_limit * CONTROL_PERIOD;
+  const int n_rate_rows = qp->n_rate_rows = qp->max_steer_step > 0.0 ? n_ctrl : 0;
   a_column[0] = 0;
   for (int j = 0; j < n_ctrl; j++) {
     /* The first soft row whose step the input of step j reaches (the causal entries). */
     int first = 0, step_row = N_SOFT * (j < n_pred ? j : n_pred);
     while (first < n_soft_rows && soft_row[first] < step_row) first++;
     qp->gain_first[j] = first;
-    a_column[j + 1] = a_column[j] + 1 + 2 * (n_soft_rows - first);
+    /* After the gain entries: +1 in rate row j, -1 in rate row j + 1 (when there are). */
+    const int rate_entries = n_rate_rows == 0 ? 0 : (j + 1 < n_rate_rows ? 2 : 1);
+    const int rate_at = a_column[j] + 1 + 2 * (n_soft_rows - first);
+    if (rate_entries > 0) a_data[rate_at] = 1.0;
+    if (rate_entries > 1) a_data[rate_at + 1] = -1.0;
+    a_column[j + 1] = rate_at + rate_entries;
     a_data[a_column[j]] = 1.0;
   }
   qp->n_soft_rows = n_soft_rows;
@@ -155,6 +164,11 @@ int ecu_qp_init(ecu_qp_t *qp, int controller, const ecu_tuning_t *tuning, char *
   for (int r = 0; r < n_soft_rows; r++) {
     lower[soft_first + 2 * r] = -OSQP_INFTY;
     upper[soft_first + 2 * r + 1] = OSQP_INFTY;
+  }
+  qp->rate_first = soft_first + 2 * n_soft_rows;
+  for (int r = 0; r < n_rate_rows; r++) { /* row 0 is moved by the previous command per step */
+    lower[qp->rate_first + r] = -qp->max_steer_step;
+    upper[qp->rate_first + r] = qp->max_steer_step;
   }
   memset(qp->warm, 0, sizeof qp->warm);
   memset(qp->initial_dual, 0, sizeof qp->initial_dual);
@@ -234,6 +248,10 @@ void ecu_qp_solve(ecu_qp_t *qp, double vx, const double *jac, const double *pose
     const int row = soft_row[r];
     upper[soft_first + 2 * r] = tun->state_max[row % N_SOFT] - free_states[row];
     lower[soft_first + 2 * r + 1] = tun->state_min[row % N_SOFT] - free_states[row];
+  }
+  if (qp->n_rate_rows > 0) { /* U_0 - U_{-1} within the step */
+    lower[qp->rate_first] = previous_steer - qp->max_steer_step;
+    upper[qp->rate_first] = previous_steer + qp->max_steer_step;
   }
   /* The Python interface's order: vectors first, then matrices (rescaled, refactored). */
   osqp_update_data_vec(solver, q, lower, upper);

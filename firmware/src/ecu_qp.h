@@ -13,10 +13,11 @@
 
 #define ECU_QP_N_SOFT 3
 #define ECU_QP_N_VAR (ECU_NC_MAX + ECU_QP_N_SOFT)
-#define ECU_QP_N_CON (ECU_NC_MAX + ECU_QP_N_SOFT + 2 * ECU_QP_N_SOFT * ECU_NP_MAX)
+/* ... + Nc steer-rate rows at most (qp_steer_rate_limit > 0) */
+#define ECU_QP_N_CON (ECU_NC_MAX + ECU_QP_N_SOFT + 2 * ECU_QP_N_SOFT * ECU_NP_MAX + ECU_NC_MAX)
 #define ECU_QP_P_NNZ (ECU_NC_MAX * (ECU_NC_MAX + 1) / 2 + ECU_QP_N_SOFT)
 /* A's nonzeros at most (all causal) */
-#define ECU_QP_A_NNZ (ECU_NC_MAX * (1 + 2 * ECU_QP_N_SOFT * ECU_NP_MAX) + ECU_QP_N_SOFT * (1 + 2 * ECU_NP_MAX))
+#define ECU_QP_A_NNZ (ECU_NC_MAX * (3 + 2 * ECU_QP_N_SOFT * ECU_NP_MAX) + ECU_QP_N_SOFT * (1 + 2 * ECU_NP_MAX))
 
 typedef struct {
   OSQPSolver *solver;       /* the generated workspace held (NULL: none) */
@@ -33,6 +34,10 @@ typedef struct {
   /* The soft rows: the r-th pair of rows bounds the flattened state soft_row[r] (3 step +
    * state, step-major as soft_state_rows); state k has soft_count[k] of them. */
   int soft_row[ECU_QP_N_SOFT * ECU_NP_MAX], n_soft_rows, soft_count[ECU_QP_N_SOFT];
+  /* The steer-rate rows (SteeringQp's, after the soft rows): n_rate_rows (Nc, or 0 when
+   * off) from row rate_first; max_steer_step = qp_steer_rate_limit * Ts (rad). */
+  int rate_first, n_rate_rows;
+  double max_steer_step;
 } ecu_qp_t;
 
 typedef struct {

@@ -1,0 +1,171 @@
+"""The actuator terms of the steering QP (issue 37): the steer-rate rows, in Python and in
+the C core, and both loaders' verdicts on the new tuning fields.
+
+With ``qp_steer_rate_limit`` on, the QP's pattern changes (Nc more rows), so the C core is
+generated for a tuning file with it on: ``make firmware FW_DIR=build/firmware-actuator
+FW_TUNING=build/firmware-actuator/tuning.toml`` (a no-op when up to date; ``build/firmware``
+is not touched). Its core then steps beside the Python controller on dlc_smoke with
+tests/test_firmware_c_core.py's twin and tolerances (tests/c_twin.py).
+"""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.errors import TuningError
+from controller.registry import create_controller
+from controller.steering_qp import SteeringQp
+from controller.tuning import DEFAULT_TUNING_PATH, load_tuning, parse_tuning
+from c_twin import native_on, requires_c_toolchain, run_twin_on_dlc_smoke
+
+ROOT = Path(__file__).resolve().parent.parent
+BUILD = ROOT / "build" / "firmware-actuator"
+TUNING = BUILD / "tuning.toml"
+QP_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc")
+#: rad/s: below the lane change's own peak steer rate (about 0.16 rad/s on dlc_high_mu), so
+#: that the rows bind.
+RATE_LIMIT = 0.1
+TS = 0.025
+
+
+def tuning_text(fields: dict[str, float], tables: tuple[str, ...] = QP_CONTROLLERS) -> str:
+    """controller/tuning.toml with ``fields`` added to each of ``tables``."""
+    lines = []
+    for line in DEFAULT_TUNING_PATH.read_text().splitlines(keepends=True):
+        lines.append(line)
+        if line.strip() in {f"[{t}]" for t in tables}:
+            lines.extend(f"{name} = {value!r}\n" for name, value in fields.items())
+    return "".join(lines)
+
+
+def write_if_changed(path: Path, text: str) -> None:
+    """Write ``text`` unless ``path`` holds it (a rewrite would rebuild the firmware)."""
+    if not path.is_file() or path.read_text() != text:
+        path.write_text(text)
+
+
+# ------------------------------------------------------------------ the loaders' verdicts
+
+def _document(fields: dict[str, object], table: str = "dkmpc") -> dict:
+    import tomllib
+
+    document = tomllib.loads(DEFAULT_TUNING_PATH.read_text())
+    document[table].update(fields)
+    return document
+
+
+def test_the_actuator_terms_default_off() -> None:
+    tuning = load_tuning()
+    for name in QP_CONTROLLERS + ("nmpc", "lmpc-eso", "dmdc-eso"):
+        table = tuning.for_controller(name)
+        assert table.qp_steer_rate_limit == 0.0 and table.delay_compensation_s == 0.0
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"qp_steer_rate_limit": -0.5}, "qp_steer_rate_limit must be in [0, 100]"),
+    ({"qp_steer_rate_limit": 1000.0}, "qp_steer_rate_limit must be in [0, 100]"),
+    ({"qp_steer_rate_limit": True}, "qp_steer_rate_limit must be a finite number"),
+    ({"qp_steer_rate_limit": "1.0"}, "qp_steer_rate_limit must be a finite number"),
+    ({"delay_compensation_s": 0.5}, "delay_compensation_s must be in [0, 0.1]"),
+    ({"delay_compensation_s": -0.01}, "delay_compensation_s must be in [0, 0.1]"),
+])
+def test_python_loader_refuses_bad_actuator_terms(fields: dict, message: str) -> None:
+    with pytest.raises(TuningError, match=message.replace("[", r"\[")):
+        parse_tuning(_document(fields))
+
+
+def test_nmpc_refuses_the_actuator_terms() -> None:
+    with pytest.raises(TuningError, match="must be 0 for NMPC"):
+        parse_tuning(_document({"qp_steer_rate_limit": 1.0}, "nmpc"))
+
+
+# ------------------------------------------------------------------ the rate rows in Python
+
+def test_rate_rows_off_leave_the_problem_as_it_was() -> None:
+    table = load_tuning().dkmpc
+    off, on = SteeringQp(table), SteeringQp(dataclasses.replace(table, qp_steer_rate_limit=1.0))
+    n_ctrl = table.control_horizon
+    assert on._lower.size == off._lower.size + n_ctrl
+    assert on._a_data.size == off._a_data.size + 2 * n_ctrl - 1
+
+
+def test_rate_rows_hold_the_increments() -> None:
+    """A large position error asks for a fast move: every increment, U_0 - U_{-1} included,
+    stays within the limit (to OSQP's eps_abs)."""
+    table = dataclasses.replace(load_tuning().dkmpc, qp_steer_rate_limit=RATE_LIMIT)
+    qp = SteeringQp(table)
+    n_pred, n_ctrl = table.prediction_horizon, table.control_horizon
+    jacobian = np.zeros((n_pred, 3, n_ctrl))
+    jacobian[:, 1, :] = np.tril(np.ones((n_pred, n_ctrl)))  # each move shifts Y at later steps
+    offset = np.zeros((n_pred, 3))
+    offset[:, 1] = -2.0
+    gain, free = np.zeros((n_pred, 3, n_ctrl)), np.zeros((n_pred, 3))
+    previous = 0.05
+    solution = qp.solve(jacobian, offset, previous, gain, free, np.full(n_ctrl, previous))
+    steps = np.diff(np.concatenate(([previous], solution.steer)))
+    print("largest increment", np.max(np.abs(steps)), "limit", RATE_LIMIT * TS)
+    assert np.max(np.abs(steps)) <= RATE_LIMIT * TS + table.osqp_eps_abs
+    assert np.max(np.abs(steps)) >= 0.9 * RATE_LIMIT * TS  # the rows bind
+
+
+# ------------------------------------------------------------------ the C core's twin
+
+@pytest.fixture(scope="module")
+def actuator_build() -> Path:
+    """The firmware generated for the tuning with the rate rows on (build/firmware-actuator)."""
+    BUILD.mkdir(parents=True, exist_ok=True)
+    write_if_changed(TUNING, tuning_text({"qp_steer_rate_limit": RATE_LIMIT}))
+    done = subprocess.run(["make", "-s", "--no-print-directory", "-o", ".venv/.installed", "firmware",
+                           f"FW_DIR={BUILD.relative_to(ROOT)}", f"FW_TUNING={TUNING.relative_to(ROOT)}"],
+                          cwd=ROOT, capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return BUILD
+
+
+@pytest.fixture(scope="module")
+def actuator_core(actuator_build: Path):
+    yield from native_on(actuator_build / "libecu.so")
+
+
+@requires_c_toolchain
+@pytest.mark.parametrize("name", QP_CONTROLLERS)
+def test_rate_rows_c_step_equals_python_in_closed_loop(actuator_core, name: str) -> None:
+    """With the rate rows on: the C core and the Python controller give the same commands
+    to 1e-9 rad, status, iterations, predictions and cost on dlc_smoke."""
+    twin, _ = run_twin_on_dlc_smoke(name, create_controller(name, tuning_path=TUNING),
+                                    actuator_core.NativeController(name, BUILD / "ecu_data.bin"))
+    commands = np.array([pair[0].steer_angle for pair in twin.pairs])
+    assert np.max(np.abs(np.diff(commands))) <= RATE_LIMIT * TS + 1e-3
+
+
+@requires_c_toolchain
+@pytest.mark.parametrize("field, value, message", [
+    ("qp_steer_rate_limit", -0.5, "qp_steer_rate_limit must be in [0, 100] rad/s"),
+    ("delay_compensation_s", 0.5, "delay_compensation_s must be in [0, 0.1] s"),
+])
+def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, field: str, value: float,
+                                              message: str) -> None:
+    """The data file written with a value the Python loader refuses: the C core's reader
+    refuses it too, naming the field and the range."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "firmware" / "tools"))
+    from ecu_data import TUNING_FIELDS, collect, write_data  # noqa: E402 (the build tool)
+
+    records = collect(TUNING, ROOT / "models" / "artifacts" / "dk_d5")
+    record = records["tuning.dkmpc"]
+    # The last two values, in TUNING_FIELDS order (the fields before them are scalars but
+    # the two state bounds and the schedule speeds: 31 values for 24 + 2 fields).
+    assert record.size == 31 and TUNING_FIELDS[-2:] == ("qp_steer_rate_limit", "delay_compensation_s")
+    index = record.size - 2 + TUNING_FIELDS[-2:].index(field)
+    record[index] = value
+    bad = tmp_path / "ecu_data.bin"
+    write_data(records, bad)
+    with pytest.raises(Exception, match=message.replace("[", r"\[")):
+        actuator_core.NativeController("dkmpc", bad)
+    with pytest.raises(TuningError, match=message.replace("[", r"\[")):
+        parse_tuning(_document({field: value}))
