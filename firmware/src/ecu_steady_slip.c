@@ -2,7 +2,6 @@
  * The heading target's side slip (see ecu_steady_slip.h), as controller/steady_slip.py.
  */
 #include <math.h>
-#include <string.h>
 
 #include "ecu_pyfloat.h"
 #include "ecu_steady_slip.h"
