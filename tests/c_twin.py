@@ -1,15 +1,15 @@
-"""C cores built for test artefacts of other model forms, stepped beside the Python
-controller: the helpers of tests/test_firmware_c_bilinear.py and
-tests/test_firmware_c_edmdc.py.
+"""The C core stepped beside the Python controller (`Twin`, `assert_twin_steps_equal`,
+`run_twin_on_dlc_smoke`), and C cores built for test artefacts of other model forms.
 
-Shapes are compile-time, so each such test builds its own firmware (``make firmware
-FW_DIR=build/firmware-<form> FW_MODEL=...``, a no-op when up to date; ``build/firmware``
-is not touched), loads its ``libecu.so`` and runs the twin of
-tests/test_firmware_c_core.py (`Twin`, `assert_twin_steps_equal`) through dlc_smoke.
+Shapes are compile-time, so a test of another form builds its own firmware (``make
+firmware FW_DIR=build/firmware-<form> FW_MODEL=...``, a no-op when up to date;
+``build/firmware`` is not touched), loads its ``libecu.so`` (`native_on`) and runs the
+twin through dlc_smoke, as tests/test_firmware_c_core.py does with the default build.
 """
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Callable, Iterator
 import numpy as np
 import pytest
 
-from controller.base import Controller
-from test_firmware_c_core import Twin, assert_twin_steps_equal
+from controller.base import Command, Controller, StepDebug, VehicleSample
+from controller.reference import ReferencePath
 
 if TYPE_CHECKING:  # imported when a twin runs, not at collection
     from types import ModuleType
@@ -37,6 +37,53 @@ requires_c_toolchain = pytest.mark.skipif(
 #: Steps of dlc_smoke whose sample gets a NaN: the core's fallback, and its observer's
 #: restart on the first valid sample after them (step 42).
 INVALID_STEPS = frozenset({40, 41, 90})
+
+
+class Twin(Controller):
+    """Steps the Python controller and the C core on the same sample; drives with Python's
+    command. ``invalid_steps``: step indices whose sample is replaced by one with NaN."""
+
+    def __init__(self, python: Controller, c_core: Controller, invalid_steps: frozenset[int] = frozenset()):
+        self.python, self.c_core, self.invalid = python, c_core, invalid_steps
+        self.name = python.name
+        self.pairs: list[tuple[Command, StepDebug, Command, StepDebug]] = []
+
+    def set_path(self, path: ReferencePath) -> None:
+        self.python.set_path(path)
+        self.c_core.set_path(path)
+
+    def reset(self) -> None:
+        self.python.reset()
+        self.c_core.reset()
+
+    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
+        if len(self.pairs) in self.invalid:
+            values = sample.measurement_values()
+            values["vy"] = math.nan
+            sample = VehicleSample(**values, target_speed=sample.target_speed)
+        command, debug = self.python.step(sample)
+        c_command, c_debug = self.c_core.step(sample)
+        self.pairs.append((command, debug, c_command, c_debug))
+        return command, debug
+
+
+def assert_twin_steps_equal(name: str, twin: Twin) -> None:
+    """Every step of ``twin``: the same commands to 1e-9 rad and 1e-6 N m, status,
+    fallback, observer restart, QP iterations, predictions and cost."""
+    assert len(twin.pairs) >= 150
+    steer_error = max(abs(p.steer_angle - c.steer_angle) for p, _, c, _ in twin.pairs)
+    torque_error = max(abs(p.drive_torque - c.drive_torque) for p, _, c, _ in twin.pairs)
+    print(f"{name}: {len(twin.pairs)} steps, max |steer difference| {steer_error:.2e} rad, "
+          f"torque {torque_error:.2e} N m")
+    assert steer_error < 1e-9 and torque_error < 1e-6
+    for i, (_, debug, _, c_debug) in enumerate(twin.pairs):
+        assert (c_debug.status, c_debug.fallback, c_debug.observer_reset, c_debug.iterations) == \
+            (debug.status, debug.fallback, debug.observer_reset, debug.iterations), f"step {i}"
+        assert c_debug.predicted_state.shape == debug.predicted_state.shape
+        if debug.predicted_state.size:
+            assert np.allclose(c_debug.predicted_state, debug.predicted_state, atol=1e-7)
+            assert np.allclose(c_debug.predicted_pose, debug.predicted_pose, atol=1e-7)
+            assert c_debug.cost == pytest.approx(debug.cost, rel=1e-7, abs=1e-9)
 
 
 def replace_unless_same(staging: Path, path: Path) -> None:

@@ -1,9 +1,9 @@
 """The C control core libecu.so (firmware/, docs/firmware.md) against the Python controllers.
 
 The firmware is built by ``make firmware`` (the fixture runs it: a no-op when up to date).
-A twin controller steps the Python controller and the C core on the same samples inside
-the closed loop of ``studies.closed_loop`` (the Python command drives the plant), so every
-step compares both on identical inputs, invalid samples included.
+A twin controller (tests/c_twin.py) steps the Python controller and the C core on the
+same samples inside the closed loop of ``studies.closed_loop`` (the Python command drives
+the plant), so every step compares both on identical inputs, invalid samples included.
 """
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.base import Command, Controller, SolverStatus, StepDebug, VehicleSample
+from c_twin import Twin, assert_twin_steps_equal, run_twin_on_dlc_smoke
+from controller.base import SolverStatus, VehicleSample
 from controller.reference import ReferencePath
 from controller.registry import create_controller
 from firmware_sim.errors import ConfigError
@@ -51,45 +52,11 @@ def _tool(name: str):
     return module
 
 
-class Twin(Controller):
-    """Steps the Python controller and the C core on the same sample; drives with Python's
-    command. ``invalid_steps``: step indices whose sample is replaced by one with NaN."""
-
-    def __init__(self, python: Controller, c_core: Controller, invalid_steps: frozenset[int] = frozenset()):
-        self.python, self.c_core, self.invalid = python, c_core, invalid_steps
-        self.name = python.name
-        self.pairs: list[tuple[Command, StepDebug, Command, StepDebug]] = []
-
-    def set_path(self, path: ReferencePath) -> None:
-        self.python.set_path(path)
-        self.c_core.set_path(path)
-
-    def reset(self) -> None:
-        self.python.reset()
-        self.c_core.reset()
-
-    def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
-        if len(self.pairs) in self.invalid:
-            values = sample.measurement_values()
-            values["vy"] = math.nan
-            sample = VehicleSample(**values, target_speed=sample.target_speed)
-        command, debug = self.python.step(sample)
-        c_command, c_debug = self.c_core.step(sample)
-        self.pairs.append((command, debug, c_command, c_debug))
-        return command, debug
-
-
 @pytest.mark.parametrize("name", ["eso-dkmpc", "dkmpc", "lmpc"])
 def test_step_equals_python_in_closed_loop(native, name: str) -> None:
     """On dlc_smoke (160 steps, 3 of them with a NaN sample): the same commands to 1e-9 rad
     and 1e-6 N m, the same status, fallback, observer restart and QP iterations."""
-    from hil.scenario import load_scenario
-    from studies.closed_loop import run_closed_loop
-
-    twin = Twin(create_controller(name), native.NativeController(name), frozenset({40, 41, 90}))
-    result = run_closed_loop(load_scenario("dlc_smoke"), twin)
-    assert result.completed
-    assert_twin_steps_equal(name, twin)
+    twin, _ = run_twin_on_dlc_smoke(name, create_controller(name), native.NativeController(name))
     statuses = [d.status for _, d, _, _ in twin.pairs]
     assert statuses[40] == SolverStatus.NOT_RUN and twin.pairs[40][3].fallback
     if name == "eso-dkmpc":  # the observer restarts on the first valid sample after NaN
@@ -123,25 +90,6 @@ def test_scheduled_weights_equal_python_in_closed_loop(native, name: str, tmp_pa
     change = max(abs(a[0].steer_angle - b[0].steer_angle) for a, b in zip(twin.pairs, before.pairs))
     print(f"{name}: largest steer change against the committed tuning {change:.2e} rad")
     assert change > 1e-4
-
-
-def assert_twin_steps_equal(name: str, twin: Twin) -> None:
-    """Every step of ``twin``: the same commands to 1e-9 rad and 1e-6 N m, status,
-    fallback, observer restart, QP iterations, predictions and cost."""
-    assert len(twin.pairs) >= 150
-    steer_error = max(abs(p.steer_angle - c.steer_angle) for p, _, c, _ in twin.pairs)
-    torque_error = max(abs(p.drive_torque - c.drive_torque) for p, _, c, _ in twin.pairs)
-    print(f"{name}: {len(twin.pairs)} steps, max |steer difference| {steer_error:.2e} rad, "
-          f"torque {torque_error:.2e} N m")
-    assert steer_error < 1e-9 and torque_error < 1e-6
-    for i, (_, debug, _, c_debug) in enumerate(twin.pairs):
-        assert (c_debug.status, c_debug.fallback, c_debug.observer_reset, c_debug.iterations) == \
-            (debug.status, debug.fallback, debug.observer_reset, debug.iterations), f"step {i}"
-        assert c_debug.predicted_state.shape == debug.predicted_state.shape
-        if debug.predicted_state.size:
-            assert np.allclose(c_debug.predicted_state, debug.predicted_state, atol=1e-7)
-            assert np.allclose(c_debug.predicted_pose, debug.predicted_pose, atol=1e-7)
-            assert c_debug.cost == pytest.approx(debug.cost, rel=1e-7, abs=1e-9)
 
 
 def test_invalid_input_gives_safe_commands(native) -> None:

@@ -4,7 +4,6 @@ without a standing offset under a constant disturbance, and the C core's twin of
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 from pathlib import Path
 
@@ -15,8 +14,9 @@ from controller.eso_dkmpc import LATERAL_ROWS
 from models.eso import EsoShapeError, InnovationSaturation
 from models.koopman import KoopmanModel
 from models.yaw_rate_bias import YawRateBiasState, yaw_rate_bias_update
-from test_firmware_c_core import Twin, assert_twin_steps_equal
+from c_twin import Twin, assert_twin_steps_equal
 from test_firmware_c_core import native  # noqa: F401 (the fixture: libecu.so built and loaded)
+from tuning_helpers import controller_with
 
 TS = 0.025
 
@@ -112,15 +112,6 @@ target_speed_kmh = [50.0]
     return load_scenario(folder / "straight.toml")
 
 
-def eso_dkmpc(**observer: float) -> "object":
-    """ESO-DKMPC with the tuning file's table, the given observer fields replaced."""
-    from controller.eso_dkmpc import EsoDkmpc
-    from controller.tuning import load_tuning
-
-    tuning = load_tuning()
-    return EsoDkmpc(KoopmanModel.load(), dataclasses.replace(tuning.eso_dkmpc, **observer), tuning.longitudinal)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("disturbance, observer", [
     ("steer_offset_rad = 0.02", {}),  # the shipped tuning
@@ -138,7 +129,7 @@ def test_eso_dkmpc_settles_without_a_standing_offset(tmp_path: Path, disturbance
     from studies.closed_loop import run_closed_loop
 
     scenario = _straight_scenario(tmp_path, disturbance)
-    result = run_closed_loop(scenario, eso_dkmpc(**observer))
+    result = run_closed_loop(scenario, controller_with("eso-dkmpc", **observer))
     assert result.completed, result.failure
     trace = result.trace
     settled = np.abs(trace.lateral_error[trace.time_s >= 12.0])
@@ -148,7 +139,7 @@ def test_eso_dkmpc_settles_without_a_standing_offset(tmp_path: Path, disturbance
 
 def _c_core_with(native, folder: Path, controller: str = "eso-dkmpc", **observer: float) -> "object":
     """The C core's ``controller`` on the build's data file with the given fields of its
-    tuning table replaced, as ``eso_dkmpc(**observer)`` replaces them in Python."""
+    tuning table replaced, as ``controller_with(controller, **observer)`` replaces them in Python."""
     from test_firmware_c_core import _tool
 
     ecu_data = _tool("ecu_data")
@@ -171,7 +162,7 @@ def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offs
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "steer_offset_rad = 0.02\nyaw_rate_bias_rad_s = 0.01"),
                                    duration_s=6.0)
     # The bias estimate on in both (the shipped tuning leaves it off) and the bound reached.
-    python = eso_dkmpc(yaw_rate_bias_pole=0.99)
+    python = controller_with("eso-dkmpc", yaw_rate_bias_pole=0.99)
     twin = Twin(python, _c_core_with(native, tmp_path, yaw_rate_bias_pole=0.99), frozenset({60, 61}))
     result = run_closed_loop(scenario, twin)
     assert result.completed, result.failure
@@ -185,18 +176,12 @@ def test_c_core_equals_python_with_the_slip_target_under_a_crosswind(native, tmp
     of its MPCs: under an 800 N crosswind on a straight, with the target on in both (the
     shipped tuning leaves it off), the same commands, status, iterations and predictions as
     the Python controller step for step; two invalid samples restart the observer."""
-    from controller.registry import CONTROLLERS
-    from controller.tuning import load_tuning
     from studies.closed_loop import run_closed_loop
 
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "crosswind_force_n = 800.0\ncrosswind_cp_m = 0.6"),
                                    duration_s=6.0)
     observer = {"slip_target_limit": 0.02, "slip_target_gate": 0.003}
-    tuning = load_tuning()
-    table = dataclasses.replace(tuning.for_controller(controller), **observer)
-    module, class_name = CONTROLLERS[controller]
-    python = getattr(importlib.import_module(module), class_name).from_tuning(
-        dataclasses.replace(tuning, **{controller.replace("-", "_"): table}))
+    python = controller_with(controller, **observer)
     twin = Twin(python, _c_core_with(native, tmp_path, controller, **observer), frozenset({60, 61}))
     result = run_closed_loop(scenario, twin)
     assert result.completed, result.failure

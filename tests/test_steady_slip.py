@@ -2,8 +2,6 @@
 reference's bend, the bound and the fade, and every MPC's heading target moved by it."""
 from __future__ import annotations
 
-import dataclasses
-import importlib
 import math
 
 import numpy as np
@@ -11,24 +9,15 @@ import pytest
 
 from controller.base import STEER_LIMIT_RAD, VehicleSample
 from controller.reference import ReferencePath
-from controller.registry import CONTROLLERS, MPC_NAMES
+from controller.registry import MPC_NAMES
 from controller.steady_slip import SLIP_MIN_SPEED, measured_slip, reference_bend, slip_target
-from controller.tuning import load_tuning
+from tuning_helpers import controller_with
 
 
 def test_the_measured_slip_is_vy_over_vx_with_a_floor_on_the_speed() -> None:
     assert measured_slip(0.14, 14.0) == pytest.approx(0.01)
     assert measured_slip(-0.2, 0.0) == -0.2 / SLIP_MIN_SPEED
     assert measured_slip(0.1, -3.0) == 0.1 / SLIP_MIN_SPEED
-
-
-def _with_target(name: str, limit: float) -> object:
-    """Controller ``name`` built from the tuning file with ``slip_target_limit`` ``limit``."""
-    tuning = load_tuning()
-    table = dataclasses.replace(tuning.for_controller(name), slip_target_limit=limit, slip_target_gate=0.003)
-    module, class_name = CONTROLLERS[name]
-    return getattr(importlib.import_module(module), class_name).from_tuning(
-        dataclasses.replace(tuning, **{name.replace("-", "_"): table}))
 
 
 @pytest.mark.parametrize("name", MPC_NAMES)
@@ -40,7 +29,7 @@ def test_every_mpc_moves_its_heading_target_by_the_measured_slip_on_a_straight(n
     sample = VehicleSample(vx=14.0, vy=0.14, yaw_rate=0.0, x=10.0, y=0.0, yaw=0.0, steer_angle=0.0,
                            drive_torque=0.0, target_speed=14.0)
     for limit, expected in ((0.02, 0.01), (0.0, 0.0)):
-        controller = _with_target(name, limit)
+        controller = controller_with(name, slip_target_limit=limit, slip_target_gate=0.003)
         controller.set_path(path)
         command, _ = controller.step(sample)
         assert controller.slip_target == pytest.approx(expected, abs=1e-12)
