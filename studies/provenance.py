@@ -294,24 +294,44 @@ def check(root: Path = ROOT) -> list[StaleEntry]:
 
 # ---------------------------------------------------------------------------- known stale
 
+@dataclass(frozen=True)
+class KnownStaleRow:
+    """One row of ``results/KNOWN_STALE.md``: the results paths or ``fnmatch`` patterns it
+    names and the command that regenerates them."""
+
+    files: tuple[str, ...]
+    command: str
+
+
+def known_stale_row(line: str) -> KnownStaleRow | None:
+    """The row that a line of ``results/KNOWN_STALE.md`` is, or None for any other line
+    (the text above the table, its header and separator). The file is a Markdown table:
+    the first cell holds one or more paths in backticks (``fnmatch`` patterns allowed:
+    `results/run_*`), the second the command in backticks, the third why it was not
+    regenerated."""
+    if not line.lstrip().startswith("|"):
+        return None
+    cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+    if len(cells) < 2:
+        return None
+    command = re.fullmatch(r"`([^`]+)`", cells[1])
+    files = tuple(re.findall(r"`([^`]+)`", cells[0]))
+    if command is None or not files:
+        return None
+    return KnownStaleRow(files, command.group(1))
+
+
 def known_stale(root: Path = ROOT) -> dict[str, str]:
-    """``results/KNOWN_STALE.md``'s rows: results path or pattern -> the command that
-    regenerates it. The file is a Markdown table: the first cell holds one or more paths
-    in backticks (``fnmatch`` patterns allowed: `results/run_*`), the second the command
-    in backticks, the third why it was not regenerated."""
+    """``results/KNOWN_STALE.md``'s rows (:func:`known_stale_row`): results path or pattern
+    -> the command that regenerates it."""
     path = root / "results" / KNOWN_STALE_NAME
     if not path.is_file():
         return {}
     rows = {}
     for line in path.read_text().splitlines():
-        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
-        if len(cells) < 2 or not line.lstrip().startswith("|"):
-            continue
-        command = re.fullmatch(r"`([^`]+)`", cells[1])
-        if command is None:
-            continue
-        for pattern in re.findall(r"`([^`]+)`", cells[0]):
-            rows[pattern] = command.group(1)
+        row = known_stale_row(line)
+        if row is not None:
+            rows.update(dict.fromkeys(row.files, row.command))
     return rows
 
 

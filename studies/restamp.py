@@ -314,11 +314,9 @@ def drop_known_stale_rows(restamped: set[str], root: Path = provenance.ROOT) -> 
         return []
     kept, dropped = [], []
     for line in path.read_text().splitlines(keepends=True):
-        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
-        files = re.findall(r"`([^`]+)`", cells[0]) if line.lstrip().startswith("|") else []
-        command = re.fullmatch(r"`([^`]+)`", cells[1]) if len(cells) > 1 else None
-        if files and command and all(name in restamped for name in files):
-            dropped.append(command.group(1))
+        row = provenance.known_stale_row(line)
+        if row is not None and all(name in restamped for name in row.files):
+            dropped.append(row.command)
             continue
         kept.append(line)
     path.write_text("".join(kept))

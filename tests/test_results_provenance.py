@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from studies import provenance
-from studies.provenance import (check, committed_results, known_stale, known_stale_pattern,
-                                load_manifest, module_sources, stamp)
+from studies.provenance import (KnownStaleRow, check, committed_results, known_stale, known_stale_pattern,
+                                known_stale_row, load_manifest, module_sources, stamp)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -136,6 +136,20 @@ def test_dirty_tree_is_marked_and_hand_edited_results_are_stale(repo: Path) -> N
     (repo / "results" / "out.md").write_text("| b |\n")
     [stale] = check(repo)
     assert "changed since its stamp" in stale.describe()
+
+
+def test_a_known_stale_row_is_its_paths_and_one_backticked_command() -> None:
+    """The one parser of results/KNOWN_STALE.md's lines (provenance and restamp read the
+    file through it): a row's paths and patterns, and None for the header, the separator,
+    prose, and a row whose second cell is not exactly one command in backticks."""
+    assert known_stale_row("| `results/run_*`, `results/out.md` | `make run` | long |") == \
+        KnownStaleRow(("results/run_*", "results/out.md"), "make run")
+    assert known_stale_row("  |`results/a.md`|`make a`|") == KnownStaleRow(("results/a.md",), "make a")
+    for line in ("| Files | Regenerates them | Why |", "|---|---|---|", "", "Studies not rerun:",
+                 "| `results/a.md` | `make a` and `make b` | two commands |",
+                 "| `results/a.md` | make a | no backticks |", "| `results/a.md` |",
+                 "| no path | `make a` | |", "`results/a.md` | `make a` | not a table row"):
+        assert known_stale_row(line) is None, line
 
 
 def test_known_stale_rows_and_errors(repo: Path) -> None:
