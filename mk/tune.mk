@@ -1,7 +1,9 @@
 # Tuning on a tuning set disjoint from the evaluation (issue 14, item 5; docs/tuning.md):
 # one procedure for every registered controller (studies/tuning_sweep.py) on the smooth
 # random paths of hil/scenarios/tuning/ (studies/tuning_set.py), never on the double lane
-# changes of Tables II/III. Writes the chosen values into controller/tuning.toml.
+# changes of Tables II/III. Writes the chosen values into controller/tuning.toml. Its runs are
+# cells of the campaign grid studies/campaign/grids/tuning_sweep.toml (one tuning override
+# per setting), cached in build/tuning_sweep/cache/: an interrupted make tune resumes.
 .PHONY: tune tuning-set
 
 TUNE_ARGS ?=
@@ -17,7 +19,7 @@ tune: setup
 	$(PROVENANCE_STAMP) $(addprefix results/tuning_sweep.,md json png) \
 		--command "$(call provenance_command,tune,TUNE_ARGS)" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_TUNING) $(PROVENANCE_ARTEFACT) $(PROVENANCE_DMDC) \
-		$(PROVENANCE_TUNING_SET) --modules studies.tuning_sweep
+		$(PROVENANCE_TUNING_SET) studies/campaign/grids/tuning_sweep.toml --modules studies.tuning_sweep
 
 # The tuning set's paths and scenarios from their seeds (committed; a test checks they match).
 ## regenerate the tuning set hil/paths/tuning/*.csv, hil/scenarios/tuning/*.toml from its seeds

@@ -3,13 +3,19 @@
 The evaluation (Tables II / III: the double lane changes ``dlc_high_mu``, ``dlc_low_mu``)
 never enters: every run here is one of the tuning set's scenarios (``studies.tuning_set``,
 ``hil/scenarios/tuning/``), in closed loop with the four-wheel plant and no CAN
-(``studies.closed_loop``).
+(``studies.closed_loop``): cells of the campaign engine's grid
+``studies/campaign/grids/tuning_sweep.toml``, each evaluated setting a value of its
+``tuning`` axis, run by the engine's executors (Ray local or a cluster, or this process)
+and kept in its cache (``--cache``, default ``build/tuning_sweep``: an interrupted sweep
+run again takes the cells it finished).
 
 This module is the command (:func:`main`). Its parts, one job each:
 
 - ``studies.tuning_sweep_grids``: the swept fields, the grids and the settings;
-- ``studies.tuning_sweep_executor``: a setting evaluated on the scenarios (the runs, the
+- ``studies.tuning_sweep_executor``: an evaluation of a setting on the scenarios (the
   objective);
+- ``studies.tuning_sweep_cells``: the settings of a stage as campaign cells, run by the
+  campaign engine;
 - ``studies.tuning_sweep_procedure``: the procedure (its stages and the choice, in its
   docstring);
 - ``studies.tuning_file``: the edits of the tuning file;
@@ -23,7 +29,8 @@ and ``tuning_sweep.png``; and, unless ``--no-write``, the chosen values into
 re-read right before writing; every other line is kept).
 
 Usage: ``python -m studies.tuning_sweep [--controllers ...] [--scenarios ...] [--workers N]
-[--address ADDR] [--out DIR] [--tuning FILE] [--no-write] [--no-progress] [--reuse JSON [--merge]]``;
+[--address ADDR] [--out DIR] [--tuning FILE] [--cache DIR] [--no-write] [--no-progress]
+[--reuse JSON [--merge]]``;
 ``--report-from JSON`` only rewrites the report and figure from a stored ``tuning_sweep.json``.
 ``--controllers stanley --reuse results/tuning_sweep.json --merge`` tunes one controller and
 keeps every other controller of the stored sweep in the reports as stored (the tuning file
@@ -49,6 +56,7 @@ from studies.tuning_sweep_grids import (EXTRA_OBSERVER_STARTS, OBSERVER_FIELDS, 
                                         SweepGrid, has_low_speed_weights, setting_text, stage_one_grid,
                                         stage_one_settings, stage_two_settings, swept_fields,
                                         with_low_speed_weights, with_setting)
+from studies.tuning_sweep_cells import DEFAULT_CACHE
 from studies.tuning_sweep_procedure import run_sweep
 from studies.tuning_sweep_report import (SweepRecord, sweep_document, sweep_from_document,  # noqa: F401
                                          sweep_markdown, write_reports)
@@ -82,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
     parser.add_argument("--tuning", type=Path, default=DEFAULT_TUNING_PATH,
                         help="tuning file read and (unless --no-write) updated")
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, metavar="DIR",
+                        help="the campaign cache of the sweep's cells (default build/tuning_sweep; "
+                             "a rerun with the same code and tuning file takes the cells it holds)")
     parser.add_argument("--no-write", action="store_true", help="do not write the tuning file")
     parser.add_argument("--no-progress", action="store_true", help="no tqdm bar")
     parser.add_argument("--reuse", type=Path, default=None, metavar="JSON",
@@ -113,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     model_files = {"Koopman artefact used": Path(DEFAULT_ARTIFACT), "DMDc artefact used": DMDC_ARTIFACT}
     artefacts_before = {key: artefact_description(path) for key, path in model_files.items()}
     started = time.perf_counter()
+    tally: dict[str, int] = {}
     try:
         scenarios = tuning_scenarios(args.scenarios)
         tuning = load_tuning(args.tuning)
@@ -122,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
                    if args.merge else [])
         sweeps = run_sweep(controllers, scenarios, tuning, workers=args.workers, address=args.address,
                            show_progress=not args.no_progress, evaluate_before=True,
-                           extra_observer_starts=EXTRA_OBSERVER_STARTS, reuse=reuse)
+                           extra_observer_starts=EXTRA_OBSERVER_STARTS, reuse=reuse,
+                           tuning_file=args.tuning, cache=args.cache, tally=tally)
     except (HilError, ControllerError, ModelError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -136,14 +149,16 @@ def main(argv: list[str] | None = None) -> int:
     stored = {(name, reuse_key(setting)) for name, setting in (reuse or {})}
     evaluated = [(s.controller, e) for s in sweeps for e in (*s.evaluations, *filter(None, (s.before,)))]
     reused = sum((name, reuse_key(e.setting)) in stored for name, e in evaluated)
-    run_now = (len(evaluated) - reused) * len(scenarios)
+    cached = tally.get("cached", 0)
+    run_now = (len(evaluated) - reused) * len(scenarios) - cached
     context = {
         **artefacts_before,
         **({"Reused": f"{reused} evaluations ({reused * len(scenarios)} runs) from {args.reuse} "
                       "(--reuse: the same runs, not run again)"} if reuse else {}),
         **({"Carried over": f"{', '.join(s.controller for s in carried)} as stored in {args.reuse} "
                             f"(--merge: this sweep ran {', '.join(controllers)} only)"} if carried else {}),
-        "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {run_now} closed-loop runs",
+        "Wall-clock time": f"{elapsed / 60:.1f} min with {args.workers} worker(s), {run_now} closed-loop runs"
+                           + (f" ({cached} more from the campaign cache {args.cache})" if cached else ""),
     }
     write_reports(SweepRecord(merged_sweeps(carried, sweeps), [s.name for s in scenarios], context,
                               WEIGHT_GRID, OBSERVER_GRID, OBSERVER_START), args.out)
@@ -165,8 +180,7 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     # Run the imported module's main, not this __main__ copy, as every study does (Ray
-    # workers import the task function and the outcome classes by name, from
-    # studies.tuning_sweep_executor).
+    # workers import the task function by name, from studies.campaign.cell).
     from studies.tuning_sweep import main as _main
 
     sys.exit(_main())

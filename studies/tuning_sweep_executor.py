@@ -1,17 +1,22 @@
-"""The tuning sweep's executor: settings of controllers evaluated on tuning scenarios.
+"""Settings of controllers evaluated on tuning scenarios: what an evaluation is, and the
+in-memory executor.
 
 An :class:`Evaluation` is one setting of one controller on every scenario; its
 :func:`objective` is the mean e_Y RMSE, ``FAILURE_PENALTY_M`` for a run that does not
-complete. :class:`SweepExecutor` runs (controller, setting) x scenario tasks in this process
-or as Ray tasks (``studies.campaign.executors``), and takes stored evaluations where it is
-given them (``--reuse``). Used by ``make tune`` (``studies.tuning_sweep``), ``make
-tune-observer`` (``studies.observer_tuning``) and ``make tradeoff``
-(``studies.weight_tradeoff``).
+complete (:func:`evaluation_of` assembles one from its runs).
+
+``make tune`` runs its settings on the campaign engine (``studies.tuning_sweep_cells``: the
+grid ``studies/campaign/grids/tuning_sweep.toml``, cached cells). :class:`SweepExecutor`
+runs (controller, setting) x scenario tasks on the same executors
+(``studies.campaign.executors``: this process or Ray) for what the engine's scenario files
+cannot express: scenario objects changed in memory (``make tune-observer``'s disturbed
+tuning set, ``studies.observer_tuning``; ``make tradeoff``, ``studies.weight_tradeoff``) and
+stand-in runners (tests). Both take stored evaluations where they are given them
+(``--reuse``: :func:`reused_evaluations`).
 """
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -22,6 +27,7 @@ from tqdm import tqdm
 
 from hil.errors import StudyError
 from hil.scenario import Scenario
+from studies.campaign.tuning_override import build_controller  # noqa: F401 - importable here as before
 from studies.closed_loop import ABORT_LATERAL_ERROR_M, ClosedLoopResult, run_closed_loop
 from studies.tuning_sweep_grids import Setting, with_low_speed_weights, with_setting
 
@@ -71,16 +77,6 @@ def best(evaluations: Sequence[Evaluation]) -> Evaluation:
 
 
 # ---------------------------------------------------------------------------- running
-
-def build_controller(name: str, tuning: Any) -> Any:
-    """Controller ``name`` of the registry built by its class's ``from_tuning(tuning)``."""
-    from controller.registry import CONTROLLERS
-
-    if name not in CONTROLLERS:
-        raise StudyError(f"unknown controller {name!r}; registered: {', '.join(CONTROLLERS)}")
-    module_name, class_name = CONTROLLERS[name]
-    return getattr(importlib.import_module(module_name), class_name).from_tuning(tuning)
-
 
 #: Runs one controller through one scenario (``studies.closed_loop.run_closed_loop``).
 Runner = Callable[[Scenario, Any], ClosedLoopResult]
@@ -139,6 +135,28 @@ def _run_task(task: SweepTask) -> RunOutcome:
     return run_one(task.controller, task.setting, task.scenario, task.tuning, task.runner)
 
 
+#: A job of an executor: (controller, stage, setting).
+Job = tuple[str, str, Setting]
+
+
+def reused_evaluations(reuse: Mapping[tuple[str, Setting], Evaluation], jobs: Sequence[Job]) -> dict[int, Evaluation]:
+    """The jobs (by index) that ``reuse`` (keyed by (controller, :func:`reuse_key`)) holds,
+    as its evaluations relabelled with the job's stage and setting."""
+    return {i: dataclasses.replace(reuse[(name, reuse_key(setting))], stage=stage, setting=setting)
+            for i, (name, stage, setting) in enumerate(jobs) if (name, reuse_key(setting)) in reuse}
+
+
+def evaluation_of(job: Job, runs: Mapping[str, RunOutcome]) -> Evaluation:
+    """The evaluation of ``job`` from its runs (scenario name -> outcome, in scenario order)."""
+    name, stage, setting = job
+    rmse = {s: r.rmse_m for s, r in runs.items()}
+    completed = {s: r.completed for s, r in runs.items()}
+    return Evaluation(controller=name, stage=stage, setting=setting, rmse_m=rmse,
+                      max_abs_m={s: r.max_abs_m for s, r in runs.items()}, completed=completed,
+                      failure={s: r.failure for s, r in runs.items()},
+                      objective_m=objective(rmse, completed), seconds=sum(r.seconds for r in runs.values()))
+
+
 class SweepExecutor:
     """Runs (controller, setting) x scenario tasks on the campaigns' executors
     (``studies.campaign.executors``): in this process (one worker, no address), else as
@@ -163,8 +181,7 @@ class SweepExecutor:
     def evaluate(self, jobs: Sequence[tuple[str, str, Setting]]) -> list[Evaluation]:
         """Evaluate (controller, stage, setting) jobs on every scenario, in job order (a job
         in ``reuse`` takes the stored evaluation, relabelled with this job's stage)."""
-        reused = {i: dataclasses.replace(self.reuse[(name, reuse_key(setting))], stage=stage, setting=setting)
-                  for i, (name, stage, setting) in enumerate(jobs) if (name, reuse_key(setting)) in self.reuse}
+        reused = reused_evaluations(self.reuse, jobs)
         self.progress.update(len(reused) * len(self.scenarios))
         tasks = [SweepTask(f"{name} {setting} on {scenario.name}", i, name, setting, k, scenario,
                            self.tuning, self.runner)
@@ -177,17 +194,6 @@ class SweepExecutor:
             outcomes[task.index][task.scenario_index] = outcome
             self.progress.set_postfix_str(task.controller, refresh=False)
             self.progress.update(1)
-        evaluations = []
-        for i, (name, stage, setting) in enumerate(jobs):
-            if i in reused:
-                evaluations.append(reused[i])
-                continue
-            runs = {self.scenarios[k].name: outcomes[i][k] for k in range(len(self.scenarios))}
-            rmse = {s: r.rmse_m for s, r in runs.items()}
-            completed = {s: r.completed for s, r in runs.items()}
-            evaluations.append(Evaluation(
-                controller=name, stage=stage, setting=setting, rmse_m=rmse,
-                max_abs_m={s: r.max_abs_m for s, r in runs.items()}, completed=completed,
-                failure={s: r.failure for s, r in runs.items()},
-                objective_m=objective(rmse, completed), seconds=sum(r.seconds for r in runs.values())))
-        return evaluations
+        return [reused[i] if i in reused else
+                evaluation_of(job, {self.scenarios[k].name: outcomes[i][k] for k in range(len(self.scenarios))})
+                for i, job in enumerate(jobs)]

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from controller.tuning import (LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, StanleyTuning, low_speed_twins,
-                               with_fixed_weights)
+from controller.tuning import LOW_SPEED_WEIGHTS, SCHEDULED_WEIGHTS, StanleyTuning, low_speed_twins
 from hil.errors import StudyError
+from studies.campaign.tuning_override import tuning_table_attribute, with_override  # noqa: F401 - importable here
 
 #: One setting of the swept fields: ``((field, value), ...)`` in grid order (hashable).
 Setting = tuple[tuple[str, float], ...]
@@ -134,16 +134,6 @@ OBSERVER_START: Setting = (("eso_pole", 0.0), ("eso_second_pole", 0.97), ("distu
 
 # ---------------------------------------------------------------------------- settings
 
-def tuning_table_attribute(tuning: Any, name: str) -> str:
-    """The attribute of ``ControllerTuning`` ``tuning`` that holds controller ``name``'s
-    table (the one ``tuning.for_controller(name)`` returns), e.g. ``"eso_dkmpc"``."""
-    table = tuning.for_controller(name)
-    for field in dataclasses.fields(tuning):
-        if getattr(tuning, field.name) is table:
-            return field.name
-    raise StudyError(f"controller {name!r}: its tuning table is not a field of {type(tuning).__name__}")
-
-
 def swept_fields(table: Any, gain_grids: Mapping[type, SweepGrid] = GAIN_GRIDS
                  ) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """(weight fields, observer fields) of a controller's tuning table (a dataclass); for a
@@ -174,10 +164,9 @@ def has_low_speed_weights(table: Any) -> bool:
 def with_setting(tuning: Any, name: str, setting: Setting) -> Any:
     """``tuning`` (a ``ControllerTuning``) with controller ``name``'s table's fields of
     ``setting`` replaced; every other value unchanged, except that a weight replaces its
-    low-speed twin too unless the setting names that twin (a flat schedule)."""
-    attribute = tuning_table_attribute(tuning, name)
-    table = getattr(tuning, attribute)
-    return dataclasses.replace(tuning, **{attribute: with_fixed_weights(table, **dict(setting))})
+    low-speed twin too unless the setting names that twin (a flat schedule). The campaign
+    engine's override of a cell (``studies.campaign.tuning_override.with_override``)."""
+    return with_override(tuning, name, setting)
 
 
 def with_low_speed_weights(setting: Setting) -> Setting:

@@ -40,12 +40,19 @@ Controllers are built with their class's ``from_tuning(ControllerTuning)`` from 
 file's tables with only the swept fields replaced (``dataclasses.replace``): horizons,
 soft-constraint and solver settings stay the file's. Observer gains are computed from the
 model at build time, as always.
+
+The runs are cells of the campaign engine (``studies.tuning_sweep_cells``: the grid
+``studies/campaign/grids/tuning_sweep.toml``, each setting a value of its ``tuning`` axis,
+cached under ``cache``); a stand-in ``runner`` (tests) runs in-memory scenarios through
+``studies.tuning_sweep_executor.SweepExecutor`` instead.
 """
 from __future__ import annotations
 
 import itertools
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
@@ -53,7 +60,6 @@ from tqdm import tqdm
 from controller.tuning import LOW_SPEED_WEIGHTS
 from hil.errors import StudyError
 from hil.scenario import Scenario
-from studies.closed_loop import run_closed_loop
 from studies.tuning_sweep_executor import Evaluation, Runner, SweepExecutor, best
 from studies.tuning_sweep_grids import (GAIN_GRIDS, LOW_SPEED_GRID, OBSERVER_GRID, OBSERVER_START,
                                         WEIGHT_GRID, Setting, SweepGrid, has_low_speed_weights,
@@ -101,12 +107,14 @@ def current_setting(tuning: Any, name: str) -> Setting:
 def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *,
               weight_grid: SweepGrid = WEIGHT_GRID, observer_grid: SweepGrid = OBSERVER_GRID,
               observer_start: Setting = OBSERVER_START, workers: int = 1,
-              address: str | None = None, runner: Runner = run_closed_loop, show_progress: bool = True,
+              address: str | None = None, runner: Runner | None = None, show_progress: bool = True,
               evaluate_before: bool = False,
               extra_observer_starts: Sequence[Setting] = (),
               low_speed_grid: SweepGrid = LOW_SPEED_GRID,
               reuse: Mapping[tuple[str, Setting], Evaluation] | None = None,
-              gain_grids: Mapping[type, SweepGrid] = GAIN_GRIDS) -> list[ControllerSweep]:
+              gain_grids: Mapping[type, SweepGrid] = GAIN_GRIDS,
+              tuning_file: Path | None = None, cache: Path | None = None,
+              tally: dict[str, int] | None = None) -> list[ControllerSweep]:
     """The procedure of the module docstring for every controller of ``controllers``.
 
     Args:
@@ -117,7 +125,9 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
         weight_grid, observer_grid, observer_start: the procedure's grids (tests shrink them).
         workers: Ray workers of a local Ray (1 without ``address``: in this process).
         address: a Ray cluster to run on (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``).
-        runner: the closed-loop runner (tests pass a stand-in).
+        runner: None: the runs are campaign cells (``studies.tuning_sweep_cells``; the
+            scenarios must be their files as loaded); else a stand-in runner (tests) that
+            ``SweepExecutor`` calls on the scenario objects.
         evaluate_before: also evaluate each controller's setting in ``tuning`` (for the
             report; not a candidate, so values chosen elsewhere cannot be re-chosen here).
         extra_observer_starts: more observer settings at which stage 1 runs the weight grid
@@ -129,6 +139,10 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
             deterministic; the caller checks that scenarios and model are the same).
         gain_grids: stage 1's grid of the controllers without MPC weights, by tuning-table
             class (tests shrink it); they have no stages 2 to 4.
+        tuning_file: the file ``tuning`` was loaded from (the cells load it; None: the
+            default ``controller/tuning.toml``).
+        cache: the campaign cache folder of the cells (None: a temporary one, nothing kept).
+        tally: when given, its ``"cached"`` is set to the runs the campaign cache gave.
 
     Returns:
         One :class:`ControllerSweep` per controller, in ``controllers`` order.
@@ -158,9 +172,11 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
              + len(before_settings)) * len(scenarios)
     evaluations: dict[str, list[Evaluation]] = {name: [] for name in controllers}
     before: dict[str, Evaluation] = {}
-    with tqdm(total=total, desc="make tune", unit="run", disable=not show_progress,
-              dynamic_ncols=True) as progress:
-        executor = SweepExecutor(scenarios, tuning, runner, workers, progress, address, reuse)
+    with (tqdm(total=total, desc="make tune", unit="run", disable=not show_progress,
+               dynamic_ncols=True) as progress,
+          tempfile.TemporaryDirectory(prefix="tuning-sweep-") as scratch):
+        executor = _open_executor(scenarios, tuning, runner, workers, progress, address, reuse,
+                                  tuning_file, Path(scratch) if cache is None else cache)
         try:
             # Round robin over the controllers: the slow ones' runs spread over the queue, so
             # no worker is left alone with a slow controller's runs at the end.
@@ -200,6 +216,8 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
                 evaluations[evaluation.controller].append(evaluation)
         finally:
             executor.close()
+            if tally is not None:
+                tally["cached"] = getattr(executor, "cached_runs", 0)
     low_speed_fields = low_speed_grid.fields
     return [ControllerSweep(name, plans[name][0] + (low_speed_fields if name in scheduled else ()), plans[name][1],
                             tuple(evaluations[name]), best(evaluations[name]), before.get(name),
@@ -207,7 +225,20 @@ def run_sweep(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning:
             for name in controllers]
 
 
-def _alternate(executor: "SweepExecutor", evaluations: dict[str, list[Evaluation]],
+def _open_executor(scenarios: Sequence[Scenario], tuning: Any, runner: Runner | None, workers: int,
+                   progress: Any, address: str | None, reuse: Mapping[tuple[str, Setting], Evaluation] | None,
+                   tuning_file: Path | None, cache: Path | None) -> Any:
+    """The campaign engine's cells (``runner`` None) or, for a stand-in runner, the
+    in-memory executor; both evaluate (controller, stage, setting) jobs."""
+    if runner is not None:
+        return SweepExecutor(scenarios, tuning, runner, workers, progress, address, reuse)
+    from studies.tuning_sweep_cells import CampaignSweepExecutor
+
+    return CampaignSweepExecutor(scenarios, tuning_file=tuning_file, cache=cache, workers=workers,
+                                 progress=progress, address=address, reuse=reuse)
+
+
+def _alternate(executor: Any, evaluations: dict[str, list[Evaluation]],
                observer_fields: Mapping[str, Sequence[str]], weight_grid: SweepGrid,
                observer_grid: SweepGrid, progress: Any, n_scenarios: int) -> None:
     """Step 3 of the procedure, in place on ``evaluations``: for the controllers with

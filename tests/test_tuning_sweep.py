@@ -343,16 +343,27 @@ def test_sweep_records_a_controller_that_cannot_be_built() -> None:
     assert "solver exploded" in sweep.chosen.failure["a"]
 
 
-def _short_tuning_scenario(duration_s: float = 2.0) -> Scenario:
-    return dataclasses.replace(tuning_scenarios([TUNING_SET[3].name])[0], duration_s=duration_s)
+def _short_tuning_scenario(folder: Path, duration_s: float = 2.0) -> Scenario:
+    """Tuning scenario 3 cut to ``duration_s``, as a file in ``folder`` (the sweep's runs are
+    campaign cells: they run scenario files)."""
+    manoeuvre = TUNING_SET[3]
+    document = tomllib.loads(manoeuvre.scenario_file.read_text())
+    document["duration_s"] = duration_s
+    document["path"]["file"] = str(manoeuvre.path_file.resolve())
+    from studies.campaign.toml_text import to_toml
+
+    file = folder / f"{manoeuvre.name}_{duration_s:g}s.toml"
+    file.write_text(to_toml(document))
+    return Scenario.load(file)
 
 
-def test_tiny_real_sweep_returns_the_better_setting_and_repeats_exactly() -> None:
-    """LMPC on 2 s of one tuning scenario, two settings, in this process, twice."""
+def test_tiny_real_sweep_returns_the_better_setting_and_repeats_exactly(tmp_path: Path) -> None:
+    """LMPC on 2 s of one tuning scenario, two settings, in this process, twice (campaign
+    cells, no cache between the two)."""
     tuning = load_tuning()
     weights = SweepGrid((("q_position", (30.0, 1000.0)), ("q_yaw", (20.0,)), ("r_steer", (1.0,)),
                          ("p_steer_rate", (300.0,))))
-    scenario = _short_tuning_scenario()
+    scenario = _short_tuning_scenario(tmp_path)
     runs = [run_sweep(["lmpc"], [scenario], tuning, weight_grid=weights, show_progress=False, low_speed_grid=NO_LOW_SPEED)[0]
             for _ in range(2)]
     objectives = [[e.objective_m for e in sweep.evaluations] for sweep in runs]
@@ -364,11 +375,11 @@ def test_tiny_real_sweep_returns_the_better_setting_and_repeats_exactly() -> Non
 
 
 @pytest.mark.slow
-def test_two_workers_give_the_same_sweep_as_one() -> None:
+def test_two_workers_give_the_same_sweep_as_one(tmp_path: Path) -> None:
     tuning = load_tuning()
     weights = SweepGrid((("q_position", (30.0, 300.0)), ("q_yaw", (5.0, 20.0)), ("r_steer", (1.0,)),
                          ("p_steer_rate", (300.0,))))
-    scenario = _short_tuning_scenario(1.0)
+    scenario = _short_tuning_scenario(tmp_path, 1.0)
     serial, parallel = (run_sweep(["lmpc", "lmpc-eso"], [scenario], tuning, weight_grid=weights,
                                   observer_grid=SweepGrid((("eso_pole", (0.0, 0.3)),)),
                                   workers=workers, show_progress=False, low_speed_grid=NO_LOW_SPEED) for workers in (1, 2))

@@ -6,7 +6,9 @@ virtual bus through the same session code as ``python -m hil run``.
 ``make campaign-smoke``, ``make campaign``; manual: ``docs/campaign.md``.
 
 - `grid`: grid files, expansion, a cell as a scenario file;
-- `cell`: one cell's run (what a worker executes);
+- `cell`: one cell's run (what a worker executes); `closed_loop_cell` without CAN;
+- `tuning_override`: the ``tuning`` axis (a cell's controller with tuning fields replaced:
+  ``make tune``'s settings, grid ``tuning_sweep``);
 - `runner`: cache keys, the cache, the Ray and serial executors, the campaign loop;
 - `report`: cells.csv, summary.md, heat maps;
 - `__main__`: the command line.

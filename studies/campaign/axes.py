@@ -22,7 +22,7 @@ PROFILE_TIME_MAX_S = _DURATION_RANGE_S[1]
 PROFILE_SPEED_RANGE_KMH = _SPEED_RANGE_KMH
 #: Every axis, in the order of a cell's fields and of cells.csv.
 AXES = ("controller", "scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault",
-        "model", "seed", "ecu", "disturbance", "runner", "case")
+        "model", "seed", "ecu", "disturbance", "runner", "case", "tuning")
 REQUIRED_AXES = ("controller", "scenario")
 #: Value of an axis the grid does not set: the scenario's own (mu, speed, mass), x1, none.
 SCENARIO_VALUE = "scenario"
@@ -41,6 +41,9 @@ RUNNERS = (HIL_RUNNER, CLOSED_LOOP_RUNNER, FAULT_CASE_RUNNER)
 #: The case axis' value of a cell that is not a fault case (a grid without the axis and
 #: without the ``fault_case`` runner has only it); "none" is a case of the catalogue.
 NO_CASE = "-"
+#: The tuning axis' value for the tuning file as it is (a grid without the axis has only
+#: it); any other value names a ``[tunings.NAME]`` table of overrides.
+DEFAULT_TUNING = "file"
 #: The controller axis' value for every controller of ``controller.registry``, as the
 #: registry has them when the grid loads.
 ALL_CONTROLLERS = "all"
@@ -55,7 +58,8 @@ def axis_values(file: Path, name: str, raw: Any) -> tuple[Any, ...]:
     defaults = {"controller": None, "scenario": None, "mu": SCENARIO_VALUE, "speed": SCENARIO_VALUE,
                 "mass_offset_kg": SCENARIO_VALUE, "lag_factor": 1.0, "fault": NO_FAULT,
                 "model": DEFAULT_MODEL, "seed": SCENARIO_VALUE, "ecu": DEFAULT_ECU,
-                "disturbance": NO_DISTURBANCE, "runner": HIL_RUNNER, "case": NO_CASE}
+                "disturbance": NO_DISTURBANCE, "runner": HIL_RUNNER, "case": NO_CASE,
+                "tuning": DEFAULT_TUNING}
     if raw is None:
         return (defaults[name],)
     values = raw if isinstance(raw, list) else [raw]
@@ -94,7 +98,7 @@ def axis_value(file: Path, name: str, value: Any) -> Any:
         if value not in RUNNERS:
             raise bad(f"unknown runner; choose from {', '.join(RUNNERS)}")
         return value
-    if name in ("scenario", "fault", "model", "disturbance", "case"):
+    if name in ("scenario", "fault", "model", "disturbance", "case", "tuning"):
         if not isinstance(value, str) or not value:
             raise bad("must be a non-empty string")
         return value

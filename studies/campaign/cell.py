@@ -56,7 +56,11 @@ class CellJob:
     same on any node with a checkout; ``model``: artefact path relative to the root, or
     None for the controllers' default; ``ecu``: "python" or "c" (``hil.session.RunOptions.ecu``);
     ``keep_trace``: add the e_Y trace to the row (``trace``, see the module docstring);
-    ``runner``: "hil" (over CAN) or "closed_loop" (without CAN).
+    ``runner``: "hil" (over CAN) or "closed_loop" (without CAN); ``closed_loop`` only:
+    ``tuning_toml`` the base tuning file's text (None: ``controller/tuning.toml``),
+    ``tuning_override`` the fields of the controller's table it replaces
+    (``studies.campaign.tuning_override``), ``leave_road_m`` the |e_Y| (m) beyond which the
+    run stops (None: :data:`LEAVE_ROAD_M`).
     """
 
     key: str
@@ -66,6 +70,9 @@ class CellJob:
     ecu: str = "python"
     keep_trace: bool = False
     runner: str = "hil"
+    tuning_toml: str | None = None
+    tuning_override: tuple[tuple[str, float], ...] = ()
+    leave_road_m: float | None = None
 
 
 def run_cell(job: CellJob) -> dict[str, Any]:
@@ -87,8 +94,14 @@ def run_cell(job: CellJob) -> dict[str, Any]:
             file.write_text(job.scenario_toml.replace("{ROOT}", str(ROOT)), encoding="utf-8")
             scenario = Scenario.load(file)
         if job.runner == CLOSED_LOOP_RUNNER:
+            tuning = None
+            if job.tuning_toml is not None or job.tuning_override:
+                from studies.campaign.tuning_override import cell_tuning
+
+                tuning = cell_tuning(job.tuning_toml, job.controller, job.tuning_override)
             run_closed_loop_cell(scenario, job.controller, ROOT / job.model if job.model else None,
-                                 row, LEAVE_ROAD_M)
+                                 row, LEAVE_ROAD_M if job.leave_road_m is None else job.leave_road_m,
+                                 tuning=tuning)
             row["wall_s"] = time.perf_counter() - started
             return row
         bus = BusConfig("virtual", private_virtual_channel())

@@ -33,10 +33,15 @@ from studies.campaign.model_controllers import model_factory
 CLOSED_LOOP_RUNNER = "closed_loop"
 
 
-def controller_for(name: str, model: Path | None) -> Any:
-    """The registry's controller ``name``, on the Koopman artefact ``model`` when given."""
+def controller_for(name: str, model: Path | None, tuning: Any = None) -> Any:
+    """The registry's controller ``name``, on the Koopman artefact ``model`` when given,
+    from the ``ControllerTuning`` ``tuning`` when given (else ``controller/tuning.toml``)."""
     if model is not None:
-        return model_factory(model)(name)
+        return model_factory(model, tuning)(name)
+    if tuning is not None:
+        from studies.campaign.tuning_override import build_controller
+
+        return build_controller(name, tuning)
     from controller.registry import create_controller
 
     return create_controller(name)
@@ -55,14 +60,16 @@ def plant_for(scenario: Any) -> tuple[Any, Any]:
 
 
 def run_closed_loop_cell(scenario: Any, controller_name: str, model: Path | None,
-                         row: dict[str, Any], leave_road_m: float) -> dict[str, Any]:
+                         row: dict[str, Any], leave_road_m: float, tuning: Any = None) -> dict[str, Any]:
     """Fill ``row`` with the result of one closed-loop run of ``scenario`` (see the module
-    docstring); an exception while building or running propagates to the caller, which
-    records it."""
+    docstring); ``tuning``: the ``ControllerTuning`` to build the controller from (a cell of
+    the ``tuning`` axis), None for the tuning file. An exception while building or running
+    propagates to the caller, which records it."""
     from studies.closed_loop import run_closed_loop
 
     plant, command_type = plant_for(scenario)
-    controller = controller_for(controller_name, model)
+    controller = (controller_for(controller_name, model) if tuning is None
+                  else controller_for(controller_name, model, tuning))
     result = run_closed_loop(scenario, controller, plant=plant, command_type=command_type,
                              abort_lateral_error_m=leave_road_m)
     lateral, heading = result.tracking.lateral, result.tracking.heading

@@ -23,6 +23,8 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     runner = ["hil", "closed_loop"]             # over CAN (default), or without CAN; or
                                                 # "fault_case" alone (below)
     case = ["drop 5 %", "lost bus"]             # fault_case cells: cases of make faults
+    tuning = ["file", "stiff"]                  # closed_loop cells: "file" (the tuning file
+                                                # as it is) or a [tunings.NAME] table
 
     [[exclude]]                  # a cell matching every key of one table is dropped
     controller = "nmpc"
@@ -33,6 +35,9 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
                                  # or a table by scenario: { dlc_high_mu = 110.0, slalom = 204.0 }
     margin_s = 1.0               # without it a cell keeps its scenario's duration
     keep_trace = false           # true: each row also has the run's e_Y trace (cell.py)
+    leave_road_m = 10.0          # closed_loop cells stop, not completed, beyond this |e_Y|
+                                 # (m; default studies.campaign.cell.LEAVE_ROAD_M, 2 m)
+    tuning_file = "controller/tuning.toml"     # the cells' base tuning file (closed_loop)
 
     [speed_profiles.gentle]      # as a scenario's [speed_profile]; starts at its first target
     time_s = [0.0, 3.0]
@@ -44,6 +49,9 @@ A grid file (TOML; see ``docs/campaign.md`` and ``studies/campaign/grids/``)::
     [disturbances.wind]          # a scenario's [disturbances] table (models/disturbance.py)
     crosswind_force_n = 400.0
     crosswind_cp_m = 0.6
+
+    [tunings.stiff]              # fields of the cell's controller's tuning table, replaced
+    q_position = 30.0
 
 The ``ecu`` axis (default ``["python"]``) runs a cell on the Python ECU (firmware_sim,
 in-process) or on the C ECU executable (``build/firmware/ecu``, ``make firmware``; a
@@ -58,6 +66,13 @@ in one loop without CAN (``studies.campaign.closed_loop_cell``: the runner of ``
 tables``, for grids too large for the bus). A ``closed_loop`` cell takes no fault (no bus
 carries frames there; the lag, mass, friction and disturbance axes act on the plant) and
 no C ECU (left out as a C cell the C ECU cannot run).
+
+The ``tuning`` axis (default ``["file"]``; ``studies.campaign.tuning_override``) builds a
+``closed_loop`` cell's controller from the tuning file with the fields of one
+``[tunings.NAME]`` table replaced: ``make tune``'s settings are such cells of the grid
+``tuning_sweep`` (``studies.tuning_sweep_cells``; ``tuning_sweep_smoke`` is its smoke
+subset). A cell with the default tuning, no ``tuning_file`` and no ``leave_road_m`` has the
+cache key it had before these existed.
 
 The ``fault_case`` runner (``studies.campaign.fault_axes``, ``fault_case_cell``): each cell
 is one case of the fault catalogue (the ``case`` axis, default the whole catalogue) with
@@ -89,12 +104,13 @@ from typing import Any
 
 from models.input_files import read_bounded
 from studies.campaign.axes import (  # noqa: F401 - the axes' names, where they always were
-    ALL_CONTROLLERS, AXES, CLOSED_LOOP_RUNNER, DEFAULT_ECU, DEFAULT_MODEL, FAULT_CASE_RUNNER,
+    ALL_CONTROLLERS, AXES, CLOSED_LOOP_RUNNER, DEFAULT_ECU, DEFAULT_MODEL, DEFAULT_TUNING, FAULT_CASE_RUNNER,
     HIL_RUNNER, NO_CASE, NO_DISTURBANCE, NO_FAULT, PROFILE_SPEED_RANGE_KMH, PROFILE_TIME_MAX_S,
     REQUIRED_AXES, RUNNERS, SCENARIO_VALUE, GridError, axis_values, excludes, fault_catalogue,
     grid_disturbances, grid_faults, matches, speed_profiles)
 from studies.campaign.fault_axes import check_fault_case_axes, fault_case_left_out
 from studies.campaign.toml_text import to_toml  # noqa: F401 - the cells' scenario text
+from studies.campaign.tuning_override import Override, check_override_fields, grid_tunings, tuning_file
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 #: Bytes of a grid file (read no further).
@@ -105,8 +121,9 @@ KOOPMAN_CONTROLLERS = ("eso-dkmpc", "dkmpc")
 #: Path the MPC horizons need beyond a run's last position (m): 30 steps at 25 ms, 70 km/h.
 HORIZON_ROOM_M = 15.0
 CONTROL_PERIOD_S = 0.025
-_TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults", "disturbances"}
-_RUN_KEYS = {"distance_m", "margin_s", "keep_trace", "duration_s"}
+_TOP_KEYS = {"name", "description", "axes", "exclude", "run", "speed_profiles", "faults", "disturbances",
+             "tunings"}
+_RUN_KEYS = {"distance_m", "margin_s", "keep_trace", "duration_s", "tuning_file", "leave_road_m"}
 _KMH = 1.0 / 3.6
 
 @dataclass(frozen=True)
@@ -126,6 +143,7 @@ class Cell:
     disturbance: str = NO_DISTURBANCE
     runner: str = HIL_RUNNER
     case: str = NO_CASE
+    tuning: str = DEFAULT_TUNING
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -136,8 +154,9 @@ class Cell:
         return ", ".join(f"{k}={v}" for k, v in self.as_dict().items()
                          if v not in (SCENARIO_VALUE, NO_FAULT, DEFAULT_MODEL) and
                          not (k == "lag_factor" and v == 1.0) and not (k == "ecu" and v == DEFAULT_ECU)
-                         and not (k == "runner" and v == HIL_RUNNER) and k != "case"
-                         ) + (f", case={self.case}" if self.case != NO_CASE else "")
+                         and not (k == "runner" and v == HIL_RUNNER) and k not in ("case", "tuning")
+                         ) + (f", case={self.case}" if self.case != NO_CASE else "") + (
+                             f", tuning={self.tuning}" if self.tuning != DEFAULT_TUNING else "")
 
     @property
     def exclusive(self) -> bool:
@@ -178,6 +197,13 @@ class Grid:
     duration_s: float | None = None
     #: fault_case cells left out: a controller the case does not run.
     case_left_out: int = 0
+    #: tuning axis value -> its override (``[tunings.NAME]``; "file": none).
+    tunings: Mapping[str, Override] = field(default_factory=dict)
+    #: ``[run] tuning_file``: the base tuning file of every cell (None: the controllers' own).
+    tuning_file: Path | None = None
+    #: ``[run] leave_road_m``: the ``closed_loop`` cells' |e_Y| limit (m) beyond which a
+    #: run stops, not completed (None: ``studies.campaign.cell.LEAVE_ROAD_M``).
+    leave_road_m: float | None = None
 
     def scenario_document(self, cell: Cell) -> dict[str, Any]:
         """The cell's scenario as a TOML document (dict); ``path.file`` is absolute."""
@@ -256,6 +282,15 @@ def load_grid(file: str | Path) -> Grid:
     if CLOSED_LOOP_RUNNER in axes["runner"] and any(name != NO_FAULT for name in axes["fault"]):
         raise GridError(f"{file}: axes.fault with runner {CLOSED_LOOP_RUNNER!r}: that runner has no bus "
                         f"to inject faults on; run faults with runner {HIL_RUNNER!r}")
+    leave_road = run.get("leave_road_m")
+    if leave_road is not None and (isinstance(leave_road, bool) or not isinstance(leave_road, (int, float))
+                                   or not 0 < leave_road < 1e3):
+        raise GridError(f"{file}: run.leave_road_m = {leave_road!r}: must be a number in (0, 1000) m")
+    tunings = grid_tunings(file, axes["tuning"], raw.get("tunings", {}))
+    if any(name != DEFAULT_TUNING for name in axes["tuning"]) and set(axes["runner"]) != {CLOSED_LOOP_RUNNER}:
+        raise GridError(f"{file}: axes.tuning with runner {axes['runner']}: tuning overrides run on the "
+                        f"{CLOSED_LOOP_RUNNER!r} runner only (the ECUs build their own controllers)")
+    base_tuning = tuning_file(file, run.get("tuning_file"), ROOT)
     keep_trace = run.get("keep_trace", False)
     if not isinstance(keep_trace, bool):
         raise GridError(f"{file}: run.keep_trace = {keep_trace!r}: must be true or false")
@@ -283,12 +318,19 @@ def load_grid(file: str | Path) -> Grid:
                 excluded=excluded, not_applicable=not_applicable, c_left_out=c_left_out,
                 disturbances=disturbances, keep_trace=keep_trace,
                 duration_s=None if run.get("duration_s") is None else float(run["duration_s"]),
-                case_left_out=case_left_out)
+                case_left_out=case_left_out, tunings=tunings, tuning_file=base_tuning,
+                leave_road_m=None if leave_road is None else float(leave_road))
     if not cells:
         left_out = "".join(f"; {n} C cells left out: {why}" for why, n in c_left_out.items())
         raise GridError(f"{file}: no cell left after the exclusions{left_out}")
     for cell in cells:  # every scenario builds, every path is long enough: before any run
         scenario_document(grid, cell)
+    if any(override for override in tunings.values()):
+        from controller.tuning import load_tuning
+
+        base = load_tuning(base_tuning)
+        for cell in {(c.controller, c.tuning): c for c in cells}.values():
+            check_override_fields(file, base, cell.controller, cell.tuning, tunings[cell.tuning])
     return grid
 
 

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from studies.campaign.grid import AXES, DEFAULT_ECU, HIL_RUNNER, NO_CASE, Grid
+from studies.campaign.grid import AXES, DEFAULT_ECU, DEFAULT_TUNING, HIL_RUNNER, NO_CASE, Grid
 
 #: Columns of cells.csv, in order (the axes as the issue names them, then the results).
 CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "disturbance",
@@ -24,10 +24,11 @@ CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fa
 _AXIS_COLUMN = {"mass": "mass_offset_kg", "lag": "lag_factor"}
 #: Axes the pivot tables and heat maps split by (controller is always the columns).
 PIVOT_AXES = ("scenario", "mu", "speed", "mass_offset_kg", "lag_factor", "fault", "disturbance",
-              "model", "seed", "runner")
+              "model", "seed", "runner", "tuning")
 _TITLES = {"mass_offset_kg": "mass offset (kg)", "lag_factor": "steering lag (x time constant)",
            "mu": "mu", "speed": "speed (km/h)", "scenario": "scenario", "fault": "fault",
-           "disturbance": "disturbance", "model": "model", "seed": "seed", "runner": "runner"}
+           "disturbance": "disturbance", "model": "model", "seed": "seed", "runner": "runner",
+           "tuning": "tuning override"}
 
 
 def _text(value: Any, digits: int = 6) -> str:
@@ -218,7 +219,8 @@ def summary_markdown(grid: Grid, rows: Sequence[dict[str, Any]], *, command: str
         for r in failures[:60]:
             cell = ", ".join(f"{a}={_text(r[a], 0)}" for a in AXES[1:] if a in r and a != "ecu"
                              and not (a == "runner" and r[a] == HIL_RUNNER)
-                             and not (a == "case" and r[a] == NO_CASE))
+                             and not (a == "case" and r[a] == NO_CASE)
+                             and not (a == "tuning" and r[a] == DEFAULT_TUNING))
             error = str(r.get("error", "")).replace("|", "/").replace("\n", " ")[:160]
             lines.append(f"| {_column(r)} | {cell} | {r.get('end_reason', '')} | {error} |")
         if len(failures) > 60:

@@ -40,8 +40,8 @@ from hil.session import C_ECU_EXECUTABLE
 from studies.campaign.cell import ROOT, CellJob
 from studies.campaign.executors import Executor, SerialExecutor
 from studies.campaign.fault_case_cell import FaultCaseJob, fault_case_job, run_fault_case_cell
-from studies.campaign.grid import (DEFAULT_ECU, FAULT_CASE_RUNNER, HIL_RUNNER, NO_DISTURBANCE, Cell,
-                                   Grid, effective_values, model_file, to_toml)
+from studies.campaign.grid import (DEFAULT_ECU, DEFAULT_TUNING, FAULT_CASE_RUNNER, HIL_RUNNER, NO_DISTURBANCE,
+                                   Cell, Grid, effective_values, model_file, to_toml)
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
@@ -134,6 +134,7 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob | FaultCaseJob:
     if cell.disturbance == NO_DISTURBANCE:
         del values["disturbance"]  # as before the disturbance axis (its scenario text says it)
     del values["case"]  # only a fault_case cell has one
+    del values["tuning"]  # the override itself goes into the key (below), not its name
     if cell.runner == HIL_RUNNER:
         del values["runner"]  # the key material of a cell over CAN as before the runner axis
     if cell.ecu == DEFAULT_ECU:
@@ -145,10 +146,19 @@ def cell_job(grid: Grid, cell: Cell, version: str) -> CellJob | FaultCaseJob:
              "code": version}
     if grid.keep_trace:
         facts["trace"] = True  # such a row has more in it (a grid without it: the key as before)
+    override = tuple(grid.tunings.get(cell.tuning, ())) if cell.tuning != DEFAULT_TUNING else ()
+    tuning_text = None if grid.tuning_file is None else grid.tuning_file.read_text(encoding="utf-8")
+    # Only a grid with a tuning axis, tuning file or road limit adds these: every other
+    # grid's keys stay as they were before them.
+    if override or tuning_text is not None:
+        facts["tuning"] = {"file": tuning_text, "override": [list(pair) for pair in override]}
+    if grid.leave_road_m is not None:
+        facts["leave_road_m"] = grid.leave_road_m
     material = json.dumps(facts, sort_keys=True)
     key = hashlib.sha256(material.encode()).hexdigest()[:24]
     return CellJob(key=key, controller=cell.controller, scenario_toml=text, model=model,
-                   ecu=cell.ecu, keep_trace=grid.keep_trace, runner=cell.runner)
+                   ecu=cell.ecu, keep_trace=grid.keep_trace, runner=cell.runner,
+                   tuning_toml=tuning_text, tuning_override=override, leave_road_m=grid.leave_road_m)
 
 
 def cell_key(grid: Grid, cell: Cell, version: str | None = None) -> str:
