@@ -69,7 +69,7 @@ def test_cases_the_c_ecu_cannot_take_are_reported_with_the_reason(name: str, why
     case = next(c for c in fault_cases.all_cases() if c.name == name)
     verdict = run_case(case, "eso-dkmpc", ecu="c")
     assert verdict.outcome == "n/a" and why in verdict.not_applicable and not verdict.passed()
-    text = fault_report.markdown([verdict], 1.0, "make faults-c", "c")
+    text = fault_report.markdown([verdict], "make faults-c", "c")
     assert "## Not applicable to this ECU" in text and f"| {name} | eso-dkmpc | " in text
     assert "- runs: 0 (+ 1 not applicable)" in text
 
@@ -91,7 +91,8 @@ def test_results_compare_each_verdict_with_the_python_campaigns(tmp_path: Path) 
     c = [dataclasses.replace(python[0], ecu="c"),
          dataclasses.replace(python[1], ecu="c", max_abs_ey_m=1.5, outcome="FAILED")]
     written = fault_report.write_results(c, tmp_path, 60.0, "make faults-c", "c")
-    assert [p.name for p in written] == ["faults_c.md", "faults_c.json", "faults_c_vehicle.png"]
+    assert [p.name for p in written] == ["faults_c.md", "faults_c.json", "faults_c_vehicle.png",
+                                         "faults_c_timing.json"]
     text = written[0].read_text()
     assert "## Against the Python ECU's campaign (results/faults.json)" in text
     assert "| drop 5 % | eso-dkmpc | tracked / tracked | 1/1 / 1/1 | 10 / 10 | 0.100 / 0.100 | same |" in text

@@ -67,7 +67,7 @@ def test_the_input_cases_are_in_the_campaign_for_both_ecus() -> None:
     assert len(cases) == 5 and all(c_not_applicable(case) is None for case in cases)
     verdict = Verdict(NAMES[0], "bus", input_cases.CONTROLLER, "d", outcome="refused to start",
                       expects=[{"expect": "e", "why": "w", "at_ms": None, "met": True}])
-    assert f"| d | {input_cases.CONTROLLER} | " in markdown([verdict], 1.0, "make faults")
+    assert f"| d | {input_cases.CONTROLLER} | " in markdown([verdict], "make faults")
 
 
 @pytest.mark.parametrize("name, good", [
