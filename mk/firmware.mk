@@ -71,11 +71,24 @@ firmware-deps:
 		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(FW_PACKAGES) >/dev/null; \
 	else echo "note: not root; the firmware needs: sudo apt-get install $(FW_PACKAGES)"; fi
 
-$(FW_GEN)/stamp: $(FW_GEN_INPUTS) | $(STAMP)
+# The model and tuning file this build is for, with their files' SHA-256. make compares
+# dates only: without it, FW_MODEL=other (or FW_TUNING) into a build newer than the other
+# model's files would keep the old model's sources and data. Rewritten only when its text
+# changes, so the same choice rebuilds nothing (and the default build's check is cheap).
+# (its recipe runs every time: the phony prerequisite is a path, so not a command of make help)
+FW_CHOICE := $(FW_DIR)/model_choice
+.PHONY: $(FW_CHOICE).check
+$(FW_CHOICE): $(FW_CHOICE).check
+	@mkdir -p $(@D)
+	@{ echo "FW_MODEL $(FW_MODEL)"; echo "FW_TUNING $(FW_TUNING)"; \
+		sha256sum $(FW_MODEL).npz $(FW_MODEL).json $(FW_TUNING); } > $@.new || { rm -f $@.new; exit 1; }
+	@if cmp -s $@.new $@; then rm -f $@.new; else mv $@.new $@; fi
+
+$(FW_GEN)/stamp: $(FW_GEN_INPUTS) $(FW_CHOICE) | $(STAMP)
 	$(PY) firmware/tools/generate.py --out $(FW_GEN) --model $(FW_MODEL) --tuning $(FW_TUNING)
 	touch $@
 
-$(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) | $(STAMP)
+$(FW_DIR)/ecu_data.bin: $(FW_GEN_INPUTS) $(FW_CHOICE) | $(STAMP)
 	$(PY) firmware/tools/ecu_data.py --out $@ --model $(FW_MODEL) --tuning $(FW_TUNING)
 
 # One shared object from the core, the generated version source and the OSQP sources.
