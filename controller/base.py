@@ -29,15 +29,20 @@ class VehicleSample(VehicleMeasurement):
     The eight measured fields (and ``state()`` / ``pose()``) are those of
     `models.measurement.VehicleMeasurement`, in its order; ``target_speed`` (m/s) is the
     planner's desired longitudinal velocity. Positional construction takes the nine
-    values in that order.
+    values in that order. ``sample_age_s`` (keyword only, s; default 0) is how old the
+    measurement was when the control task started, computed by the ECU from its clock and
+    handed in as data; only the delay compensation reads it (``MpcTuning.delay_compensation_s``).
     """
 
     target_speed: float
+    sample_age_s: float = field(default=0.0, kw_only=True)
 
     @classmethod
-    def from_measurement(cls, measurement: VehicleMeasurement, target_speed: float) -> "VehicleSample":
-        """The controller's input from a measurement (or any subclass of it) and a target speed."""
-        return cls(**measurement.measurement_values(), target_speed=target_speed)
+    def from_measurement(cls, measurement: VehicleMeasurement, target_speed: float,
+                         sample_age_s: float = 0.0) -> "VehicleSample":
+        """The controller's input from a measurement (or any subclass of it), a target speed
+        and the measurement's age at the task start (s)."""
+        return cls(**measurement.measurement_values(), target_speed=target_speed, sample_age_s=sample_age_s)
 
 
 def sample_is_finite(sample: VehicleSample) -> bool:

@@ -81,7 +81,12 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
         observer runs on the model of this step's speed (scheduled form)."""
         params, free_from_disturbance = self._observer_for(maps)
         self.observer.params = params
-        return free_from_disturbance @ self.disturbance(lifted_state)
+        self._disturbance_estimate = self.disturbance(lifted_state)
+        return free_from_disturbance @ self._disturbance_estimate
+
+    def disturbance_input(self) -> np.ndarray:
+        """w_hat (n_z,) of the last prediction (held over the delay window, decay^0)."""
+        return self._disturbance_estimate
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
         self.observe(self.lifted_state, np.array([command.drive_torque, command.steer_angle]))

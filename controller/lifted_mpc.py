@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from controller.base import VehicleSample
+from controller.delay_compensation import DelayWindow, forward_state
 from controller.errors import ControllerError
 from controller.qp_mpc import QpSteeringMpc, held_input_map
 from controller.tuning import LongitudinalTuning, QpMpcTuning
@@ -153,6 +154,23 @@ class LiftedMpc(QpSteeringMpc):
             input_matrix = maps.model.input_matrix(lifted)
             gain = maps.gain_basis @ input_matrix[:, STEER]
         drift = input_matrix[:, TORQUE] * drive_torque + maps.model.offset
+        # What shift_start steps the lifted state with (no copies: references only).
+        self._start_model = (maps, input_matrix, drift)
         free = (maps.free_from_lifted @ lifted + maps.free_from_drift @ drift
                 + self.disturbance_response(lifted, maps))
         return free, gain
+
+    def disturbance_input(self) -> np.ndarray | float:
+        """The estimate w_hat (n_z,) added to every step of the last prediction; 0 for DKMPC."""
+        return 0.0
+
+    def shift_start(self, free: np.ndarray, window: DelayWindow) -> np.ndarray:
+        """The lifted state z_k moved over ``window`` by the step's own model,
+        z+ = A z + B_k [T, steer] + offset + w_hat (B_k, T as the prediction holds them),
+        and the free response (Np + 1, 3) from there: free + C_P A^i (z_d - z_k)."""
+        maps, input_matrix, drift = self._start_model
+        transition, steer_column, disturbance = maps.model.A, input_matrix[:, STEER], self.disturbance_input()
+        lifted = self.lifted_state
+        moved = forward_state(lambda z, steer: transition @ z + steer_column * steer + drift + disturbance,
+                              lifted, window)
+        return free + maps.free_from_lifted @ (moved - lifted)

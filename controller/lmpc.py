@@ -11,6 +11,7 @@ from typing import Protocol
 import numpy as np
 
 from controller.base import VehicleSample
+from controller.delay_compensation import DelayWindow, forward_state
 from controller.qp_mpc import QpSteeringMpc
 from controller.tuning import ControllerTuning, LongitudinalTuning, QpMpcTuning
 
@@ -81,7 +82,20 @@ class Lmpc(QpSteeringMpc):
     def predict_states(self, sample: VehicleSample, drive_torque: float) -> tuple[np.ndarray, np.ndarray]:
         """free (Np + 1, 3), gain (Np + 1, 3, Nc); vx stays the measured value."""
         powers, gain = self._prediction_maps(sample.vx)
+        lateral = np.array([sample.vy, sample.yaw_rate])
+        self._start = (powers, gain, lateral)  # for shift_start
         free = np.empty((powers.shape[0], 3))
         free[:, 0] = sample.vx
-        free[:, 1:] = powers @ np.array([sample.vy, sample.yaw_rate])
+        free[:, 1:] = powers @ lateral
         return free, gain
+
+    def shift_start(self, free: np.ndarray, window: DelayWindow) -> np.ndarray:
+        """[vy, yaw_rate] moved over ``window`` by the bicycle at this step's speed,
+        x+ = A x + b steer (A = A^1, b = the step-1 steer gain of the cached maps), and the
+        free response (Np + 1, 3) from there: free + A^i (x_d - x_k) on the lateral rows."""
+        powers, gain, lateral = self._start
+        transition, steer_column = powers[1], gain[1, 1:, 0]
+        moved = forward_state(lambda x, steer: transition @ x + steer_column * steer, lateral, window)
+        shifted = free.copy()
+        shifted[:, 1:] += powers @ (moved - lateral)
+        return shifted

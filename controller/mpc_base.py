@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import math
 from abc import abstractmethod
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from controller.base import (CONTROL_PERIOD_S, STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug,
                              VehicleSample, sample_is_finite)
+from controller.delay_compensation import COMMAND_HISTORY
 from controller.longitudinal import SpeedController
 from controller.reference import PathTracker, ReferencePath
 from controller.steady_slip import measured_slip, reference_bend, slip_target
@@ -61,6 +63,8 @@ class SteeringMpc(Controller):
         self._plan_steer: np.ndarray | None = None  # last good steer sequence (Nc,)
         self._plan_age = 0  # steps since that plan was computed
         self._last_command: Command | None = None
+        # The steer commands sent, newest last: the ones in flight over the delay window.
+        self._command_history: deque[float] = deque(maxlen=COMMAND_HISTORY)
         self.slip_target = 0.0  # rad: how far the last step moved the heading target
         if self._tracker is not None:
             self._tracker.reset()
@@ -70,6 +74,7 @@ class SteeringMpc(Controller):
         if self._tracker is None or not sample_is_finite(sample):
             return self._fallback(SolverStatus.NOT_RUN, torque=None)
         torque = self._speed.torque(sample.vx, sample.target_speed)
+        sample = self._prepare(sample, torque)
         projection = self._tracker.update(sample.x, sample.y, sample.yaw)
         reference = self._tracker.horizon_reference(projection.progress, sample.vx,
                                                     self.tuning.prediction_horizon, self.ts, sample.yaw)
@@ -108,6 +113,11 @@ class SteeringMpc(Controller):
     def _plan(self, sample: VehicleSample, drive_torque: float, reference: np.ndarray) -> Plan:
         """Solve the MPC for this sample; ``reference`` (Np, 3) the target poses at steps
         1..Np (the path's, its heading moved by ``target_reference``)."""
+
+    def _prepare(self, sample: VehicleSample, drive_torque: float) -> VehicleSample:
+        """The sample the step plans from (reference, pose, weights): the measured one; the
+        QP MPCs move it over the delay window when delay compensation is on."""
+        return sample
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
         """Hook after a command was produced for a valid sample (observer update)."""
@@ -158,4 +168,5 @@ class SteeringMpc(Controller):
         steer = min(max(float(steer), -STEER_LIMIT_RAD), STEER_LIMIT_RAD) if math.isfinite(steer) else 0.0
         torque = self._speed.clip(torque) if math.isfinite(torque) else 0.0
         self._last_command = Command(steer_angle=steer, drive_torque=torque)
+        self._command_history.append(steer)
         return self._last_command

@@ -343,7 +343,7 @@ def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
     missing = sorted(expected - set(document))
     if missing:
         raise TuningError(f"missing table(s) {missing}")
-    return ControllerTuning(
+    tuning = ControllerTuning(
         longitudinal=_build(LongitudinalTuning, "longitudinal", document["longitudinal"]),
         eso_dkmpc=_build(EsoDkmpcTuning, "eso-dkmpc", document["eso-dkmpc"]),
         dkmpc=_build(QpMpcTuning, "dkmpc", document["dkmpc"]),
@@ -353,6 +353,12 @@ def parse_tuning(document: dict[str, Any]) -> ControllerTuning:
         dmdc_eso=_build(EsoQpMpcTuning, "dmdc-eso", document["dmdc-eso"]),
         stanley=_build(StanleyTuning, "stanley", document["stanley"]),
     )
+    # LMPC-ESO's forward prediction would need its observer's estimate per step on the
+    # bicycle: not implemented, so refused rather than run without it.
+    if tuning.lmpc_eso.delay_compensation_s != 0.0:
+        raise TuningError(f"[lmpc-eso] delay_compensation_s must be 0 (not implemented for LMPC-ESO), "
+                          f"got {tuning.lmpc_eso.delay_compensation_s!r}")
+    return tuning
 
 
 def load_tuning(path: str | Path | None = None) -> ControllerTuning:

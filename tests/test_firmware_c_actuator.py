@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,8 +152,6 @@ def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, fie
                                               message: str) -> None:
     """The data file written with a value the Python loader refuses: the C core's reader
     refuses it too, naming the field and the range."""
-    import sys
-
     sys.path.insert(0, str(ROOT / "firmware" / "tools"))
     from ecu_data import TUNING_FIELDS, collect, write_data  # noqa: E402 (the build tool)
 
@@ -169,3 +168,74 @@ def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, fie
         actuator_core.NativeController("dkmpc", bad)
     with pytest.raises(TuningError, match=message.replace("[", r"\[")):
         parse_tuning(_document({field: value}))
+
+
+# ------------------------------------------------------------------ delay compensation's twin
+
+#: s: above one period with the age, so that the window has a whole step and a fraction.
+DELAY = 0.03
+
+
+class AgedNativeController:
+    """The C core of ``native`` stepped with the sample's age (``ecu_step_aged``): the
+    NativeController's step with its ``ecu_step`` call routed to the aged one."""
+
+    def __init__(self, native, name: str, data: Path) -> None:
+        import ctypes
+
+        self.inner = native.NativeController(name, data)
+        self.name = name
+        library = self.inner._lib
+        library.ecu_step_aged.argtypes = [ctypes.POINTER(native._Sample), ctypes.c_double,
+                                          ctypes.POINTER(native._Output)]
+        library.ecu_step_aged.restype = None
+
+        class _Aged:  # the library with ecu_step taking this step's age
+            age = 0.0
+
+            def __getattr__(self, attribute: str):
+                return getattr(library, attribute)
+
+            def ecu_step(self, raw, out) -> None:
+                library.ecu_step_aged(raw, ctypes.c_double(self.age), out)
+
+        self._aged = _Aged()
+        self.inner._lib = self._aged
+
+    def set_path(self, path) -> None:
+        self.inner.set_path(path)
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def step(self, sample):
+        self._aged.age = sample.sample_age_s
+        return self.inner.step(sample)
+
+
+@requires_c_toolchain
+@pytest.mark.parametrize("name", QP_CONTROLLERS)
+def test_delay_compensation_c_step_equals_python_in_closed_loop(actuator_core, name: str) -> None:
+    """With the rate rows and delay compensation on (30 ms plus the sample's age of 0 or
+    5 ms): the C core equals the Python controller step for step on dlc_smoke (commands to
+    1e-9 rad, status, iterations, predictions and cost), NaN samples included."""
+    sys.path.insert(0, str(ROOT / "firmware" / "tools"))
+    from ecu_data import collect, write_data  # noqa: E402 (the build tool)
+    from hil.scenario import load_scenario
+    from studies.closed_loop import run_closed_loop
+    from studies.delay_compensation import AgedSamples
+    from c_twin import INVALID_STEPS
+    from test_firmware_c_core import Twin, assert_twin_steps_equal
+
+    tuning = BUILD / "tuning_delay.toml"
+    write_if_changed(tuning, tuning_text({"qp_steer_rate_limit": RATE_LIMIT, "delay_compensation_s": DELAY}))
+    data = BUILD / "ecu_data_delay.bin"
+    write_data(collect(tuning, ROOT / "models" / "artifacts" / "dk_d5"), data)
+    twin = Twin(create_controller(name, tuning_path=tuning), AgedNativeController(actuator_core, name, data),
+                INVALID_STEPS)
+    result = run_closed_loop(load_scenario("dlc_smoke"), AgedSamples(twin))
+    assert result.completed, result.failure
+    assert_twin_steps_equal(name, twin)
+    # The compensation acted: the same run without it commands differently.
+    plain = run_closed_loop(load_scenario("dlc_smoke"), AgedSamples(create_controller(name, tuning_path=TUNING)))
+    assert np.max(np.abs(plain.trace.steer_cmd - result.trace.steer_cmd)) > 1e-4

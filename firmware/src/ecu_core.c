@@ -23,6 +23,7 @@
 #define NC ECU_NC_MAX
 #define STEER_LIMIT 0.3           /* rad: controller.base.STEER_LIMIT_RAD */
 #define TWO_PI 6.283185307179586  /* 2.0 * math.pi */
+#define PI 3.141592653589793 /* math.pi */
 
 static double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -146,6 +147,8 @@ void ecu_core_reset(ecu_core_t *core) {
   core->plan_age = 0;
   core->has_last = 0;
   core->has_progress = 0;
+  core->history_n = 0;
+  core->prepared = 0;
   ecu_observer_reset(&core->observer);
 }
 
@@ -223,6 +226,62 @@ static void target_reference(const ecu_core_t *core, const ecu_sample_t *sample,
     for (int i = 0; i < core->n_pred; i++) reference[i][2] -= target;
 }
 
+/* QpSteeringMpc.predict_states of the core's controller into core->free, core->gain. */
+static void predict(ecu_core_t *core, const ecu_sample_t *sample, double torque) {
+  if (core->controller == ECU_LMPC) {
+    ecu_predict_bicycle(&core->cfg, core->tun, sample, core->free, core->gain, &core->basis);
+  } else {
+    ecu_observer_t *observer = core->controller == ECU_ESO_DKMPC ? &core->observer : NULL;
+    ecu_predict_koopman(&core->cfg, core->tun, observer, core->decay_power, sample, torque, &core->model,
+                        core->lifted, core->free, core->gain, &core->basis);
+  }
+}
+
+/* models.measurement.wrap_angle: to [-pi, pi), values inside unchanged bit for bit. */
+static double wrap_angle(double a) { return (a >= -PI && a < PI) ? a : py_mod(a + PI, TWO_PI) - PI; }
+
+/* QpSteeringMpc._prepare: with delay compensation on, predict once from the measured sample,
+ * move the prediction's start over the window and return (in planned) the sample at the
+ * window's end; planned = *sample otherwise. */
+static void prepare(ecu_core_t *core, const ecu_sample_t *sample, double torque, ecu_sample_t *planned) {
+  *planned = *sample;
+  core->prepared = 0;
+  const double delay = ecu_total_delay(core->tun->delay_compensation_s, core->sample_age_s);
+  if (delay <= 0.0) return;
+  double (*free)[3] = core->free, (*gain)[3][NC] = core->gain;
+  const int n_pred = core->n_pred, n_ctrl = core->n_ctrl;
+  predict(core, sample, torque);
+  core->prepared = 1;
+  double sum = 0.0;
+  for (int i = 0; i <= n_pred; i++)
+    for (int x = 0; x < 3; x++) {
+      sum += free[i][x];
+      for (int c = 0; c < n_ctrl; c++) sum += gain[i][x][c];
+    }
+  if (!isfinite(sum)) return; /* make_plan falls back on it */
+  ecu_delay_window_t window;
+  const double first = previous_steer(core, sample);
+  ecu_delay_window(delay, core->cfg.ts, core->history_n ? core->history : &first, core->history_n ? core->history_n : 1,
+                   &window);
+  const int last = window.whole_steps;
+  double in_flight[NC], states[ECU_COMMAND_HISTORY + 1][3], pose[3];
+  for (int c = 0; c < n_ctrl; c++) in_flight[c] = window.inputs[c < last ? c : last];
+  for (int j = 0; j <= last + 1; j++)
+    for (int x = 0; x < 3; x++) states[j][x] = free[j][x] + ecu_dot(gain[j][x], in_flight, n_ctrl);
+  const double pose0[3] = {sample->x, sample->y, sample->yaw};
+  ecu_pose_after(pose0, states, core->cfg.ts, &window, pose);
+  double moved[3];
+  for (int x = 0; x < 3; x++) moved[x] = states[last][x] + window.fraction * (states[last + 1][x] - states[last][x]);
+  if (core->controller == ECU_LMPC) ecu_shift_bicycle(&core->basis, &window, n_pred, free);
+  else ecu_shift_koopman(&core->model, &core->basis, core->lifted, &window, n_pred, free);
+  planned->vx = moved[0];
+  planned->vy = moved[1];
+  planned->yaw_rate = moved[2];
+  planned->x = pose[0];
+  planned->y = pose[1];
+  planned->yaw = wrap_angle(pose[2]);
+}
+
 /* QpSteeringMpc._plan; fills the predictions of out. */
 static void make_plan(ecu_core_t *core, const ecu_sample_t *sample, double torque, plan_t *plan, ecu_output_t *out) {
   double (*free)[3] = core->free, (*gain)[3][NC] = core->gain, (*nominal_states)[3] = core->nominal_states;
@@ -233,13 +292,8 @@ static void make_plan(ecu_core_t *core, const ecu_sample_t *sample, double torqu
   ecu_qp_solution_t solution;
   memset(plan, 0, sizeof *plan);
   target_reference(core, sample, reference);
-  if (core->controller == ECU_LMPC) {
-    ecu_predict_bicycle(&core->cfg, core->tun, sample, free, gain);
-  } else {
-    ecu_observer_t *observer = core->controller == ECU_ESO_DKMPC ? &core->observer : NULL;
-    ecu_predict_koopman(&core->cfg, core->tun, observer, core->decay_power, sample, torque, &core->model,
-                        core->lifted, free, gain);
-  }
+  if (!core->prepared) predict(core, sample, torque);
+  core->prepared = 0;
   shifted_plan(core, sample, nominal);
   for (int i = 0; i <= n_pred; i++)
     for (int x = 0; x < 3; x++) {
@@ -294,6 +348,11 @@ static void finish(ecu_core_t *core, double steer, double torque, ecu_output_t *
   core->last_steer = isfinite(steer) ? clamp(steer, -STEER_LIMIT, STEER_LIMIT) : 0.0;
   core->last_torque = isfinite(torque) ? clamp(torque, core->cfg.torque_min, core->cfg.torque_max) : 0.0;
   core->has_last = 1;
+  if (core->history_n == ECU_COMMAND_HISTORY) { /* the oldest goes */
+    memmove(core->history, core->history + 1, (ECU_COMMAND_HISTORY - 1) * sizeof core->history[0]);
+    core->history_n--;
+  }
+  core->history[core->history_n++] = core->last_steer;
   out->steer_angle = core->last_steer;
   out->drive_torque = core->last_torque;
 }
@@ -356,6 +415,9 @@ static void step_body(ecu_core_t *core, const ecu_sample_t *measured, ecu_output
     return;
   }
   double torque = clamp(cfg->speed_gain * (sample->target_speed - sample->vx), cfg->torque_min, cfg->torque_max);
+  ecu_sample_t planned;
+  prepare(core, sample, torque, &planned);
+  sample = &planned;
   /* progress only: the control law takes the lateral error from the reference poses */
   ecu_path_track(core->path_x, core->path_y, core->path_s, core->path_n, sample->x, sample->y, &core->progress,
                  &core->has_progress);
@@ -384,8 +446,13 @@ static void step_body(ecu_core_t *core, const ecu_sample_t *measured, ecu_output
   out->observer_reset = core->observer.reset;
 }
 
-void ecu_core_step(ecu_core_t *core, const ecu_sample_t *sample, ecu_output_t *out) {
+void ecu_core_step_aged(ecu_core_t *core, const ecu_sample_t *sample, double sample_age_s, ecu_output_t *out) {
   int64_t start = os_monotonic_ns();
+  core->sample_age_s = sample_age_s;
   step_body(core, sample, out);
   out->step_time_s = 1e-9 * (double)(os_monotonic_ns() - start);
+}
+
+void ecu_core_step(ecu_core_t *core, const ecu_sample_t *sample, ecu_output_t *out) {
+  ecu_core_step_aged(core, sample, 0.0, out);
 }

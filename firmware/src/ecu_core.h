@@ -16,8 +16,10 @@
 
 #include <stddef.h>
 
+#include "ecu_delay.h"
 #include "ecu_observer.h"
 #include "ecu_path_reader.h"
+#include "ecu_predict.h"
 #include "ecu_qp.h"
 
 typedef struct {
@@ -34,6 +36,15 @@ typedef struct {
   double plan_steer[ECU_NC_MAX];
   int has_plan, plan_age, has_last;
   double last_steer, last_torque;
+  /* The steer commands sent, oldest first (history_n of them, at most ECU_COMMAND_HISTORY):
+   * the ones in flight over the delay window (SteeringMpc._command_history). */
+  double history[ECU_COMMAND_HISTORY];
+  int history_n;
+  /* Delay compensation of this step (QpSteeringMpc._prepare): the prediction was made from
+   * the measured sample and moved over the window; make_plan uses it as it is. */
+  int prepared;
+  ecu_prediction_basis_t basis;
+  double sample_age_s; /* the age of the sample being stepped (ecu_core_step_aged) */
   /* ESO-DKMPC: the observers; the step's local model and z_k (for the observer's update). */
   ecu_observer_t observer;
   ecu_local_model_t model;
@@ -76,6 +87,13 @@ ECU_API void ecu_core_reset(ecu_core_t *core);
 /* One control step (Controller.step): never fails; the command is finite and within
  * the limits whatever the sample. */
 ECU_API void ecu_core_step(ecu_core_t *core, const ecu_sample_t *sample, ecu_output_t *out);
+
+/* ecu_core_step on a sample that was sample_age_s old when the task started (s; the caller
+ * computes it from its clock: the control law takes it as data, VehicleSample.sample_age_s).
+ * Only the delay compensation reads it (delay_compensation_s > 0); ecu_core_step is this
+ * with age 0. */
+ECU_API void ecu_core_step_aged(ecu_core_t *core, const ecu_sample_t *sample, double sample_age_s,
+                                ecu_output_t *out);
 
 /* The build's shapes, one line (generated header ecu_build.h). */
 ECU_API const char *ecu_build_shapes(void);

@@ -26,6 +26,10 @@ void ecu_reset(void) { ecu_core_reset(&core); }
 
 void ecu_step(const ecu_sample_t *sample, ecu_output_t *out) { ecu_core_step(&core, sample, out); }
 
+void ecu_step_aged(const ecu_sample_t *sample, double sample_age_s, ecu_output_t *out) {
+  ecu_core_step_aged(&core, sample, sample_age_s, out);
+}
+
 int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
   ecu_paths_reset(&paths);
   if (ecu_paths_add(&paths, 0, file, err, err_len) != 0) return -1;

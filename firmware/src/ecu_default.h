@@ -19,6 +19,8 @@ ECU_API int ecu_set_path(const double *x, const double *y, const double *yaw, co
 ECU_API int ecu_path_copy(double *x, double *y, double *yaw, double *s, int max);
 ECU_API void ecu_reset(void);
 ECU_API void ecu_step(const ecu_sample_t *sample, ecu_output_t *out);
+/* ecu_core_step_aged on the default core: the sample's age at the task start (s). */
+ECU_API void ecu_step_aged(const ecu_sample_t *sample, double sample_age_s, ecu_output_t *out);
 
 /* Read and check a path CSV as controller.reference.ReferencePath.from_csv does (the
  * contract's checks, the same messages) into the default pool as PATH_ID 0 (the pool's

@@ -38,7 +38,8 @@ static void held_gain(int n_pred, int n_ctrl, double markov[][3], double gain[][
 
 void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ecu_observer_t *observer,
                          const double *decay_power, const ecu_sample_t *sample, double torque,
-                         ecu_local_model_t *model, double lifted[NZ], double free[][3], double gain[][3][NC]) {
+                         ecu_local_model_t *model, double lifted[NZ], double free[][3], double gain[][3][NC],
+                         ecu_prediction_basis_t *basis) {
   const int n_pred = tuning->n_pred;
   double drift[NZ], w[NZ], f[NZ], next[NZ], m[NZ], markov[NP + 1][3];
   ecu_koopman_lift(cfg, sample, lifted);
@@ -48,6 +49,9 @@ void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ec
   if (observed) {
     ecu_observer_disturbance(observer, tuning, lifted, w);
   }
+  memcpy(basis->drift, drift, sizeof drift);
+  if (observed) memcpy(basis->disturbance, w, sizeof w);
+  else memset(basis->disturbance, 0, sizeof basis->disturbance);
   memcpy(f, lifted, sizeof f);
   for (int x = 0; x < 3; x++) free[0][x] = f[x];
   for (int i = 0; i < n_pred; i++) {
@@ -69,6 +73,7 @@ void ecu_predict_koopman(const ecu_config_t *cfg, const ecu_tuning_t *tuning, ec
 #if ECU_BILINEAR
   for (int a = 0; a < NZ; a++) m[a] += ecu_dot(model->N[a], lifted, NZ);
 #endif
+  memcpy(basis->steer, m, sizeof m);
   for (int k = 0; k < n_pred; k++) {
     for (int x = 0; x < 3; x++) markov[k][x] = m[x];
     for (int a = 0; a < NZ; a++) next[a] = 0.0;
@@ -106,7 +111,7 @@ static void expm3(double m[3][3], double out[3][3]) {
 }
 
 void ecu_predict_bicycle(const ecu_config_t *cfg, const ecu_tuning_t *tuning, const ecu_sample_t *sample,
-                         double free[][3], double gain[][3][NC]) {
+                         double free[][3], double gain[][3][NC], ecu_prediction_basis_t *basis) {
   const int n_pred = tuning->n_pred;
   double vx = nearbyint(fmax(sample->vx, LMPC_MIN_MODEL_SPEED) / LMPC_SPEED_QUANTUM) * LMPC_SPEED_QUANTUM;
   double cf = cfg->cf, cr = cfg->cr, m = cfg->mass, iz = cfg->yaw_inertia, lf = cfg->lf, lr = cfg->lr;
@@ -120,6 +125,12 @@ void ecu_predict_bicycle(const ecu_config_t *cfg, const ecu_tuning_t *tuning, co
   expm3(block, transition);
   b[0] = transition[0][2];
   b[1] = transition[1][2];
+  for (int a = 0; a < 2; a++) {
+    basis->transition[a][0] = transition[a][0];
+    basis->transition[a][1] = transition[a][1];
+    basis->b[a] = b[a];
+    basis->lateral[a] = state[a];
+  }
   for (int k = 0; k <= n_pred; k++) {
     free[k][0] = sample->vx;
     free[k][1] = power[0][0] * state[0] + power[0][1] * state[1];
@@ -160,5 +171,47 @@ void ecu_linearise_pose(double ts, const ecu_tuning_t *tuning, const ecu_sample_
       jac[i][1][c] = jy[c] * ts;
       jac[i][2][c] = gain_yaw_sum[c] * ts;
     }
+  }
+}
+
+void ecu_shift_koopman(const ecu_local_model_t *model, const ecu_prediction_basis_t *basis, const double lifted[NZ],
+                       const ecu_delay_window_t *window, int n_pred, double free[][3]) {
+  double z[NZ], next[NZ], delta[NZ];
+  memcpy(z, lifted, sizeof z);
+  for (int j = 0; j <= window->whole_steps; j++) {
+    const double u = window->inputs[j];
+    for (int a = 0; a < NZ; a++) next[a] = 0.0;
+    for (int b = 0; b < NZ; b++)
+      for (int a = 0; a < NZ; a++) next[a] += model->At[b][a] * z[b];
+    for (int a = 0; a < NZ; a++) next[a] = next[a] + basis->steer[a] * u + basis->drift[a] + basis->disturbance[a];
+    if (j < window->whole_steps) memcpy(z, next, sizeof z);
+  }
+  for (int a = 0; a < NZ; a++) delta[a] = (z[a] + window->fraction * (next[a] - z[a])) - lifted[a];
+  for (int i = 0; i <= n_pred; i++) {
+    for (int x = 0; x < 3; x++) free[i][x] += delta[x];
+    for (int a = 0; a < NZ; a++) next[a] = 0.0;
+    for (int b = 0; b < NZ; b++)
+      for (int a = 0; a < NZ; a++) next[a] += model->At[b][a] * delta[b];
+    memcpy(delta, next, sizeof delta);
+  }
+}
+
+void ecu_shift_bicycle(const ecu_prediction_basis_t *basis, const ecu_delay_window_t *window, int n_pred,
+                       double free[][3]) {
+  const double (*a)[2] = basis->transition;
+  double x[2] = {basis->lateral[0], basis->lateral[1]}, next[2] = {0.0, 0.0}, delta[2];
+  for (int j = 0; j <= window->whole_steps; j++) {
+    const double u = window->inputs[j];
+    next[0] = (a[0][0] * x[0] + a[0][1] * x[1]) + basis->b[0] * u;
+    next[1] = (a[1][0] * x[0] + a[1][1] * x[1]) + basis->b[1] * u;
+    if (j < window->whole_steps) memcpy(x, next, sizeof x);
+  }
+  for (int k = 0; k < 2; k++) delta[k] = (x[k] + window->fraction * (next[k] - x[k])) - basis->lateral[k];
+  for (int i = 0; i <= n_pred; i++) {
+    free[i][1] += delta[0];
+    free[i][2] += delta[1];
+    double d0 = a[0][0] * delta[0] + a[0][1] * delta[1], d1 = a[1][0] * delta[0] + a[1][1] * delta[1];
+    delta[0] = d0;
+    delta[1] = d1;
   }
 }
