@@ -55,7 +55,7 @@ class BusLoop:
     def _recv_timeout(self) -> float:
         if self.lockstep:
             return RECV_TIMEOUT_S
-        return min(RECV_TIMEOUT_S, self._schedule.seconds_until_next(clock_ns(self._clock)))
+        return min(RECV_TIMEOUT_S, self._seconds_until_release(clock_ns(self._clock)))
 
     def run(self, stop_event: threading.Event) -> None:
         """Blocking loop: receive (short timeout), handle, run due tasks, until ``stop_event``.
@@ -127,7 +127,7 @@ class BusLoop:
                     return
         wait = max(0.0, self._next_reopen_s - now)
         if not self.lockstep:
-            wait = min(wait, self._schedule.seconds_until_next(clock_ns(self._clock)))
+            wait = min(wait, self._seconds_until_release(clock_ns(self._clock)))
         stop_event.wait(max(wait, 0.001))
 
     # ---------------------------------------------------------------- shutdown

@@ -40,6 +40,7 @@ from typing import NoReturn
 
 from controller.registry import ALL_CONTROLLER_NAMES
 from firmware_sim.can_bus import open_ecu_bus
+from firmware_sim.config import EcuConfig
 from firmware_sim.controller_factory import model_controller_factory
 from firmware_sim.errors import BusOpenError, ConfigError, EcuError
 from firmware_sim.excitation import load_excitation
@@ -111,6 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="superimpose an identification excitation while ACTIVE: chirp, prbs, "
                              "steps, prbs-torque, or a .toml / .csv program file "
                              "(docs/identification.md)")
+    parser.add_argument("--release", default="clock", metavar="clock|sample",
+                        help="what releases the control task: clock (contract revision 2, the "
+                             "default) or sample (revision 3: the plant's samples, with the "
+                             "period watchdog; docs/can-contract.md)")
     parser.add_argument("--dbc", type=Path, default=None, metavar="FILE.dbc",
                         help="CAN matrix to use (default: the contract's can_defs/vehicle.dbc); "
                              "one that does not load is an error before the bus is opened")
@@ -136,6 +141,7 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     stop_event = stop_event or threading.Event()
     try:
         paths = parse_paths(args.path)
+        config = EcuConfig(control_release=args.release)
         if args.timing_out is not None:
             inputs = command_inputs(paths.values(), dbc=args.dbc, model=args.model, excite=args.excite)
             check_output_file(args.timing_out, "--timing-out", replace=args.replace, inputs=inputs,
@@ -173,7 +179,7 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     from firmware_sim.ecu import Ecu  # after argument checks: keeps --help and errors fast
     ecu = None
     try:
-        ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep,
+        ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep, config=config,
                   reopen_bus=lambda: open_ecu_bus(args.interface, args.channel, args.bitrate),
                   controller_factory=controller_factory, excitation=excitation)
         logging.getLogger("firmware_sim").info(

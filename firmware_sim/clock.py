@@ -13,8 +13,8 @@ from can_defs.frames import HANDSHAKE_TICK
 
 from firmware_sim.config import NS_PER_MS, NS_PER_S
 
-__all__ = ["HANDSHAKE_TICK", "LockstepClock", "RealtimeSchedule", "TickAdvance", "TickKind",
-           "clock_ns"]
+__all__ = ["HANDSHAKE_TICK", "LockstepClock", "RealtimeSchedule", "SampleRelease", "TickAdvance",
+           "TickKind", "clock_ns"]
 
 MonotonicClock = Callable[[], float]
 
@@ -147,3 +147,85 @@ class RealtimeSchedule:
         if self.next_release_ns is None:
             return 0.0
         return max(0, self.next_release_ns - now_ns) / NS_PER_S
+
+
+class SampleRelease:
+    """Revision 3 release of the control task by the plant's samples (``docs/can-contract.md``,
+    "Revision 3"), on integer ns of either time base (TICK in lockstep, monotonic in real time).
+
+    Unanchored (from the start, after `reset`), the caller releases the task on its 25 ms
+    clock as in revision 2 and reports each release with `note_release`. A good sample set
+    anchors the grid of control instants N_k = anchor + k * period there: the first one,
+    and the first after none for more than ``lost_ns`` (the contract's 100 ms); when the
+    task ran less than ``min_spacing_ns`` before it, the grid anchors at that release
+    instead and the sample does not run the task again. Anchored,
+    instant N is released by the first good sample set arriving in its window
+    [N - ``early_ns``, N + ``watchdog_ns``), and by the period watchdog at N + ``watchdog_ns``
+    when none came. One release per instant: later samples of the window only refresh the
+    newest sample. Two releases are never closer than ``min_spacing_ns``.
+    """
+
+    def __init__(self, period_ns: int, early_ns: int, watchdog_ns: int, min_spacing_ns: int,
+                 lost_ns: int) -> None:
+        if early_ns < 0 or watchdog_ns <= 0 or early_ns + watchdog_ns + min_spacing_ns > period_ns:
+            raise ValueError(f"release window [-{early_ns}, +{watchdog_ns}) ns with a spacing of "
+                             f"{min_spacing_ns} ns does not fit the period of {period_ns} ns")
+        self.period_ns = period_ns
+        self.early_ns = early_ns
+        self.watchdog_ns = watchdog_ns
+        self.min_spacing_ns = min_spacing_ns
+        self.lost_ns = lost_ns
+        self.reset()
+
+    def reset(self) -> None:
+        """Unanchored, nothing released (start-up, handshake, jump of virtual time)."""
+        self.anchored = False
+        self.instant_ns = 0              # the pending control instant N (anchored)
+        self.instant_released = False
+        self.last_release_ns: int | None = None
+        self.last_sample_ns: int | None = None
+
+    def note_release(self, now_ns: int) -> None:
+        """A release of the caller's own clock (unanchored)."""
+        self.last_release_ns = now_ns
+
+    def _release(self, now_ns: int) -> None:
+        self.instant_released = True
+        self.last_release_ns = now_ns
+
+    def on_time(self, now_ns: int) -> tuple[bool, int]:
+        """Close the windows that ended by ``now_ns``: (watchdog release now, instants
+        skipped). Of several windows closed unreleased at once (a late loop) only the newest
+        is released; the others are skipped (the caller counts them as overruns)."""
+        if not self.anchored:
+            return False, 0
+        missed = 0
+        while now_ns >= self.instant_ns + self.watchdog_ns:
+            missed += not self.instant_released
+            self.instant_ns += self.period_ns
+            self.instant_released = False
+        if missed:
+            self.last_release_ns = now_ns
+        return missed > 0, max(0, missed - 1)
+
+    def on_sample(self, arrival_ns: int) -> bool:
+        """A good plant sample set arrived at ``arrival_ns`` (call `on_time` first): whether
+        it releases the task now."""
+        restarted = self.last_sample_ns is None or arrival_ns - self.last_sample_ns > self.lost_ns
+        self.last_sample_ns = arrival_ns
+        if not self.anchored or restarted:
+            self.anchored = True
+            self.instant_released = True
+            if self.last_release_ns is not None and arrival_ns - self.last_release_ns < self.min_spacing_ns:
+                # the release just before is this instant's: the grid anchors there
+                self.instant_ns = self.last_release_ns
+                return False
+            self.instant_ns = arrival_ns
+            self.last_release_ns = arrival_ns
+            return True
+        if self.instant_released or arrival_ns < self.instant_ns - self.early_ns:
+            return False
+        if self.last_release_ns is not None and arrival_ns - self.last_release_ns < self.min_spacing_ns:
+            return False
+        self._release(arrival_ns)
+        return True

@@ -43,6 +43,17 @@ class Plausibility:
     continuity_window_ms: int = 100
 
 
+#: Release of the control task (contract rev. 3): ``"clock"`` the 25 ms clock of revision 2,
+#: ``"sample"`` the arrival of a good plant sample set in the window of each 25 ms instant.
+CONTROL_RELEASES = ("clock", "sample")
+#: Rev. 3 release window of a control instant N: [N - this, N + SAMPLE_WATCHDOG_NS) (*contract*).
+SAMPLE_WINDOW_EARLY_NS = 2_500_000
+#: Rev. 3 period watchdog: no good sample in the window -> the task is released at N + this.
+SAMPLE_WATCHDOG_NS = 7_500_000
+#: Rev. 3 minimum spacing of two releases (period - window width), ns (*contract*).
+MIN_RELEASE_SPACING_NS = 15_000_000
+
+
 #: Lost bus (*contract*, rev. 2): receive errors that persist this long are a lost bus.
 BUS_LOST_AFTER_MS = 100
 #: Lost bus: wait between attempts to reopen it, s (*contract*: every second).
@@ -83,6 +94,10 @@ class EcuConfig:
             leaves the rest of the 25 ms period to the lift, the observer, the frames and a
             busy machine. Never applied in lockstep, whose commands must not depend on the
             machine.
+        control_release: what releases the control task (``CONTROL_RELEASES``): ``"clock"``
+            (revision 2, the default: every 25 ms on the clock) or ``"sample"`` (revision 3:
+            the arrival of a good plant sample set in the window of each 25 ms instant, with
+            the period watchdog; ``firmware_sim.clock.SampleRelease``).
     """
 
     control_period_ms: int = 25
@@ -99,6 +114,7 @@ class EcuConfig:
     max_catch_up_tasks: int = 40
     timing_capacity: int = 1 << 16
     solver_budget_ms: int = 15
+    control_release: str = "clock"
 
     def __post_init__(self) -> None:
         for name in ("control_period_ms", "tick_ms", "sample_stale_ms", "sample_lost_ms",
@@ -124,6 +140,9 @@ class EcuConfig:
         if self.safe_stop_brake_torque_nm > self.drive_torque_limit_nm:
             raise ConfigError(f"EcuConfig.safe_stop_brake_torque_nm {self.safe_stop_brake_torque_nm} "
                               f"exceeds drive_torque_limit_nm {self.drive_torque_limit_nm}")
+        if self.control_release not in CONTROL_RELEASES:
+            raise ConfigError(f"EcuConfig.control_release must be one of {', '.join(CONTROL_RELEASES)}, "
+                              f"got {self.control_release!r}")
         if self.control_period_ms % self.tick_ms:
             raise ConfigError(f"EcuConfig.control_period_ms {self.control_period_ms} is not a "
                               f"multiple of tick_ms {self.tick_ms}")

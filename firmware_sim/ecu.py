@@ -45,8 +45,10 @@ from can_defs.log_reader import is_contract_data_frame
 
 from controller.base import Controller
 from firmware_sim.bus_loop import BusLoop
-from firmware_sim.clock import HANDSHAKE_TICK, LockstepClock, MonotonicClock, RealtimeSchedule, TickKind, clock_ns
-from firmware_sim.config import NS_PER_MS, NS_PER_S, EcuConfig
+from firmware_sim.clock import (HANDSHAKE_TICK, LockstepClock, MonotonicClock, RealtimeSchedule, SampleRelease,
+                                TickKind, clock_ns)
+from firmware_sim.config import (MIN_RELEASE_SPACING_NS, NS_PER_MS, NS_PER_S, SAMPLE_WATCHDOG_NS,
+                                 SAMPLE_WINDOW_EARLY_NS, EcuConfig)
 from firmware_sim.control_task import ControlTask
 from firmware_sim.errors import ConfigError
 from firmware_sim.excitation import Excitation, ExcitationProgram, describe
@@ -123,6 +125,10 @@ class Ecu(ControlTask, BusLoop):
         self._lockstep_clock = LockstepClock(self._config.control_period_ms,
                                              self._config.max_catch_up_tasks)
         self._schedule = RealtimeSchedule(self._period_ns)
+        #: Revision 3: the control task released by the plant's samples (None: the clock).
+        self._sample_release = (None if self._config.control_release == "clock" else SampleRelease(
+            self._period_ns, SAMPLE_WINDOW_EARLY_NS, SAMPLE_WATCHDOG_NS, MIN_RELEASE_SPACING_NS,
+            self._config.sample_lost_ms * NS_PER_MS))
         self.timing = TimingRecorder(self._config.timing_capacity)
         self._closed = False
         self._warned: set[str] = set()
@@ -161,6 +167,8 @@ class Ecu(ControlTask, BusLoop):
         """Start of a run (construction, lockstep handshake): no inputs, INIT (or FAULT)."""
         self._rx.reset()
         self._tx.reset_counters()
+        if self._sample_release is not None:
+            self._sample_release.reset()
         self.mode = CtrlMode.FAULT if self.load_error else CtrlMode.INIT
         self._awaiting_disengage = False
         self._previous_valid_steer = 0.0
@@ -197,7 +205,10 @@ class Ecu(ControlTask, BusLoop):
                               msg.is_remote_frame, msg.is_error_frame)
                 return
             arrival_ns = None if self.lockstep else clock_ns(self._clock)
+            samples_before = self._rx.counts["samples"]
             outcome = self._rx.receive(msg.arbitration_id, bytes(msg.data), arrival_ns)
+            if arrival_ns is not None and self._rx.counts["samples"] > samples_before:
+                self._on_good_sample(arrival_ns)  # rev. 3 (real time); lockstep: at the TICK
             if outcome.kind is RxKind.SYNC and outcome.tick is not None:
                 if self.lockstep:
                     self._on_tick(outcome.tick)
@@ -226,12 +237,22 @@ class Ecu(ControlTask, BusLoop):
         if advance.kind is TickKind.JUMP:
             self._on_time_jump(tick, advance.skipped)
         now_ns = LockstepClock.to_ns(tick)
+        # a good sample of this tick (its frames came before HIL_SYNC): stamped just below
+        new_sample = self._rx.newest_sample is not None and self._rx.newest_sample_arrival_ns is None
         self._rx.stamp_pending(now_ns)
         if advance.kind is TickKind.REPEATED:
             self._tx.send_ack(tick)
             return
-        for _ in advance.due_ms:
-            self._control_task(now_ns, release_jitter_s=math.nan)
+        release = self._sample_release
+        if release is None or not release.anchored:
+            for _ in advance.due_ms:   # revision 2's clock (rev. 3: until a sample anchors the grid)
+                self._control_task(now_ns, release_jitter_s=math.nan)
+                if release is not None:
+                    release.note_release(now_ns)
+        else:
+            self._release_by_watchdog(now_ns)
+        if release is not None and new_sample:
+            self._on_good_sample(now_ns)
         self._tx.send_ack(tick)
         if time.perf_counter() - started > self._config.control_period_ms / 1000.0:
             self.overruns += 1
@@ -249,6 +270,8 @@ class Ecu(ControlTask, BusLoop):
         self._rx.drop_sample()
         self._rx.e2e_error = True
         self._pending_model_reset = True
+        if self._sample_release is not None:  # the grid anchors again at the next sample
+            self._sample_release.reset()
         self._fallback_streak = 0    # the controller starts afresh: no failing streak spans the jump
         self._active_path_id = None  # re-engaging selects the path again (reset included)
         if self._controller is not None:
@@ -264,6 +287,9 @@ class Ecu(ControlTask, BusLoop):
             return
         try:
             now_ns = clock_ns(self._clock)
+            if self._sample_release is not None and self._sample_release.anchored:
+                self._release_by_watchdog(now_ns)
+                return
             if self._schedule.next_release_ns is None:
                 self._schedule.start(now_ns)
             if not self._schedule.due(now_ns):
@@ -271,7 +297,50 @@ class Ecu(ControlTask, BusLoop):
             ideal_ns, skipped = self._schedule.release(now_ns)
             self.overruns += skipped
             self._control_task(now_ns, release_jitter_s=(now_ns - ideal_ns) / NS_PER_S)
+            if self._sample_release is not None:
+                self._sample_release.note_release(now_ns)
             if clock_ns(self._clock) > ideal_ns + self._period_ns:
                 self.overruns += 1
         except Exception:
             _LOG.exception("unexpected error in the real-time schedule")
+
+    def _seconds_until_release(self, now_ns: int) -> float:
+        """Real time: the longest wait before the next release may be due, s."""
+        release = self._sample_release
+        if release is not None and release.anchored:
+            return max(0, release.instant_ns + release.watchdog_ns - now_ns) / NS_PER_S
+        return self._schedule.seconds_until_next(now_ns)
+
+    # ---------------------------------------------------------------- revision 3
+    def _on_good_sample(self, arrival_ns: int) -> None:
+        """A good plant sample set arrived (rev. 3): windows closed by now first (their
+        watchdog), then the sample's own release, if it opens one."""
+        release = self._sample_release
+        if release is None:
+            return
+        if release.anchored:
+            self._release_by_watchdog(arrival_ns)
+        if release.on_sample(arrival_ns):
+            self._run_released(arrival_ns, release.instant_ns)
+
+    def _release_by_watchdog(self, now_ns: int) -> None:
+        """The period watchdog of revision 3: an instant whose window closed without a good
+        sample runs now; older unreleased ones are skipped (in real time counted as overruns:
+        in lockstep OVERRUNS counts wall clock only, as in revision 2)."""
+        assert self._sample_release is not None
+        due, skipped = self._sample_release.on_time(now_ns)
+        if not self.lockstep:
+            self.overruns += skipped
+        if due:
+            self._run_released(now_ns, self._sample_release.instant_ns - self._period_ns)
+
+    def _run_released(self, released_ns: int, instant_ns: int) -> None:
+        """One task released by revision 3 at ``released_ns`` for the control instant
+        ``instant_ns`` (release jitter: released - instant, negative for an early sample)."""
+        if self.lockstep:
+            self._control_task(released_ns, release_jitter_s=math.nan)
+            return
+        now_ns = clock_ns(self._clock)
+        self._control_task(now_ns, release_jitter_s=(released_ns - instant_ns) / NS_PER_S)
+        if clock_ns(self._clock) > released_ns + self._period_ns:
+            self.overruns += 1

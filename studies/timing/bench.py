@@ -88,6 +88,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="hold: a CPU latency request of 0 us (/dev/cpu_dma_latency, as "
                              "cyclictest) for the whole benchmark, so idle cores poll instead of "
                              "halting (default); default: the machine's idle states")
+    parser.add_argument("--release", choices=("clock", "sample"), default="clock",
+                        help="what releases the ECU's control task: clock (contract revision 2, "
+                             "default) or sample (revision 3, docs/can-contract.md)")
     parser.add_argument("--out", type=Path, default=Path("results/timing.md"))
     parser.add_argument("--work", type=Path, default=Path("build/timing"))
     args = parser.parse_args(argv)
@@ -120,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                     try:
                         run = run_timing(controller, run_seconds, args.work /
                                          f"{condition}__{controller}{'_c' if ecu == 'c' else ''}",
-                                         placement, ecu)
+                                         placement, ecu, args.release)
                     except HilError as e:
                         print(f"error: {condition} / {label}: {e}", file=sys.stderr)
                         return 1

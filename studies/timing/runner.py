@@ -139,9 +139,11 @@ def ecu_label(controller: str, ecu: str = "python") -> str:
 
 
 def run_timing(controller: str, seconds: float, work_dir: Path,
-               placement: Placement | None = None, ecu: str = "python") -> TimingRun:
+               placement: Placement | None = None, ecu: str = "python",
+               release: str = "clock") -> TimingRun:
     """Run the ECU with ``controller`` against the plant for ``seconds`` (see module doc);
-    ``ecu`` "python" (firmware_sim) or "c" (the executable ``C_ECU_EXECUTABLE``).
+    ``ecu`` "python" (firmware_sim) or "c" (the executable ``C_ECU_EXECUTABLE``);
+    ``release``: the ECUs' ``--release`` (clock: contract revision 2; sample: revision 3).
 
     Raises:
         TimingRunError: the C ECU is not built; the hub, the ECU or the plant process
@@ -179,7 +181,7 @@ def run_timing(controller: str, seconds: float, work_dir: Path,
         ecu_command = [*program, "--interface", "socketcand",
                        "--channel", CHANNEL, "--controller", controller,
                        "--path", f"1={work_dir / 'path.csv'}", "--realtime",
-                       "--timing-out", str(timing_file), "--log-level", "info"]
+                       "--timing-out", str(timing_file), "--log-level", "info", "--release", release]
         if placement.ecu_cpu is not None:
             ecu_command += ["--cpu", str(placement.ecu_cpu)]
         if placement.ecu_priority is not None:

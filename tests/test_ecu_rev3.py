@@ -1,0 +1,185 @@
+"""Contract revision 3 in the Python ECU: the control task released by the plant's samples
+(``EcuConfig.control_release = "sample"``, ``firmware_sim.clock.SampleRelease``).
+
+The release rule alone on integer ns (a 10 ms plant of revision 2, a 25 ms plant, a lost
+sample, samples faster than the period, a late loop, a restarted plant), then the ECU in
+lockstep with the scripted controller of ``test_ecu_lockstep`` (release ticks, the sample's
+age at the task start, the watchdog, determinism) and the option's validation. Both ECUs
+on the bus: ``tests/test_conformance_rev3.py``.
+"""
+from __future__ import annotations
+
+import pytest
+from can_defs.frames import CtrlMode, FrameId
+
+from firmware_sim.clock import SampleRelease
+from firmware_sim.config import (MIN_RELEASE_SPACING_NS, NS_PER_MS, SAMPLE_WATCHDOG_NS,
+                                 SAMPLE_WINDOW_EARLY_NS, EcuConfig)
+from firmware_sim.errors import ConfigError
+from hil.ecu_harness import commands
+from test_ecu_lockstep import Rig, buses, moving_plant  # noqa: F401 (buses: the fixture)
+
+MS = NS_PER_MS
+
+
+def new_release() -> SampleRelease:
+    return SampleRelease(25 * MS, SAMPLE_WINDOW_EARLY_NS, SAMPLE_WATCHDOG_NS, MIN_RELEASE_SPACING_NS,
+                         100 * MS)
+
+
+def releases(sample_ms: list[float], until_ms: int, step_ms: float = 0.5) -> list[tuple[float, str]]:
+    """(time ms, "sample" | "watchdog") of every release, time advancing in ``step_ms``
+    with the samples at ``sample_ms`` (the ECU's order: windows closed first, then the
+    sample)."""
+    release = new_release()
+    pending = sorted(sample_ms)
+    out = []
+    t = 0.0
+    while t <= until_ms:
+        now = round(t * MS)
+        if release.on_time(now)[0]:
+            out.append((t, "watchdog"))
+        while pending and pending[0] <= t:
+            if release.on_sample(round(pending.pop(0) * MS)):
+                out.append((t, "sample"))
+        t += step_ms
+    return out
+
+
+def test_a_10_ms_plant_releases_on_the_sample_nearest_each_25_ms_instant() -> None:
+    """Revision 2's plant, unchanged: one sample in every window, spacing 30 / 20 ms, a
+    25 ms mean period, never the watchdog."""
+    got = releases([10.0 * k for k in range(41)], 400)
+    print("releases:", got)
+    times = [t for t, _ in got]
+    assert all(kind == "sample" for _, kind in got)
+    assert times == [0, 30, 50, 80, 100, 130, 150, 180, 200, 230, 250, 280, 300, 330, 350, 380, 400]
+    assert (times[-1] - times[0]) / (len(times) - 1) == 25.0
+
+
+def test_a_25_ms_plant_releases_on_every_sample_whatever_its_phase() -> None:
+    """The grid anchors at the first sample, so a 25 ms plant at any phase is served on
+    arrival, also with 2 ms of jitter either way."""
+    for phase in (0.0, 7.0, 13.5, 24.0):
+        samples = [phase + 25.0 * k + (2.0 if k % 2 else -2.0) * (k > 0) for k in range(20)]
+        got = releases(samples, round(samples[-1]) + 1)
+        assert [t for t, _ in got] == [pytest.approx(s, abs=0.5) for s in samples], (phase, got)
+        assert all(kind == "sample" for _, kind in got)
+
+
+def test_a_lost_sample_still_gives_a_cycle_at_the_watchdog() -> None:
+    """25 ms plant, the sample of 50 ms lost: the watchdog releases at 50 + 7.5 ms, and the
+    next sample is served at 75 ms again."""
+    got = releases([0, 25, 75, 100], 110)
+    print("releases:", got)
+    assert got == [(0, "sample"), (25, "sample"), (57.5, "watchdog"), (75, "sample"), (100, "sample")]
+
+
+def test_samples_faster_than_the_period_release_once_per_instant_at_least_15_ms_apart() -> None:
+    """A 1 ms burst of samples: one release per 25 ms instant, never closer than the
+    minimum spacing."""
+    got = releases([float(t) for t in range(0, 200)], 200)
+    times = [t for t, _ in got]
+    print("releases:", got)
+    assert len(times) == 9  # instants 0, 25, ... 200
+    assert min(b - a for a, b in zip(times, times[1:])) >= MIN_RELEASE_SPACING_NS / MS
+
+
+def test_a_late_loop_releases_the_newest_instant_and_skips_the_older_ones() -> None:
+    release = new_release()
+    assert release.on_sample(0)
+    due, skipped = release.on_time(80 * MS)  # windows of 25, 50 and 75 (closes 82.5) ...
+    assert due and skipped == 1              # ... 25 and 50 closed unreleased: one runs
+    assert release.instant_ns == 75 * MS and not release.on_time(81 * MS)[0]
+
+
+def test_a_restarted_plant_anchors_the_grid_again() -> None:
+    """No sample for more than 100 ms (SAFE_STOP): the next one anchors the grid anew and
+    runs the task, unless the watchdog ran it less than 15 ms before (then the grid is
+    anchored there all the same and the next sample runs it)."""
+    got = releases([0, 25, 50, 275, 300], 310)
+    print("releases:", got)
+    assert [t for t, kind in got if kind == "sample"] == [0, 25, 50, 275, 300]
+    assert [t for t, kind in got if kind == "watchdog"][-1] == 257.5
+    got = releases([0, 25, 50, 261, 286], 290)
+    assert [t for t, kind in got if kind == "sample"] == [0, 25, 50, 286]  # 261: 3.5 ms after 257.5
+
+
+def test_control_release_is_checked() -> None:
+    assert EcuConfig().control_release == "clock"  # revision 2 unless asked
+    EcuConfig(control_release="sample")
+    with pytest.raises(ConfigError, match=r"control_release must be one of clock, sample, got 'fast'"):
+        EcuConfig(control_release="fast")
+
+
+# ------------------------------------------------------------------ the ECU in lockstep
+def sample_rig(buses) -> Rig:
+    rig = Rig(*buses, config=EcuConfig(control_release="sample"))
+    rig.handshake()
+    return rig
+
+
+def sample_ages(rig: Rig) -> list[float]:
+    """Wraps the ECU's control task: the newest sample's age at each task start, ms."""
+    ages: list[float] = []
+    task = rig.ecu._control_task
+
+    def probe(now_ns: int, release_jitter_s: float) -> None:
+        arrival = rig.ecu._rx.newest_sample_arrival_ns
+        ages.append(float("nan") if arrival is None else (now_ns - arrival) / MS)
+        task(now_ns, release_jitter_s)
+
+    rig.ecu._control_task = probe
+    return ages
+
+
+def command_ticks(rig: Rig) -> list[int]:
+    return [t for t, sent in sorted(rig.log.items()) if commands(sent)]
+
+
+def test_in_lockstep_a_10_ms_plant_is_served_on_fresh_samples(buses) -> None:
+    rig = sample_rig(buses)
+    ages = sample_ages(rig)
+    rig.run(0, 500)
+    ticks = command_ticks(rig)
+    print("command ticks:", ticks, "sample age at task start (ms):", ages)
+    assert ticks == [t for t in range(0, 505, 10) if t % 50 in (0, 30)]
+    assert max(ages) <= 0.0  # the task runs in the tick of its sample: age 0 (clock: 0 or 5 ms)
+    assert all(rig.command_at(t).ctrl_mode is CtrlMode.ACTIVE for t in ticks[1:])
+
+
+def test_in_lockstep_a_lost_sample_gives_a_cycle_at_the_watchdog_under_degraded_rules(buses) -> None:
+    """10 ms plant, the samples of 100 to 140 ms lost: the watchdog runs the tasks of the
+    instants 100 and 125 in the first tick at or after their windows' end (110 and 135 ms),
+    on the newest good sample (90 ms: 20 ms old, still fresh; then 45 ms, DEGRADED), and
+    the sample of 150 ms runs the next one on time."""
+    rig = sample_rig(buses)
+    ages = sample_ages(rig)
+    # a plant standing still: the position stays continuous across the gap
+    rig.run(0, 200, plant=lambda t: None if 100 <= t <= 140 else {"vx": 10.0, "x": 1.0, "y": 0.0})
+    ticks = command_ticks(rig)
+    print("command ticks:", ticks, "ages:", ages, "modes:", [rig.command_at(t).ctrl_mode.name for t in ticks])
+    assert ticks == [0, 30, 50, 80, 110, 135, 150, 180, 200]
+    assert ages[4:7] == [20.0, 45.0, 0.0]
+    assert [rig.command_at(t).ctrl_mode for t in (110, 135, 150)] == [
+        CtrlMode.ACTIVE, CtrlMode.DEGRADED, CtrlMode.ACTIVE]
+    assert rig.diag_at(135).faults & 0b0001 and not rig.diag_at(150).faults & 0b0001
+
+
+def test_in_lockstep_two_runs_with_sample_release_send_the_same_frames(buses) -> None:
+    import can
+    import uuid
+
+    runs = []
+    for _ in range(2):
+        channel = f"ecu-rev3-{uuid.uuid4()}"
+        pair = (can.Bus(interface="virtual", channel=channel), can.Bus(interface="virtual", channel=channel))
+        try:
+            rig = sample_rig(pair)
+            sent = rig.run(0, 400)
+            runs.append([(m.arbitration_id, bytes(m.data)) for m in sent
+                         if m.arbitration_id == FrameId.STEER_TORQUE_CMD])
+        finally:
+            for bus in pair:
+                bus.shutdown()
+    assert runs[0] == runs[1] and len(runs[0]) == 17
