@@ -21,6 +21,12 @@
 #define SAFE_STOP_STEER_RATE 0.2 /* rad/s */
 #define STANDSTILL_SPEED 0.1   /* m/s */
 #define MAX_CATCH_UP_TASKS 40
+/* Revision 3, the control task released by the plant's samples (--release sample): the
+ * window of a control instant N is [N - SAMPLE_WINDOW_EARLY_NS, N + SAMPLE_WATCHDOG_NS),
+ * the watchdog releases at its end, two releases are at least MIN_RELEASE_SPACING_NS apart. */
+#define SAMPLE_WINDOW_EARLY_NS 2500000LL
+#define SAMPLE_WATCHDOG_NS 7500000LL
+#define MIN_RELEASE_SPACING_NS 15000000LL
 #define JUMP_THRESHOLD_MS 100
 #define BEFORE_TICK_0_MS (-5)
 #define HANDSHAKE_TICK 0xFFFFFFFFu

@@ -7,6 +7,8 @@
  *       [--rt-priority P]     (pin to a CPU, SCHED_FIFO; skipped with a warning where refused)
  *       [--timing-out FILE.npz [--replace]]   (firmware_sim.timing's record, written on exit)
  *       [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--log-level L]
+ *       [--release clock|sample]  (what releases the control task: the 25 ms clock of
+ *                            contract revision 2, the default, or revision 3's plant samples)
  *       [--excite PROGRAM]  (identification excitation while ACTIVE: chirp, prbs, steps,
  *                            prbs-torque, or a .toml / .csv program file; ecu_excite.c)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
@@ -71,6 +73,7 @@ static const char *const USAGE =
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
   "           [--cpu N] [--rt-priority P] [--timing-out FILE.npz [--replace]] [--log-level L]\n"
   "           [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--excite PROGRAM]\n"
+  "           [--release clock|sample]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -223,7 +226,7 @@ static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os
 
 /* The node on the bus until a stop signal; the bus is reopened every second while lost. */
 static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error,
-                   int realtime, const char *timing_out, const char *ready) {
+                   int realtime, int sample_release, const char *timing_out, const char *ready) {
   char err[300];
   os_can_frame_t frame;
   if (os_can_open(interface, channel, host, port, err, sizeof err) != 0) {
@@ -236,6 +239,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
   }
   ecu_node_start(&node, &core, &paths, &excitation, send_on_bus, load_error);
   if (realtime) ecu_node_set_realtime(&node);
+  if (sample_release) ecu_node_set_sample_release(&node);
   os_install_stop_handler(&stop_requested);
   int lost = 0;
   int64_t next_reopen = 0, failing_since = -1;
@@ -306,7 +310,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
 int main(int argc, char **argv) {
   const char *controller = NULL, *data = "build/firmware/ecu_data.bin", *samples_file = NULL;
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
-  const char *timing_out = NULL, *dbc = NULL, *model = NULL, *excite = NULL;
+  const char *timing_out = NULL, *dbc = NULL, *model = NULL, *excite = NULL, *release = "clock";
   int debug = 0, info = 0, bitrate = 0;
   int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0;
   const char *path_files[MAX_PATHS];
@@ -338,10 +342,17 @@ int main(int argc, char **argv) {
                           strcmp(arg, "--rt-priority") == 0 || strcmp(arg, "--timing-out") == 0 ||
                           strcmp(arg, "--log-level") == 0 || strcmp(arg, "--dbc") == 0 ||
                           strcmp(arg, "--model") == 0 || strcmp(arg, "--bitrate") == 0 ||
-                          strcmp(arg, "--excite") == 0)) {
+                          strcmp(arg, "--excite") == 0 || strcmp(arg, "--release") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
+    } else if (strcmp(arg, "--release") == 0) {
+      release = argv[++i];
+      if (strcmp(release, "clock") != 0 && strcmp(release, "sample") != 0) {
+        snprintf(message, sizeof message, "--release: control_release must be one of clock, sample, got '%s'",
+                 release);
+        return fail(message);
+      }
     } else if (strcmp(arg, "--controller") == 0) {
       controller = argv[++i];
     } else if (strcmp(arg, "--interface") == 0) {
@@ -530,7 +541,8 @@ int main(int argc, char **argv) {
     static char ready[200];
     snprintf(ready, sizeof ready, "controller %s, %d path(s), %s, %s", controller, n_paths,
              realtime ? "real time" : "lockstep", failure ? "FAULT" : "loaded");
-    return run_bus(interface, channel, host, port, failure, realtime, timing_out, info ? ready : NULL);
+    return run_bus(interface, channel, host, port, failure, realtime, strcmp(release, "sample") == 0, timing_out,
+                   info ? ready : NULL);
   }
   if (ecu_core_load(&core, data, controller, err, sizeof err) != 0) return fail(err);
   /* Every path file is checked at start-up; the selected one is loaded last. */

@@ -29,8 +29,13 @@ void ecu_node_frame(ecu_node_t *node, uint32_t id, const uint8_t *data, int leng
  * ignored, the control task released by ecu_node_poll on absolute 25 ms deadlines. */
 void ecu_node_set_realtime(ecu_node_t *node);
 
+/* Contract revision 3 (--release sample): the control task released by the arrival of a
+ * good plant sample set in the window of each 25 ms instant, with the period watchdog
+ * (ecu_release.h); in both time bases. Call after ecu_node_start. */
+void ecu_node_set_sample_release(ecu_node_t *node);
+
 /* Real time: run the control task if its release has come; returns the next release (ns
- * on os_monotonic_ns). */
+ * on os_monotonic_ns; revision 3: the latest the next release can come, its watchdog). */
 int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns);
 
 /* On stopping: one last STEER_TORQUE_CMD with CMD_VALID = 0 (STANDBY, FAULT when latched),

@@ -11,6 +11,7 @@
 
 #include "ecu_core.h"
 #include "ecu_excite.h"
+#include "ecu_release.h"
 #include "ecu_rx_state.h"
 #include "ecu_timing.h"
 #include "ecu_tx.h"
@@ -31,6 +32,8 @@ typedef struct {
   ecu_when_t last_tick;
   int realtime, warned_sync, release_started;
   int64_t next_release;
+  int sample_release;    /* revision 3: the control task released by the plant's samples */
+  ecu_release_t release; /* its grid of control instants (ecu_release.h) */
   ecu_output_t out; /* the core's output of the task running (no state between tasks) */
   ecu_timing_t timing;
 } ecu_node_t;

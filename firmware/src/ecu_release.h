@@ -1,0 +1,41 @@
+/*
+ * Revision 3 release of the control task by the plant's samples (firmware_sim/clock.py
+ * SampleRelease; docs/can-contract.md, "Revision 3"), on integer ns of either time base.
+ *
+ * Unanchored (from the start, after ecu_release_reset), the node releases the task on its
+ * 25 ms clock as in revision 2 and reports each release with ecu_release_note. A good
+ * sample set anchors the grid of control instants N_k = anchor + k * 25 ms there: the
+ * first one, and the first after none for more than 100 ms (at the release just before it
+ * when that was less than 15 ms earlier). Anchored, instant N is released
+ * by the first good sample set arriving in [N - 2.5 ms, N + 7.5 ms), else by the period
+ * watchdog at N + 7.5 ms; one release per instant; two releases at least 15 ms apart.
+ */
+#ifndef ECU_RELEASE_H
+#define ECU_RELEASE_H
+
+#include <stdint.h>
+
+#include "ecu_contract.h"
+
+typedef struct {
+  int anchored;
+  int64_t instant_ns;   /* the pending control instant N (anchored) */
+  int instant_released; /* N has had its release */
+  ecu_when_t last_release, last_sample;
+} ecu_release_t;
+
+/* Unanchored, nothing released (start-up, handshake, jump of virtual time). */
+void ecu_release_reset(ecu_release_t *release);
+
+/* A release of the node's own clock (unanchored). */
+void ecu_release_note(ecu_release_t *release, int64_t now_ns);
+
+/* Close the windows that ended by now_ns: 1 when the watchdog releases the task now;
+ * *skipped: older unreleased instants skipped (a late loop). */
+int ecu_release_on_time(ecu_release_t *release, int64_t now_ns, int *skipped);
+
+/* A good plant sample set arrived at arrival_ns (ecu_release_on_time first): 1 when it
+ * releases the task now. */
+int ecu_release_on_sample(ecu_release_t *release, int64_t arrival_ns);
+
+#endif
