@@ -116,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="what releases the control task: clock (contract revision 2, the "
                              "default) or sample (revision 3: the plant's samples, with the "
                              "period watchdog; docs/can-contract.md)")
+    parser.add_argument("--plant-period", type=int, default=10, metavar="MS",
+                        help="the plant's sample period: 10 (default) or 25 ms (revision 3, with "
+                             "--release sample)")
     parser.add_argument("--dbc", type=Path, default=None, metavar="FILE.dbc",
                         help="CAN matrix to use (default: the contract's can_defs/vehicle.dbc); "
                              "one that does not load is an error before the bus is opened")
@@ -141,7 +144,7 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
     stop_event = stop_event or threading.Event()
     try:
         paths = parse_paths(args.path)
-        config = EcuConfig(control_release=args.release)
+        config = EcuConfig(control_release=args.release, plant_sample_period_ms=args.plant_period)
         if args.timing_out is not None:
             inputs = command_inputs(paths.values(), dbc=args.dbc, model=args.model, excite=args.excite)
             check_output_file(args.timing_out, "--timing-out", replace=args.replace, inputs=inputs,

@@ -46,6 +46,9 @@ class Plausibility:
 #: Release of the control task (contract rev. 3): ``"clock"`` the 25 ms clock of revision 2,
 #: ``"sample"`` the arrival of a good plant sample set in the window of each 25 ms instant.
 CONTROL_RELEASES = ("clock", "sample")
+#: Sample periods of the plant the ECU can serve, ms (contract rev. 3: 10 ms as in revision 2,
+#: or 25 ms for a plant that knows revision 3; only with the sample release).
+PLANT_SAMPLE_PERIODS_MS = (10, 25)
 #: Rev. 3 release window of a control instant N: [N - this, N + SAMPLE_WATCHDOG_NS) (*contract*).
 SAMPLE_WINDOW_EARLY_NS = 2_500_000
 #: Rev. 3 period watchdog: no good sample in the window -> the task is released at N + this.
@@ -98,6 +101,10 @@ class EcuConfig:
             (revision 2, the default: every 25 ms on the clock) or ``"sample"`` (revision 3:
             the arrival of a good plant sample set in the window of each 25 ms instant, with
             the period watchdog; ``firmware_sim.clock.SampleRelease``).
+        plant_sample_period_ms: the plant's sample period (``PLANT_SAMPLE_PERIODS_MS``):
+            10 ms (revisions 2 and 3) or 25 ms (rev. 3, only with the sample release: on the
+            clock a 25 ms sample would be up to 25 ms old, DEGRADED); the continuity check
+            counts this much time per counter step (``Plausibility.sample_period_ms``).
     """
 
     control_period_ms: int = 25
@@ -115,6 +122,7 @@ class EcuConfig:
     timing_capacity: int = 1 << 16
     solver_budget_ms: int = 15
     control_release: str = "clock"
+    plant_sample_period_ms: int = 10
 
     def __post_init__(self) -> None:
         for name in ("control_period_ms", "tick_ms", "sample_stale_ms", "sample_lost_ms",
@@ -142,6 +150,12 @@ class EcuConfig:
                               f"exceeds drive_torque_limit_nm {self.drive_torque_limit_nm}")
         if self.control_release not in CONTROL_RELEASES:
             raise ConfigError(f"EcuConfig.control_release must be one of {', '.join(CONTROL_RELEASES)}, "
+                              f"got {self.control_release!r}")
+        if self.plant_sample_period_ms not in PLANT_SAMPLE_PERIODS_MS:
+            raise ConfigError(f"EcuConfig.plant_sample_period_ms must be 10 or 25, "
+                              f"got {self.plant_sample_period_ms!r}")
+        if self.plant_sample_period_ms == 25 and self.control_release != "sample":
+            raise ConfigError("EcuConfig.plant_sample_period_ms 25 needs control_release 'sample', "
                               f"got {self.control_release!r}")
         if self.control_period_ms % self.tick_ms:
             raise ConfigError(f"EcuConfig.control_period_ms {self.control_period_ms} is not a "

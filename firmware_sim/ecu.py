@@ -48,7 +48,7 @@ from firmware_sim.bus_loop import BusLoop
 from firmware_sim.clock import (HANDSHAKE_TICK, LockstepClock, MonotonicClock, RealtimeSchedule, SampleRelease,
                                 TickKind, clock_ns)
 from firmware_sim.config import (MIN_RELEASE_SPACING_NS, NS_PER_MS, NS_PER_S, SAMPLE_WATCHDOG_NS,
-                                 SAMPLE_WINDOW_EARLY_NS, EcuConfig)
+                                 SAMPLE_WINDOW_EARLY_NS, EcuConfig, Plausibility)
 from firmware_sim.control_task import ControlTask
 from firmware_sim.errors import ConfigError
 from firmware_sim.excitation import Excitation, ExcitationProgram, describe
@@ -116,7 +116,7 @@ class Ecu(ControlTask, BusLoop):
         self._limits = GuardLimits(self._config.steer_limit_rad, self._config.drive_torque_limit_nm)
         self._period_ns = self._config.control_period_ms * NS_PER_MS
         self._tx = Transmitter(bus, self._log)
-        self._rx = RxState(log=self._log)
+        self._rx = RxState(Plausibility(sample_period_ms=self._config.plant_sample_period_ms), log=self._log)
         #: Frames of other kinds than classic 11-bit data frames, ignored (rev. 2).
         self.ignored_frames = 0
         #: The bus is lost (end of stream or persistent receive errors) and not reopened yet.

@@ -1,7 +1,8 @@
 """Plant emulator node: the four-wheel vehicle behind the CAN contract.
 
 Every 10 ms it publishes VEH_DYN, VEH_POSE_XY and VEH_POSE_YAW carrying the state of
-one sample instant. The three frames are always sent together and each has its own
+one sample instant (every 25 ms, at the ticks that are multiples of 25, as a plant of
+contract revision 3 may: ``sample_period_ms``). The three frames are always sent together and each has its own
 alive counter starting at 0, so one `FrameSender` gives all three the same CNT: the
 ECU's consistency check (one counter = one sample) holds by construction.
 
@@ -34,6 +35,8 @@ from models.vehicle import FourWheelVehicle, VehicleCommand, VehicleOutputs
 
 #: Publishing period of the three plant frames (contract: 10 ms).
 PLANT_PERIOD_MS = 10
+#: Periods a plant may publish at (contract rev. 3: 25 ms for a plant that knows it).
+PLANT_PERIODS_MS = (10, 25)
 #: Without a valid command for this long the plant stops driving (actuator watchdog:
 #: steering held, zero torque), so a dead ECU never leaves the last torque applied.
 COMMAND_TIMEOUT_MS = 100
@@ -88,9 +91,18 @@ class PlantNode:
     Args:
         scenario: road friction, mass, start state, faults and disturbances of the run.
         vehicle: a ready vehicle (tests); default: built from the scenario.
+        sample_period_ms: publishing period, 10 ms (the contract) or 25 ms (revision 3,
+            for an ECU with ``--release sample --plant-period 25``).
+
+    Raises:
+        HilError: a period other than 10 or 25 ms.
     """
 
-    def __init__(self, scenario: Scenario, vehicle: FourWheelVehicle | None = None) -> None:
+    def __init__(self, scenario: Scenario, vehicle: FourWheelVehicle | None = None,
+                 sample_period_ms: int = PLANT_PERIOD_MS) -> None:
+        if sample_period_ms not in PLANT_PERIODS_MS:
+            raise HilError(f"plant sample_period_ms must be 10 or 25, got {sample_period_ms!r}")
+        self.sample_period_ms = sample_period_ms
         self.scenario = scenario
         self.vehicle = vehicle if vehicle is not None else scenario.vehicle()
         start = scenario.start
@@ -111,7 +123,7 @@ class PlantNode:
 
     def frames_due(self, tick_ms: int) -> list[can.Message]:
         """The plant frames due at ``tick_ms`` (state now), empty between periods."""
-        if tick_ms % PLANT_PERIOD_MS:
+        if tick_ms % self.sample_period_ms:
             return []
         out = self.vehicle.outputs()
         frames = (VehDyn(out.vx, out.vy, out.yaw_rate),

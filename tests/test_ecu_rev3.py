@@ -112,6 +112,28 @@ def test_control_release_is_checked() -> None:
         EcuConfig(control_release="fast")
 
 
+def test_plant_sample_period_is_checked_and_counted_by_the_continuity_check() -> None:
+    assert EcuConfig().plant_sample_period_ms == 10
+    EcuConfig(control_release="sample", plant_sample_period_ms=25)
+    with pytest.raises(ConfigError, match=r"plant_sample_period_ms 25 needs control_release 'sample'"):
+        EcuConfig(plant_sample_period_ms=25)
+    with pytest.raises(ConfigError, match=r"plant_sample_period_ms must be 10 or 25, got 20"):
+        EcuConfig(control_release="sample", plant_sample_period_ms=20)
+
+
+def test_the_plant_publishes_every_25_ms_when_asked() -> None:
+    from hil.errors import HilError
+    from hil.plant_node import PlantNode
+    from hil.scenario import load_scenario
+
+    smoke = load_scenario("dlc_smoke")
+    plant = PlantNode(smoke, sample_period_ms=25)
+    assert [len(plant.frames_due(t)) for t in range(0, 105, 5)] == [3 if t % 25 == 0 else 0 for t in range(0, 105, 5)]
+    assert len(PlantNode(smoke).frames_due(10)) == 3
+    with pytest.raises(HilError, match="sample_period_ms must be 10 or 25, got 20"):
+        PlantNode(smoke, sample_period_ms=20)
+
+
 # ------------------------------------------------------------------ the ECU in lockstep
 def sample_rig(buses) -> Rig:
     rig = Rig(*buses, config=EcuConfig(control_release="sample"))

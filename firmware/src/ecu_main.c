@@ -9,6 +9,7 @@
  *       [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--log-level L]
  *       [--release clock|sample]  (what releases the control task: the 25 ms clock of
  *                            contract revision 2, the default, or revision 3's plant samples)
+ *       [--plant-period 10|25]  (the plant's sample period; 25 ms only with --release sample)
  *       [--excite PROGRAM]  (identification excitation while ACTIVE: chirp, prbs, steps,
  *                            prbs-torque, or a .toml / .csv program file; ecu_excite.c)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
@@ -73,7 +74,7 @@ static const char *const USAGE =
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
   "           [--cpu N] [--rt-priority P] [--timing-out FILE.npz [--replace]] [--log-level L]\n"
   "           [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--excite PROGRAM]\n"
-  "           [--release clock|sample]\n"
+  "           [--release clock|sample] [--plant-period 10|25]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
@@ -226,7 +227,8 @@ static int send_on_bus(uint32_t id, const uint8_t *data, int length) { return os
 
 /* The node on the bus until a stop signal; the bus is reopened every second while lost. */
 static int run_bus(const char *interface, const char *channel, const char *host, int port, const char *load_error,
-                   int realtime, int sample_release, const char *timing_out, const char *ready) {
+                   int realtime, int sample_release, int plant_period, const char *timing_out,
+                   const char *ready) {
   char err[300];
   os_can_frame_t frame;
   if (os_can_open(interface, channel, host, port, err, sizeof err) != 0) {
@@ -240,6 +242,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
   ecu_node_start(&node, &core, &paths, &excitation, send_on_bus, load_error);
   if (realtime) ecu_node_set_realtime(&node);
   if (sample_release) ecu_node_set_sample_release(&node);
+  ecu_node_set_plant_period(&node, plant_period);
   os_install_stop_handler(&stop_requested);
   int lost = 0;
   int64_t next_reopen = 0, failing_since = -1;
@@ -312,7 +315,7 @@ int main(int argc, char **argv) {
   const char *interface = NULL, *channel = NULL, *host = "127.0.0.1";
   const char *timing_out = NULL, *dbc = NULL, *model = NULL, *excite = NULL, *release = "clock";
   int debug = 0, info = 0, bitrate = 0;
-  int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0;
+  int port = 29536, lockstep = 0, cpu = -1, fifo_priority = 0, replace = 0, plant_period = 10;
   const char *path_files[MAX_PATHS];
   int path_ids[MAX_PATHS], n_paths = 0, selected = -1, realtime = 0, data_given = 0;
   char err[600], message[800];
@@ -342,10 +345,23 @@ int main(int argc, char **argv) {
                           strcmp(arg, "--rt-priority") == 0 || strcmp(arg, "--timing-out") == 0 ||
                           strcmp(arg, "--log-level") == 0 || strcmp(arg, "--dbc") == 0 ||
                           strcmp(arg, "--model") == 0 || strcmp(arg, "--bitrate") == 0 ||
-                          strcmp(arg, "--excite") == 0 || strcmp(arg, "--release") == 0)) {
+                          strcmp(arg, "--excite") == 0 || strcmp(arg, "--release") == 0 ||
+                          strcmp(arg, "--plant-period") == 0)) {
       snprintf(message, sizeof message, "%s needs a value", arg);
       fputs(USAGE, stderr);
       return fail(message);
+    } else if (strcmp(arg, "--plant-period") == 0) {
+      char *end;
+      long value = strtol(argv[++i], &end, 10);
+      if (*end != '\0' || end == argv[i]) {
+        snprintf(message, sizeof message, "--plant-period: expected an integer, got '%s'", argv[i]);
+        return fail(message);
+      }
+      if (value != 10 && value != 25) {
+        snprintf(message, sizeof message, "--plant-period: plant_sample_period_ms must be 10 or 25, got %ld", value);
+        return fail(message);
+      }
+      plant_period = (int)value;
     } else if (strcmp(arg, "--release") == 0) {
       release = argv[++i];
       if (strcmp(release, "clock") != 0 && strcmp(release, "sample") != 0) {
@@ -433,6 +449,11 @@ int main(int argc, char **argv) {
       fputs(USAGE, stderr);
       return fail(message);
     }
+  }
+  if (plant_period == 25 && strcmp(release, "sample") != 0) {
+    snprintf(message, sizeof message, "--plant-period: plant_sample_period_ms 25 needs control_release 'sample', got '%s'",
+             release);
+    return fail(message);
   }
   if (!controller || n_paths == 0) {
     fputs(USAGE, stderr);
@@ -541,7 +562,7 @@ int main(int argc, char **argv) {
     static char ready[200];
     snprintf(ready, sizeof ready, "controller %s, %d path(s), %s, %s", controller, n_paths,
              realtime ? "real time" : "lockstep", failure ? "FAULT" : "loaded");
-    return run_bus(interface, channel, host, port, failure, realtime, strcmp(release, "sample") == 0, timing_out,
+    return run_bus(interface, channel, host, port, failure, realtime, strcmp(release, "sample") == 0, plant_period, timing_out,
                    info ? ready : NULL);
   }
   if (ecu_core_load(&core, data, controller, err, sizeof err) != 0) return fail(err);

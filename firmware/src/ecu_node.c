@@ -15,6 +15,7 @@ static double wall_seconds(void) { return 1e-9 * (double)os_monotonic_ns(); }
 
 static void reset_run(ecu_node_t *node) {
   ecu_rx_state_reset(&node->rx);
+  node->rx.sample_period_ms = node->plant_period_ms;
   node->tx.counter[0] = node->tx.counter[1] = 0;
   node->mode = node->load_error ? ECU_FAULT : ECU_INIT;
   node->awaiting_disengage = 0;
@@ -38,6 +39,7 @@ void ecu_node_start(ecu_node_t *node, ecu_core_t *core, const ecu_path_pool_t *p
   node->timing.count = 0; /* a new node, a new record (the handshake keeps it, as in Python) */
   node->realtime = node->warned_sync = node->release_started = 0;
   node->sample_release = 0;
+  node->plant_period_ms = 0;
   node->last_tick.set = 0;
   reset_run(node);
 }
@@ -158,6 +160,11 @@ void ecu_node_frame(ecu_node_t *node, uint32_t id, const uint8_t *data, int leng
 void ecu_node_set_realtime(ecu_node_t *node) { node->realtime = 1; }
 
 void ecu_node_set_sample_release(ecu_node_t *node) { node->sample_release = 1; }
+
+void ecu_node_set_plant_period(ecu_node_t *node, int period_ms) {
+  node->plant_period_ms = period_ms;
+  node->rx.sample_period_ms = period_ms;
+}
 
 int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns) {
   const int64_t period = CONTROL_PERIOD_MS * NS_PER_MS;

@@ -34,6 +34,10 @@ void ecu_node_set_realtime(ecu_node_t *node);
  * (ecu_release.h); in both time bases. Call after ecu_node_start. */
 void ecu_node_set_sample_release(ecu_node_t *node);
 
+/* Revision 3 (--plant-period 25): the plant's sample period, for the continuity check of
+ * a sample (10 ms in revision 2). Call after ecu_node_start. */
+void ecu_node_set_plant_period(ecu_node_t *node, int period_ms);
+
 /* Real time: run the control task if its release has come; returns the next release (ns
  * on os_monotonic_ns; revision 3: the latest the next release can come, its watchdog). */
 int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns);

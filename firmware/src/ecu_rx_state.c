@@ -40,7 +40,8 @@ static int implausible(const ecu_rx_state_t *rx, const ecu_measurement_t *s, ecu
   int64_t age = last_good_age(rx, arrival, &known);
   if (!known || age > CONTINUITY_WINDOW_MS * NS_PER_MS) return 0;
   const ecu_measurement_t *last = &rx->sample;
-  double elapsed = SAMPLE_PERIOD_MS / 1000.0 * (double)(((s->counter - last->counter) % 16 + 16) % 16);
+  int period_ms = rx->sample_period_ms ? rx->sample_period_ms : SAMPLE_PERIOD_MS;
+  double elapsed = period_ms / 1000.0 * (double)(((s->counter - last->counter) % 16 + 16) % 16);
   double speed = fmax(hypot(s->vx, s->vy), hypot(last->vx, last->vy));
   double allowed = (speed + SPEED_MARGIN) * elapsed + POSITION_SLACK;
   return hypot(s->x - last->x, s->y - last->y) > allowed;

@@ -31,6 +31,9 @@ typedef struct {
   int set_counter, set_parts, set_completed;
   double part[3][3];
   ecu_e2e_monitor_t e2e;
+  /* The plant's sample period for the continuity check, ms (0: SAMPLE_PERIOD_MS; revision 3
+   * allows 25). Configuration: the node sets it again after each reset. */
+  int sample_period_ms;
 } ecu_rx_state_t;
 
 /* RxState.reset: nothing received, every E2E reference forgotten. */
