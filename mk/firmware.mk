@@ -7,6 +7,7 @@
 #   make firmware-test   - the C core's tests (tests/test_firmware_c*.py; also in make test)
 #   make firmware-equivalence - --native and the C executable vs the Python ECU, full lane changes
 #   make firmware-conformance - the C and the Python ECU under 15 bus faults, frames compared
+#                          (contract revisions 2 and 3: --release clock and sample)
 #   make firmware-vcan   - the C ECU on vcan0 (user-mode Linux) vs the Python ECU, full lane change
 #   make firmware-asan   - the same tests on an -fsanitize=address,undefined build (build/firmware-asan)
 #   make firmware-cross  - the aarch64 cross build, replayed under qemu against the host build
@@ -119,9 +120,9 @@ firmware-test: firmware
 firmware-equivalence: firmware
 	ECU_EQUIVALENCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_equivalence.py tests/test_firmware_c_bus.py
 
-## the C ECU and the Python ECU on the hub under 15 contract faults: the same frames
+## the C ECU and the Python ECU on the hub under 15 contract faults, clock and sample release (rev. 3): the same frames
 firmware-conformance: firmware
-	ECU_CONFORMANCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_bus.py -k conformance
+	ECU_CONFORMANCE_FULL=1 $(PY) -m pytest -q -s tests/test_firmware_c_bus.py tests/test_conformance_rev3.py -k conformance
 
 ## the C ECU on a real vcan0 (host or user-mode Linux) vs the Python ECU, full lane change
 firmware-vcan: firmware apt-deps

@@ -6,7 +6,7 @@ a hub of their own (``studies.bench_native.run_on_hub``), as in ``test_firmware_
 two runs of one ECU send the same frames, the two ECUs send the same frames (STEER_TORQUE_CMD
 byte for byte, CTRL_DIAG but its wall-clock fields), and the conformance cases of revision 2
 (``CONFORMANCE_CASES``) give the same frames in both with the option on. The first cases run
-in make test, every case with ECU_CONFORMANCE_FULL=1; a real-time run of each closes.
+in make test, every case in make firmware-conformance (ECU_CONFORMANCE_FULL=1); real-time runs close.
 """
 from __future__ import annotations
 
