@@ -20,7 +20,10 @@ actuator lag x3) drives the identification drive over CAN with LMPC and the
 bicycle are identified from that log alone (``python -m models.koopman_train --logs``);
 then Tables II and III run on the changed plant with the nominal and the re-identified
 models, for ESO-DKMPC, DKMPC and LMPC alike, and NMPC with its nominal single track, beside
-the nominal plant with the nominal models.
+the nominal plant with the nominal models. The steering servo's time constant is fitted from
+the same log (``models.servo_fit``); ESO-DKMPC, DKMPC and LMPC run once more with their
+nominal models and only ``delay_compensation_s`` set to how much slower the servo is than
+the nominal one (the calibration a new vehicle needs before a new model).
 The fitted bicycle is compared with the nominal one and with the changed plant's own
 flat-track stiffnesses at its static loads (the extra mass moves the tyres along their
 degressive load curve, so the axles' stiffness changes are not exactly 0 % and -20 %).
@@ -176,6 +179,8 @@ def write_drive(path_file: Path = IDENTIFICATION_PATH_FILE,
 CHANGED_MASS_OFFSET_KG = 300.0
 CHANGED_REAR_STIFFNESS_SCALE = 0.8
 CHANGED_LAG_FACTOR = 3.0
+#: The row kind of :func:`table_runs` for a nominal model with the servo's delay compensation.
+CALIBRATED = "calibrated"
 #: The drive's controller. Not one with an observer: the excitation is not in the
 #: command the observer sees, so it estimates it as a disturbance and fights it (DMDc-ESO
 #: on the changed plant then kept the steering saturated at +-0.3 rad from 20 s on).
@@ -269,15 +274,43 @@ def identify(log: Path, model_dir: Path, epochs: int | None, vehicle_file: Path,
         raise SystemExit(f"error: training from {log} failed (exit status {done.returncode})")
 
 
-def table_runs(model_dir: Path) -> list[dict[str, Any]]:
+def servo_calibration(log: Path) -> dict[str, Any]:
+    """The steering servo's time constant fitted from the drive's log (``models.servo_fit``:
+    command against measured wheel angle), the nominal one the models were trained on
+    (models/vehicle.toml) and the delay compensation their difference gives
+    (``MpcTuning.delay_compensation_s``, 0 when the servo is not slower than nominal)."""
+    from models.can_log_data import load_logs
+    from models.servo_fit import fit_servo_lag
+    from models.vehicle_params import load_vehicle_params
+
+    nominal = load_vehicle_params()
+    data = load_logs([log])
+    runs = [(t.inputs[:, t.input_names.index("steer")], t.states[:, t.state_names.index("steer_measured")])
+            for t in data.trajectories]
+    fit = fit_servo_lag(runs, data.ts, rate_limit=nominal.steer_rate_limit)
+    delay = max(0.0, fit.time_constant_s - nominal.steer_time_constant)
+    # rounded to the millisecond: a calibration value as a person would write it in a tuning file
+    return {"time_constant_s": round(fit.time_constant_s, 5), "nominal_time_constant_s": nominal.steer_time_constant,
+            "delay_compensation_s": round(delay, 3), "steps": fit.steps,
+            "one_step_rmse_rad": round(fit.one_step_rmse_rad, 7)}
+
+
+def table_runs(model_dir: Path, delay_compensation_s: float) -> list[dict[str, Any]]:
     """Tables II and III: per scenario, the nominal plant with the nominal models, then the
     changed plant with the nominal and the identified models (ESO-DKMPC, DKMPC, LMPC) and
-    NMPC with its nominal model."""
+    NMPC with its nominal model; and ESO-DKMPC, DKMPC and LMPC with their nominal models and
+    ``delay_compensation_s`` (the servo calibrated from the log, :func:`servo_calibration`)."""
     from controller.registry import create_controller
+    from controller.tuning import load_tuning
     from hil.scenario import load_scenario
     from models.vehicle import FourWheelVehicle, VehicleCommand
+    from studies.campaign.tuning_override import build_controller, with_override
     from studies.closed_loop import run_closed_loop
     from studies.paper_tables import run_summary
+
+    def calibrated(controller: str) -> Any:
+        override = {"delay_compensation_s": delay_compensation_s}
+        return build_controller(controller, with_override(load_tuning(), controller, override))
 
     # DKMPC (the same model without the observer) and NMPC (the nominal single track) on the
     # changed plant say whether a failure of ESO-DKMPC with the nominal model is the
@@ -287,6 +320,8 @@ def table_runs(model_dir: Path) -> list[dict[str, Any]]:
                 ("changed", "dkmpc", None), ("changed", "dkmpc", model_dir / "koopman"),
                 ("changed", "lmpc", None), ("changed", "lmpc", model_dir / "bicycle.json"),
                 ("changed", "nmpc", None)]
+    # The nominal models told only how much later the slower servo acts: no new model.
+    variants += [("changed", name, CALIBRATED) for name in ("eso-dkmpc", "dkmpc", "lmpc")]
     runs = []
     for name in TABLE_SCENARIOS:
         scenario = load_scenario(name)
@@ -295,11 +330,12 @@ def table_runs(model_dir: Path) -> list[dict[str, Any]]:
             if plant_kind == "changed":
                 params = changed_params(params)
             started = time.perf_counter()
-            result = run_closed_loop(scenario, create_controller(controller, model_path=model),
-                                     plant=FourWheelVehicle(params), command_type=VehicleCommand)
+            law = calibrated(controller) if model == CALIBRATED else create_controller(controller, model_path=model)
+            result = run_closed_loop(scenario, law, plant=FourWheelVehicle(params), command_type=VehicleCommand)
             summary = run_summary(result)
-            summary.update(plant=plant_kind, model="identified" if model else "nominal",
-                           controller=_label(plant_kind, controller, model is not None),
+            kind = "calibrated" if model == CALIBRATED else "identified" if model else "nominal"
+            summary.update(plant=plant_kind, model=kind,
+                           controller=_label(plant_kind, controller, kind, delay_compensation_s),
                            law=controller, seconds=round(time.perf_counter() - started, 2))
             runs.append(summary)
             print(f"{name}: {summary['controller']}: e_Y RMSE "
@@ -307,15 +343,19 @@ def table_runs(model_dir: Path) -> list[dict[str, Any]]:
     return runs
 
 
-def _label(plant_kind: str, controller: str, identified: bool) -> str:
+def _label(plant_kind: str, controller: str, kind: str, delay_compensation_s: float) -> str:
+    """A table row's name; ``kind``: "nominal", "identified" or "calibrated" (nominal model,
+    delay compensation from the servo fit)."""
     law = {"eso-dkmpc": "ESO-DKMPC", "dkmpc": "DKMPC", "lmpc": "LMPC", "nmpc": "NMPC"}[controller]
     koopman = controller in ("eso-dkmpc", "dkmpc")
     if controller == "nmpc":
         model = "nominal single track"
-    elif identified:
+    elif kind == "identified":
         model = "identified Koopman" if koopman else "fitted bicycle"
     else:
         model = "nominal Koopman (dk_d5)" if koopman else "nominal bicycle"
+    if kind == "calibrated":
+        model += f" + delay compensation {1000 * delay_compensation_s:.0f} ms from the servo fit"
     return f"{law}, {model}, {plant_kind} plant"
 
 
@@ -369,6 +409,14 @@ def tables_markdown(runs: Sequence[dict[str, Any]], summary: dict[str, Any]) -> 
         lines.append(f"| {name} | {row['nominal']:.0f} | {row['changed_plant']:.0f} | {row['fitted']:.0f} "
                      f"| {row['plant_change_percent']:+.1f} % | {row['change_percent']:+.1f} % "
                      f"| {row['fit_error_percent']:+.1f} % |")
+    servo = summary["servo"]
+    lines += ["", f"Steering servo fitted from the same log (`models.servo_fit`: a first-order lag of the "
+              f"measured wheel angle behind the command, {servo['steps']} steps, one-step RMSE "
+              f"{servo['one_step_rmse_rad']:.1e} rad): time constant {1000 * servo['time_constant_s']:.1f} ms "
+              f"against the nominal {1000 * servo['nominal_time_constant_s']:.0f} ms the models were trained "
+              f"on. The rows 'delay compensation' keep the nominal models and set only "
+              f"`delay_compensation_s` = {1000 * servo['delay_compensation_s']:.0f} ms, the difference "
+              "(docs/tuning.md, 'Actuator terms'); every other tuning value is the file's."]
     lines.append("")
     for scenario, title in TABLE_SCENARIOS.items():
         lines.append(tracking_table(title, [r for r in runs if r["scenario"] == scenario], scenario))
@@ -400,14 +448,16 @@ def run_study(out: Path, work: Path, epochs: int | None, reuse_log: bool) -> lis
     identify(log, model_dir, epochs, weighed_vehicle_file(work))
     seconds["training"] = time.perf_counter() - started
     started = time.perf_counter()
-    runs = table_runs(model_dir)
+    servo = servo_calibration(log)
+    runs = table_runs(model_dir, servo["delay_compensation_s"])
     seconds["tables"] = time.perf_counter() - started
     # what the inputs decide is committed; the machine's part (wall times) goes to logs/
     runs_inputs_only, runs_timing = split_machine_keys(runs)
     summary = {"changed_plant": {"mass_offset_kg": CHANGED_MASS_OFFSET_KG, "lag_factor": CHANGED_LAG_FACTOR,
                                  "rear_cornering_stiffness_scale": CHANGED_REAR_STIFFNESS_SCALE},
                "drive": {k: v for k, v in drive.items() if k != "seconds"},
-               "bicycle": bicycle_comparison(model_dir), "runs": runs_inputs_only, "epochs": epochs}
+               "bicycle": bicycle_comparison(model_dir), "servo": servo, "runs": runs_inputs_only,
+               "epochs": epochs}
     timing = {"machine": machine_description(), "seconds": {k: round(v, 1) for k, v in seconds.items()},
               "runs": runs_timing}
     written = [out / "tables.md", out / "summary.json", out / "training_report.md"]
