@@ -17,7 +17,7 @@ import io
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from can_defs.frames import CtrlMode, QpStatus
@@ -40,6 +40,13 @@ def _path_tracker(path: Any) -> Any:
     test (the bound is then not checked)."""
     from controller.reference import PathTracker, ReferencePath
     return PathTracker(path) if isinstance(path, ReferencePath) else None
+
+
+def _sample_age_s(sample_age_ns: int | None) -> float:
+    """The newest sample's age at the task start (ns, from ``_mode_events``: task start minus
+    the time its set was complete) in s, the ``VehicleSample.sample_age_s`` the controller
+    receives; 0 without a sample. Exactly the C control task's ``(double)age / 1e9``."""
+    return 0.0 if sample_age_ns is None else sample_age_ns / NS_PER_S
 
 
 @dataclass(frozen=True)
@@ -217,7 +224,8 @@ class ControlTask:
             faults |= FaultBit.MODEL_RESET
             if not self._select_path(planner.path_id):
                 return _Request(math.nan, math.nan, faults=faults, failed=True)
-        sample: VehicleSample | None = VehicleSample.from_measurement(measurement, planner.target_speed)
+        sample: VehicleSample | None = VehicleSample.from_measurement(
+            measurement, planner.target_speed, _sample_age_s(sample_age_ns))
         if self.mode is CtrlMode.DEGRADED:
             sample = self._predict(sample, sample_age_ns)
         command, debug = self._step_controller(sample) if sample is not None else (None, None)
@@ -256,9 +264,11 @@ class ControlTask:
         return excited_steer, excited_torque
 
     def _predict(self, sample: VehicleSample, sample_age_ns: int | None) -> VehicleSample | None:
+        """DEGRADED: the sample moved forward to the task start, so its age is then 0 (the
+        delay compensation must not move it over the same time again)."""
         from controller.dead_reckoning import predict_sample
         try:
-            return predict_sample(sample, (sample_age_ns or 0) / NS_PER_S)
+            return replace(predict_sample(sample, _sample_age_s(sample_age_ns)), sample_age_s=0.0)
         except ValueError as error:
             _LOG.error("dead reckoning failed: %s", error)
             return None

@@ -1,8 +1,8 @@
 """The Python face of the C control core ``build/firmware/libecu.so`` (ctypes).
 
 ``NativeController`` is a ``controller.base.Controller`` whose ``step`` is the C core's
-``ecu_step`` (firmware/src, docs/firmware.md): ``python -m firmware_sim --native`` puts it
-in place of the Python control law, and ``studies/bench_native.py`` times it. The library
+``ecu_step_aged`` (firmware/src, docs/firmware.md; the sample's age as data): ``python -m
+firmware_sim --native`` puts it in place of the Python control law, and ``studies/bench_native.py`` times it. The library
 holds ONE core per process (static storage, as on the ECU): building a second
 ``NativeController`` reloads that core and the first one must no longer be stepped.
 
@@ -106,6 +106,8 @@ def load_library(path: str | Path | None = None) -> ctypes.CDLL:
     library.ecu_reset.restype = None
     library.ecu_step.argtypes = [ctypes.POINTER(_Sample), ctypes.POINTER(_Output)]
     library.ecu_step.restype = None
+    library.ecu_step_aged.argtypes = [ctypes.POINTER(_Sample), ctypes.c_double, ctypes.POINTER(_Output)]
+    library.ecu_step_aged.restype = None
     byte_p = ctypes.POINTER(ctypes.c_uint8)
     library.ecu_e2e_crc.argtypes = [ctypes.c_uint32, byte_p]
     library.ecu_e2e_crc.restype = ctypes.c_uint8
@@ -228,12 +230,13 @@ class NativeController(Controller):
         self._lib.ecu_reset()
 
     def step(self, sample: VehicleSample) -> tuple[Command, StepDebug]:
-        """One control step in C; predicted arrays (Np, 3), empty when no plan was made."""
+        """One control step in C (``ecu_step_aged``: the sample's age goes with it, as the
+        Python controller reads it); predicted arrays (Np, 3), empty when no plan was made."""
         raw = self._sample
         for name in _SAMPLE_FIELDS:
             setattr(raw, name, float(getattr(sample, name)))
         out = self._output
-        self._lib.ecu_step(ctypes.byref(raw), ctypes.byref(out))
+        self._lib.ecu_step_aged(ctypes.byref(raw), float(sample.sample_age_s), ctypes.byref(out))
         self.last_step_time_s = out.step_time_s
         n_pred = out.n_pred
         pose = np.ctypeslib.as_array(out.predicted_pose)[:n_pred].copy()

@@ -43,12 +43,19 @@ static request_t make_request(ecu_node_t *node, int previous_mode, const ecu_eve
   const ecu_measurement_t *m = &rx->sample;
   ecu_sample_t sample = {m->vx, m->vy, m->yaw_rate, m->x, m->y, m->yaw, m->steer_angle, m->drive_torque,
                          rx->planner_speed};
-  if (node->mode == ECU_DEGRADED && ecu_dead_reckoning(&sample, (double)sample_age / 1e9) != 0) {
-    r.steer = r.torque = NAN;
-    return r;
+  /* The sample's age at the task start (s), as data for the delay compensation
+   * (VehicleSample.sample_age_s); in DEGRADED dead reckoning moved the sample to the task
+   * start, so it is then 0. */
+  double age_s = (double)sample_age / 1e9;
+  if (node->mode == ECU_DEGRADED) {
+    if (ecu_dead_reckoning(&sample, age_s) != 0) {
+      r.steer = r.torque = NAN;
+      return r;
+    }
+    age_s = 0.0;
   }
   ecu_output_t *out = &node->out;
-  ecu_core_step(node->core, &sample, out);
+  ecu_core_step_aged(node->core, &sample, age_s, out);
   if (out->fallback) r.faults |= ECU_SOLVER_FALLBACK;
   if (out->observer_reset) r.faults |= ECU_MODEL_RESET;
   r.steer = out->steer_angle;
