@@ -12,6 +12,7 @@ training (``models/koopman_train.py``) is imported when the command runs;
 from __future__ import annotations
 
 import argparse
+import copy
 import functools
 import sys
 from pathlib import Path
@@ -123,8 +124,48 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Options of the network's training, which a closed-form least-squares fit has no use for:
+#: its lift is the dictionary (no learned features, no knots, no symmetry or anchor terms) and
+#: one linear solve in numpy replaces the epochs (no torch threads or device). Given with
+#: ``--form edmdc-*`` they are refused rather than ignored. The split (``--seed``, runs,
+#: fractions), ``--dictionary``, the data, output and display options apply to both.
+DEEP_ONLY_OPTIONS = (
+    "--features", "--seq-len", "--epochs", "--steps-per-epoch", "--batch-size", "--hidden",
+    "--lifted-weight", "--speed-knots", "--small-signal-accel", "--unscheduled-states",
+    "--mirror-symmetric", "--even-features", "--servo-lag", "--lateral-per-step", "--steer-bilinear",
+    "--gain-anchor", "--patience", "--learning-rate", "--lr-decay", "--threads", "--device",
+)
+
+
+def given_options(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> set[str]:
+    """The long option strings on the command line ``argv`` (``None``: ``sys.argv[1:]``),
+    whichever way argparse accepts them (``--opt=v``, an unambiguous prefix), even when the
+    value given is the default: a re-parse in which no option has a default."""
+    bare = copy.deepcopy(parser)
+    for action in bare._actions:
+        action.default = argparse.SUPPRESS
+    given = vars(bare.parse_args(argv))
+    return {action.option_strings[-1] for action in parser._actions if action.dest in given}
+
+
+def check_form_options(form: str, given: set[str]) -> None:
+    """Refuse the options of ``DEEP_ONLY_OPTIONS`` among ``given`` for a least-squares form.
+
+    Raises:
+        KoopmanError: one line naming the first such option and the form.
+    """
+    if form not in LEAST_SQUARES_FORMS:
+        return
+    for option in DEEP_ONLY_OPTIONS:
+        if option in given:
+            raise KoopmanError(f"{option} does not apply to --form {form}: a closed-form least-squares fit of "
+                               "the physics dictionary trains no network (drop the option, or choose a "
+                               f"deep form: {', '.join(MODEL_FORMS)})")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     defaults = TrainingSettings()
     least_squares = args.form in LEAST_SQUARES_FORMS
     if least_squares:
@@ -133,6 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         from models.koopman_train import train as fit  # torch: only when a network is trained
     try:
+        check_form_options(args.form, given_options(parser, argv))
         settings = TrainingSettings(
             n_features=args.features, hidden=args.hidden, seq_len=args.seq_len, batch_size=args.batch_size,
             max_epochs=args.epochs, steps_per_epoch=args.steps_per_epoch, lifted_weight=args.lifted_weight,

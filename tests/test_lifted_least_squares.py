@@ -77,3 +77,54 @@ def test_the_command_line_fits_in_closed_form(tmp_path: Path, capsys) -> None:
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["form"] == "bilinear" and meta["settings"]["form"] == "edmdc-bilinear"
     assert np.allclose(KoopmanModel.load(out).N, N_TRUE, atol=1e-6)
+
+
+def _csv_runs(folder: Path) -> Path:
+    """Four bilinear runs as named-column CSVs (time, a, b, u) in ``folder``/data."""
+    data = folder / "data"
+    data.mkdir()
+    for run in _runs(True, n_runs=4):
+        table = np.column_stack([np.arange(len(run.states)) * 0.025, run.states, run.inputs])
+        np.savetxt(data / f"{run.name}.csv", table, delimiter=",", header="time,a,b,u", comments="", fmt="%.12g")
+    return data
+
+
+@pytest.mark.parametrize("form", ["edmdc-linear", "edmdc-bilinear"])
+@pytest.mark.parametrize("option", [
+    ["--epochs", "5"], ["--epochs=120"], ["--features", "8"], ["--learning-rate", "1e-3"], ["--gain-anchor", "1"],
+    ["--mirror-symmetric"], ["--servo-lag"], ["--speed-knots", "5,10"], ["--hidden", "32,32"], ["--device", "cpu"],
+    ["--threads", "2"], ["--seq-len", "11"], ["--lifted-weight", "0.5"], ["--patience", "3"],
+    ["--epo", "5"],  # an abbreviation argparse accepts names the option in full
+])
+def test_options_of_the_network_are_refused_for_a_closed_form_fit(tmp_path: Path, capsys, form: str,
+                                                                   option: list[str]) -> None:
+    """Once silently ignored (the fit ran and wrote an artefact that did not use them); the
+    default value given explicitly (``--epochs=120``) is refused too."""
+    out = tmp_path / "lsq"
+    assert main(["--data", str(_csv_runs(tmp_path)), "--states", "a,b", "--inputs", "u", "--form", form,
+                 "--out", str(out), "--no-progress", *option]) == 2
+    error = capsys.readouterr().err.strip()
+    name = option[0].split("=")[0]
+    name = "--epochs" if name == "--epo" else name
+    assert error.count("\n") == 0 and error.startswith("error: ") and name in error and form in error
+    assert not out.with_suffix(".npz").exists() and not out.with_suffix(".json").exists()
+
+
+def test_every_option_is_either_for_the_network_only_or_for_both_kinds_of_fit() -> None:
+    """A new option must be sorted into one of the two, so the refusal keeps up with the parser."""
+    from models.koopman_cli import DEEP_ONLY_OPTIONS, build_parser
+
+    both = {"--help", "--data", "--out", "--replace", "--states", "--inputs", "--ts", "--form", "--dictionary",
+            "--val-runs", "--test-runs", "--val-fraction", "--test-fraction", "--seed", "--compare-with", "--logs",
+            "--log-inputs", "--mapping", "--vehicle", "--dbc", "--no-progress", "--debug"}
+    options = {action.option_strings[-1] for action in build_parser()._actions}
+    assert set(DEEP_ONLY_OPTIONS) <= options and not set(DEEP_ONLY_OPTIONS) & both
+    assert options == set(DEEP_ONLY_OPTIONS) | both
+
+
+def test_the_split_and_the_dictionary_still_apply_to_a_closed_form_fit(tmp_path: Path) -> None:
+    out = tmp_path / "lsq"
+    assert main(["--data", str(_csv_runs(tmp_path)), "--states", "a,b", "--inputs", "u", "--form", "edmdc-linear",
+                 "--out", str(out), "--no-progress", "--seed", "3", "--test-runs", "run_2", "--dictionary", ""]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["split"]["test"] == ["run_2"] and meta["seed"] == 3
