@@ -1,5 +1,5 @@
 # Deep Koopman model (issue 4): training of the default artefact and Table I.
-.PHONY: train table1 test-koopman model-fidelity dmdc seed-spread step-steer-spread lateral-regimes
+.PHONY: train table1 table1-lsq test-koopman model-fidelity dmdc seed-spread step-steer-spread lateral-regimes
 
 KOOPMAN_DATA ?= data/nominal
 # The default artefact's data: the wide profile (3-35 m/s, mu 0.3-1.0, into saturation).
@@ -35,6 +35,18 @@ table1: setup
 	$(PROVENANCE_STAMP) results/table1.md results/table1.json results/fig6_prediction_errors.png \
 		results/prediction_horizon_rmse.png --command "$(call provenance_command,table1,TRAIN_DATA)" \
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) --modules studies.table1 models.data
+
+# Table I's rows without training (DMDc, EDMDc, the trainer's edmdc-linear / edmdc-bilinear,
+# the bicycle, the single track) over its 5 seeds and split, and the best least-squares row
+# beside the default deep row of results/table1.json: results/table1_least_squares.{md,json}.
+# 20 s on 2 cores once the data set exists (2026-12-05).
+## Table I's least-squares and physics rows, no training (20 s) -> results/table1_least_squares.*
+table1-lsq: setup
+	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
+	$(PY) -m studies.table1_least_squares --data $(TRAIN_DATA)
+	$(PROVENANCE_STAMP) results/table1_least_squares.md results/table1_least_squares.json \
+		--command "$(call provenance_command,table1-lsq,TRAIN_DATA)" \
+		--inputs $(PROVENANCE_VEHICLE) results/table1.json --modules studies.table1_least_squares models.data
 
 ## tests of the Koopman model, its training and the baselines
 test-koopman: setup

@@ -7,8 +7,10 @@ form with its steer-bilinear term, without and with the gain anchor (the latter 
 ``DEFAULT_ROW``, since issue 14's step steer); each trained with ``SEEDS``
 (5 seeds: the seed draws the weights AND the train / validation / test split by run) on the
 same data set (default ``data/wide``, the default artefact's). Beside them, fitted or built
-on each seed's split: DMDc, EDMDc, LMPC's linear bicycle (speed held) and NMPC's single
-track (nominal parameters). Every model is evaluated on its seed's held-out test runs:
+on each seed's split (``closed_form_rows``): DMDc, EDMDc (monomials), the trainer's
+least-squares lifts ``--form edmdc-linear`` / ``edmdc-bilinear`` (the physics dictionary,
+fitted by ``models.lifted_least_squares`` as the trainer fits them, on the trainer's default
+states), LMPC's linear bicycle (speed held) and NMPC's single track (nominal parameters). Every model is evaluated on its seed's held-out test runs:
 one-step RMSE, and open-loop RMSE over 1 s (40 steps) and 2 s (80 steps) with the recorded
 inputs, of vx, vy and yaw rate; each cell is the mean +- the standard deviation over the seeds.
 
@@ -22,7 +24,8 @@ worker per core by default, ``--address`` for a cluster, ``--serial`` in this pr
 training all rows takes about an hour on 2 cores; the table can be built in several
 sittings (the cache keeps what is done; ``--rows`` / ``--seeds`` select).
 CLI: ``python -m studies.table1 [--data data/wide] [--rows 0,4] [--seeds 0,1,2,3,4]
-[--address ADDR] [--workers N] [--serial]``.
+[--address ADDR] [--workers N] [--serial]``. The closed-form rows alone, in minutes:
+``studies/table1_least_squares.py`` (``make table1-lsq``).
 """
 from __future__ import annotations
 
@@ -40,7 +43,10 @@ from hil.errors import HilError
 from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanError, KoopmanModel
 from models.koopman_baselines import DMDc, EDMDc
+from models.koopman_data import dataset_hash, load_trajectories, split_runs
 from models.koopman_metrics import Predictor, Trajectory, open_loop_windows
+from models.koopman_settings import TrainingSettings
+from models.lifted_least_squares import fit_least_squares
 from models.local_lateral_fit import friction_of_runs
 from studies.model_fidelity import BicyclePredictor, SingleTrackPredictor
 
@@ -50,6 +56,13 @@ VEHICLE_STATES = ("vx", "vy", "yaw_rate")
 WHEEL_STATES = (*VEHICLE_STATES, "steer_measured")
 HORIZONS = {"1 s": 40, "2 s": 80}
 STATE_LABELS = {"vx": ("E_x", "m/s"), "vy": ("E_y", "m/s"), "yaw_rate": ("E_r", "rad/s")}
+#: The trainer's closed-form lifts as rows: label -> ``--form`` (models/lifted_least_squares.py).
+LEAST_SQUARES_ROWS = {
+    "EDMDc physics dictionary, linear (edmdc-linear)": "edmdc-linear",
+    "EDMDc physics dictionary, bilinear (edmdc-bilinear)": "edmdc-bilinear",
+}
+#: The rows fitted by least squares (the others without training are physics models).
+FITTED_ROWS = ("DMDc", "EDMDc", *LEAST_SQUARES_ROWS)
 
 
 @dataclass(frozen=True)
@@ -223,24 +236,57 @@ def baselines(train_runs: Sequence[Trajectory]) -> dict[str, tuple[Predictor, fl
     }
 
 
+def least_squares_rows(runs: Sequence[Trajectory], seed: int,
+                       test_runs: Sequence[Trajectory]) -> dict[str, tuple[Predictor, float | None, str]]:
+    """The trainer's ``--form edmdc-*`` lifts for one seed: fitted by
+    ``models.lifted_least_squares.fit_least_squares`` on ``runs`` (the data's runs with the
+    trainer's default states, WHEEL_STATES) split as the trainer splits them for ``seed``, as
+    ``python -m models.koopman_train --form edmdc-linear --seed SEED`` fits them.
+
+    Raises:
+        KoopmanError: the fit's test runs differ from the table's for this seed.
+    """
+    rows = {}
+    for label, form in LEAST_SQUARES_ROWS.items():
+        model = fit_least_squares(runs, TS, form, TrainingSettings(seed=seed)).model
+        if model.metadata["split"]["test"] != [r.name for r in test_runs]:
+            raise KoopmanError(f"{label} seed {seed}: the fit's test runs differ from the table's split")
+        rows[label] = (VehicleStates(model, len(model.state_names)), model.spectral_radius(),
+                       f"{form} of the trainer, closed form, states {', '.join(model.state_names)}, "
+                       f"dictionary {', '.join(model.dictionary)}, n_z = {model.n_z}")
+    return rows
+
+
+def closed_form_rows(runs: Sequence[Trajectory], seed: int, train_runs: Sequence[Trajectory],
+                     test_runs: Sequence[Trajectory]) -> dict[str, tuple[Predictor, float | None, str]]:
+    """Every row without a training, in the table's order: DMDc, EDMDc, the trainer's
+    least-squares lifts, the bicycle, the single track (``baselines``, ``least_squares_rows``)."""
+    physics = baselines(train_runs)
+    fitted = {**physics, **least_squares_rows(runs, seed, test_runs)}
+    order = [*FITTED_ROWS, *(label for label in physics if label not in FITTED_ROWS)]
+    return {label: fitted[label] for label in order}
+
+
 def _mean_sd(values: Sequence[float]) -> str:
     values = np.asarray(values, dtype=float)
     return f"{values.mean():.4f} ± {values.std(ddof=1):.4f}" if values.size > 1 else f"{values.mean():.4f}"
 
 
-def markdown_table(rows: list[dict], data_dir: Path) -> str:
+def markdown_table(rows: list[dict], data_dir: Path,
+                   generated_by: str = "`make table1` (`python -m studies.table1`)",
+                   title: str = "Table I: prediction errors on held-out test runs, over seeds") -> str:
     """Rows {label, seeds: [figures per seed], rho, epochs, note} -> results/table1.md."""
     head = ["model", "seeds"]
     head += [f"1-step RMSE {s}" for s in VEHICLE_STATES]
     head += [f"{h} RMSE {s}" for h in HORIZONS for s in VEHICLE_STATES]
     head += ["max rho(A)", "best / run epochs"]
-    lines = ["# Table I: prediction errors on held-out test runs, over seeds", "",
+    lines = [f"# {title}", "",
              f"Data `{data_dir}`. Each seed draws the weights and the split by run; every model is evaluated "
              "on its seed's test runs. 1-step RMSE of x_(k+1|k); 1 s / 2 s: open-loop rollouts of 40 / 80 "
              f"steps (Ts = {TS} s) with the recorded inputs, started every 5 samples, RMSE over all predicted "
              "steps. Cells: mean ± standard deviation over the seeds (m/s, m/s, rad/s). rho(A): the largest "
-             "spectral radius of the lifted A (over the speed knots for the scheduled form). Generated by "
-             "`make table1` (`python -m studies.table1`).", "",
+             f"spectral radius of the lifted A (over the speed knots for the scheduled form). Generated by "
+             f"{generated_by}.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in rows:
         per_seed = row["seeds"]
@@ -295,17 +341,29 @@ def plot_figures(out_dir: Path, traces: dict[str, np.ndarray], horizons: dict[st
     return [fig6, horizon_png]
 
 
-def build_table(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], models_dir: Path,
-                out_dir: Path, executor_options: dict[str, Any] | None = None) -> list[dict]:
-    """Train the missing models (:func:`train_missing`), then evaluate every model per seed
-    and write the results. Returns the table rows."""
-    from models.koopman_train import TrainingSettings, dataset_hash, load_trajectories, split_runs
+@dataclass
+class Measured:
+    """Table I's figures: rows {label, seeds: [figures per seed], rho, epochs, note, seed_ids},
+    the mean RMSE per prediction step of each row (steps, 3), seed 0's one-step error traces of
+    the learned rows (len(trace_run) - 1, 3) along its first test run ``trace_run``."""
 
+    rows: list[dict]
+    horizons: dict[str, np.ndarray]
+    traces: dict[str, np.ndarray]
+    trace_run: Trajectory
+    data_hash: str
+
+
+def measure_rows(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], models_dir: Path,
+                 executor_options: dict[str, Any] | None = None) -> Measured:
+    """Train the missing models of ``rows`` (:func:`train_missing`), then evaluate them and
+    the rows without training (:func:`closed_form_rows`) per seed on its test runs. With no
+    ``rows`` nothing is trained (and torch is not imported)."""
     runs = load_trajectories(data_dir, states=WHEEL_STATES)
     data_hash = dataset_hash(data_dir)
-    models_dir.mkdir(parents=True, exist_ok=True)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    train_missing(rows, seeds, data_dir, data_hash, models_dir, executor_options)
+    if rows:
+        models_dir.mkdir(parents=True, exist_ok=True)
+        train_missing(rows, seeds, data_dir, data_hash, models_dir, executor_options)
     table: dict[str, dict] = {}
     curves: dict[str, list[np.ndarray]] = {}
     traces: dict[str, np.ndarray] = {}
@@ -326,7 +384,7 @@ def build_table(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], model
             predictors[row.label] = (VehicleStates(model, len(row.states)), model.spectral_radius(),
                                      f"{model.form} form, states {', '.join(row.states)}, n_z = {model.n_z}",
                                      epochs)
-        for label, (predictor, rho, note) in baselines(train_runs).items():
+        for label, (predictor, rho, note) in closed_form_rows(runs, seed, train_runs, test_runs).items():
             predictors[label] = (predictor, rho, note, None)
         for label, (predictor, rho, note, epochs) in predictors.items():
             entry = table.setdefault(label, {"label": label, "seeds": [], "rho": None if rho is None else [],
@@ -342,14 +400,26 @@ def build_table(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], model
                 traces[label] = (predictor.predict(trace_run.states[:-1], trace_run.inputs[:-1, None, :])[:, 0]
                                  - trace_run.states[1:, :3])
         print(f"seed {seed}: evaluated {len(predictors)} models", flush=True)
-    rows_out = list(table.values())
     horizons = {label: np.mean(c, axis=0) for label, c in curves.items()}
-    (out_dir / "table1.md").write_text(markdown_table(rows_out, data_dir))
-    (out_dir / "table1.json").write_text(json.dumps(
-        {"data_hash": data_hash, "data_dir": str(data_dir), "seeds": list(seeds), "rows": rows_out,
-         "horizon_rmse": {k: v.tolist() for k, v in horizons.items()}}, indent=1) + "\n")
-    plot_figures(out_dir, traces, horizons, trace_run)
-    return rows_out
+    return Measured(list(table.values()), horizons, traces, trace_run, data_hash)
+
+
+def table_json(measured: Measured, data_dir: Path, seeds: Sequence[int]) -> dict[str, Any]:
+    """What ``table1.json`` holds (the rows, the data and seeds, the RMSE per step)."""
+    return {"data_hash": measured.data_hash, "data_dir": str(data_dir), "seeds": list(seeds),
+            "rows": measured.rows, "horizon_rmse": {k: v.tolist() for k, v in measured.horizons.items()}}
+
+
+def build_table(data_dir: Path, rows: Sequence[Row], seeds: Sequence[int], models_dir: Path,
+                out_dir: Path, executor_options: dict[str, Any] | None = None) -> list[dict]:
+    """:func:`measure_rows`, then write table1.md / .json and the two figures into
+    ``out_dir``. Returns the table rows."""
+    measured = measure_rows(data_dir, rows, seeds, models_dir, executor_options)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "table1.md").write_text(markdown_table(measured.rows, data_dir))
+    (out_dir / "table1.json").write_text(json.dumps(table_json(measured, data_dir, seeds), indent=1) + "\n")
+    plot_figures(out_dir, measured.traces, measured.horizons, measured.trace_run)
+    return measured.rows
 
 
 def _indices(text: str) -> tuple[int, ...]:
