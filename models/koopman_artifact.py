@@ -43,7 +43,8 @@ import numpy as np
 from models.errors import KoopmanError
 
 ARTIFACT_DIR = Path(__file__).resolve().parent / "artifacts"
-#: Default trained artefact (d = 5 learned features); the ``.json`` sits beside it.
+#: Default trained artefact: ``make train``'s form, d = 8 learned features on 4 states (n_z = 12;
+#: the file keeps the name of the first default, d = 5); the ``.json`` sits beside it.
 DEFAULT_ARTIFACT = ARTIFACT_DIR / "dk_d5.npz"
 #: Version of the artefact layout written by ``save_artifact``: 2 adds ``form``, ``dictionary``
 #: and the bilinear ``N_n``; format-1 artefacts load as the linear form without dictionary.
