@@ -44,12 +44,16 @@ def test_report_compares_the_fitted_bicycle_and_lists_every_run(tmp_path):
     runs = [{"scenario": s, "controller": "LMPC, fitted bicycle, changed plant", "completed": True,
              "failure": None, "error": None, "tracking": tracking} for s in ("dlc_high_mu", "dlc_low_mu")]
     summary = {"bicycle": bicycle, "drive": {"controller": "dmdc-eso", "excitation": "prbs-torque",
-                                             "frames_logged": 123}}
+                                             "frames_logged": 123},
+               "servo": {"steps": 4321, "one_step_rmse_rad": 2.5e-4, "time_constant_s": 0.0901,
+                         "nominal_time_constant_s": 0.03, "delay_compensation_s": 0.0601}}
     text = tables_markdown(runs, summary)
     print(text)
     assert "| cornering_stiffness_front |" in text and "| -10.0 % |" in text
     assert text.count("| LMPC, fitted bicycle, changed plant | yes | 0.100 / 0.020 / 0.030 |") == 2
     assert "rear tyres' cornering stiffness x0.8" in text
+    # the servo fit and the delay compensation it gives are stated from the summary
+    assert "time constant 90.1 ms against the nominal 30 ms" in text and "= 60 ms" in text
     # the stage times are the machine's: named where they are, never in the committed table
     assert "logs/identification_timing.json" in text and " s, total " not in text
 

@@ -29,9 +29,13 @@ def test_the_plant_controller_and_ecu_records_are_one_type() -> None:
     assert vehicle.VehicleOutputs is VehicleMeasurement
     assert MEASUREMENT_FIELDS == ("vx", "vy", "yaw_rate", "x", "y", "yaw", "steer_angle",
                                   "drive_torque")
-    for record, extra in ((VehicleSample, "target_speed"), (PlantMeasurement, "counter")):
+    # The controller's record adds the set point and, keyword only, the sample's age at the task
+    # start (delay compensation); positional construction stays the nine values.
+    for record, extra in ((VehicleSample, ("target_speed", "sample_age_s")), (PlantMeasurement, ("counter",))):
         assert issubclass(record, VehicleMeasurement)
-        assert tuple(f.name for f in dataclasses.fields(record)) == MEASUREMENT_FIELDS + (extra,)
+        assert tuple(f.name for f in dataclasses.fields(record)) == MEASUREMENT_FIELDS + extra
+    assert [f.name for f in dataclasses.fields(VehicleSample) if f.kw_only] == ["sample_age_s"]
+    assert VehicleSample(*EIGHT.values(), 9.7).sample_age_s == 0.0
 
 
 def test_sample_from_a_measurement_keeps_every_field_and_positional_order() -> None:
