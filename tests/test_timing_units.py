@@ -197,14 +197,19 @@ def test_run_figures_count_only_cycles_and_overruns_inside_the_window():
     assert figures.stats["task_time"][1] == pytest.approx(2.0)
     assert figures.command_gap_max_ms == pytest.approx(25.0)
 
-    # the C ECU's row (issue 18): its own goal line, task p99 against 0.25 ms
-    from studies.timing.report import GOAL_C_TASK_P99_MS, goal_lines
+    assert (figures.release, figures.repeat) == ("clock", 1)
+
+    # the C ECU's row (issue 18) under the sample release: its own goal line, task p99
+    # against 0.25 ms; the release and the repeat carried from the run to its figures
+    from studies.timing.goals import GOAL_C_TASK_P99_MS, goal_lines
 
     c_row = run_figures(TimingRun("eso-dkmpc (C)", 2.4, TimingRecord(dict(columns, task_time=np.full(n, 2e-4)), n),
-                                  plant, {}, ""), "idle", settle_s=0.8)
+                                  plant, {}, "", "sample"), "idle", settle_s=0.8, repeat=2)
+    assert (c_row.release, c_row.repeat) == ("sample", 2)
     lines = goal_lines([figures, c_row])
-    assert f"- idle: C ECU ESO-DKMPC task time p99 0.200 ms <= {GOAL_C_TASK_P99_MS} ms: met" in lines
-    assert any(line.startswith("- idle: eso-dkmpc (C) overruns at 25 ms") for line in lines)
+    assert (f"- idle, sample release: ESO-DKMPC (C ECU) task time p99 <= {GOAL_C_TASK_P99_MS:g} ms: "
+            "met (1 of 1 run within), p99 0.200 ms") in lines
+    assert any(line.startswith("- idle, sample release: eso-dkmpc (C) overruns at 25 ms") for line in lines)
 
 
 # ------------------------------------------------------------------ ECU command line options

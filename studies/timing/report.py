@@ -23,11 +23,6 @@ FIGURES = (("release_jitter", "release jitter"), ("task_time", "task time"),
            ("solve_time", "solver time"), ("input_age", "input age"),
            ("rx_to_tx_latency", "RX-to-TX latency"))
 QUANTILES = (50.0, 99.0, 99.9)
-#: Issue 9's goals (ms): ESO-DKMPC task time p99, RX-to-TX latency p99.
-GOAL_TASK_P99_MS = 2.0
-GOAL_LATENCY_P99_MS = 3.0
-#: Issue 18: the C ECU's control task p99 (ms).
-GOAL_C_TASK_P99_MS = 0.25
 #: Lower end of the log-spaced histogram bins, ms.
 HISTOGRAM_FLOOR_MS = 0.01
 #: CTRL_MODE values in which the controller runs (ACTIVE, DEGRADED).
@@ -38,7 +33,8 @@ _MODE_NAMES = {0: "INIT", 1: "STANDBY", 2: "ACTIVE", 3: "DEGRADED", 4: "SAFE_STO
 @dataclass(frozen=True)
 class RunFigures:
     """What one run measured in its window. Times in ms; ``stats[field]`` = (p50, p99,
-    p99.9, max, n)."""
+    p99.9, max, n). ``release``: the ECU's control-task release (clock: contract revision 2;
+    sample: revision 3); ``repeat``: the run's number among the repeats of its row (1-based)."""
 
     condition: str
     controller: str
@@ -58,6 +54,8 @@ class RunFigures:
     stats: dict[str, tuple[float, float, float, float, int]]
     samples_ms: dict[str, np.ndarray]
     scheduling: dict[str, str]
+    release: str = "clock"
+    repeat: int = 1
 
 
 def _stats(values_ms: np.ndarray) -> tuple[float, float, float, float, int]:
@@ -68,8 +66,10 @@ def _stats(values_ms: np.ndarray) -> tuple[float, float, float, float, int]:
     return float(p50), float(p99), float(p999), float(values_ms.max()), int(values_ms.size)
 
 
-def run_figures(run: TimingRun, condition: str, settle_s: float = SETTLE_S) -> RunFigures:
-    """The figures of ``run`` over its window (module docstring)."""
+def run_figures(run: TimingRun, condition: str, settle_s: float = SETTLE_S,
+                repeat: int = 1) -> RunFigures:
+    """The figures of ``run`` over its window (module docstring); ``repeat``: its number
+    among the repeats of its row."""
     columns = run.ecu.columns
     start = columns["start_time"]
     t0, t1 = run.plant["started"] + settle_s, run.plant["ended"]
@@ -103,68 +103,39 @@ def run_figures(run: TimingRun, condition: str, settle_s: float = SETTLE_S) -> R
         lateral_error_max_m=float(run.plant["tracking"]["lateral_error_m"]["max_abs"]),
         steal_share=float(run.plant.get("steal_share", float("nan"))),
         stats={name: _stats(values) for name, values in samples.items()},
-        samples_ms=samples, scheduling=dict(run.scheduling))
+        samples_ms=samples, scheduling=dict(run.scheduling), release=run.release, repeat=repeat)
 
 
-def _fmt(value: float) -> str:
+def fmt_ms(value: float) -> str:
+    """A figure in ms with 3 decimals, ``-`` where there is none (NaN)."""
     return "-" if not np.isfinite(value) else f"{value:.3f}"
 
 
 def summary_table(figures: list[RunFigures]) -> list[str]:
     """Markdown: one row per run with the deadline and loss figures."""
-    lines = ["| load | controller | s | cycles (ACTIVE) | overruns at 25 ms | commands lost "
-             "| largest command gap at the plant (ms) | task p99 (ms) | RX-to-TX p99 (ms) "
+    lines = ["| load | controller | release | run | s | cycles (ACTIVE) | overruns at 25 ms "
+             "| commands lost | largest command gap at the plant (ms) | task p99 (ms) | RX-to-TX p99 (ms) "
              "| plant ticks late | CPU steal by the host | max abs e_Y (m) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for f in figures:
         lines.append(
-            f"| {f.condition} | {f.controller} | {f.seconds:g} | {f.cycles} "
-            f"({f.modes.get('ACTIVE', 0)}) | {f.overruns} | {f.commands_lost} "
-            f"| {_fmt(f.command_gap_max_ms)} | {_fmt(f.stats['task_time'][1])} "
-            f"| {_fmt(f.stats['rx_to_tx_latency'][1])} | {f.plant_tick_overruns} of "
+            f"| {f.condition} | {f.controller} | {f.release} | {f.repeat} | {f.seconds:g} "
+            f"| {f.cycles} ({f.modes.get('ACTIVE', 0)}) | {f.overruns} | {f.commands_lost} "
+            f"| {fmt_ms(f.command_gap_max_ms)} | {fmt_ms(f.stats['task_time'][1])} "
+            f"| {fmt_ms(f.stats['rx_to_tx_latency'][1])} | {f.plant_tick_overruns} of "
             f"{f.plant_ticks} | {100 * f.steal_share:.1f} % | {f.lateral_error_max_m:.3f} |")
     return lines
 
 
 def percentile_table(figures: list[RunFigures]) -> list[str]:
     """Markdown: p50 / p99 / p99.9 / max (ms) of every figure of every run."""
-    lines = ["| load | controller | figure | n | p50 | p99 | p99.9 | max |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| load | controller | release | run | figure | n | p50 | p99 | p99.9 | max |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for f in figures:
         for name, label in FIGURES:
             p50, p99, p999, peak, n = f.stats[name]
-            lines.append(f"| {f.condition} | {f.controller} | {label} | {n} | {_fmt(p50)} "
-                         f"| {_fmt(p99)} | {_fmt(p999)} | {_fmt(peak)} |")
-    return lines
-
-
-def goal_lines(figures: list[RunFigures]) -> list[str]:
-    """The issue's goals, each with the measured figure and met / NOT met."""
-    lines = []
-    for condition in dict.fromkeys(f.condition for f in figures):
-        runs = {f.controller: f for f in figures if f.condition == condition}
-        eso, lmpc = runs.get("eso-dkmpc"), runs.get("lmpc")
-        if eso is not None:
-            task = eso.stats["task_time"][1]
-            lines.append(f"- {condition}: ESO-DKMPC task time p99 {task:.3f} ms <= "
-                         f"{GOAL_TASK_P99_MS} ms: {'met' if task <= GOAL_TASK_P99_MS else 'NOT met'}")
-            if lmpc is not None:
-                ratio = task / lmpc.stats["task_time"][1]
-                lines.append(f"- {condition}: ESO-DKMPC / LMPC task time p99 = {ratio:.2f} "
-                             f"(<= 2): {'met' if ratio <= 2.0 else 'NOT met'}")
-            latency = eso.stats["rx_to_tx_latency"][1]
-            lines.append(f"- {condition}: ESO-DKMPC RX-to-TX latency p99 {latency:.3f} ms <= "
-                         f"{GOAL_LATENCY_P99_MS} ms: "
-                         f"{'met' if latency <= GOAL_LATENCY_P99_MS else 'NOT met'}")
-        c_eso = runs.get("eso-dkmpc (C)")
-        if c_eso is not None:  # issue 18's target for the C ECU's control task
-            task = c_eso.stats["task_time"][1]
-            lines.append(f"- {condition}: C ECU ESO-DKMPC task time p99 {task:.3f} ms <= {GOAL_C_TASK_P99_MS} ms: "
-                         f"{'met' if task <= GOAL_C_TASK_P99_MS else 'NOT met'}")
-        for f in runs.values():
-            lines.append(f"- {condition}: {f.controller} overruns at 25 ms over {f.seconds:g} s: "
-                         f"{f.overruns} ({'met' if f.overruns == 0 else 'NOT met'}), "
-                         f"commands lost: {f.commands_lost}")
+            lines.append(f"| {f.condition} | {f.controller} | {f.release} | {f.repeat} "
+                         f"| {label} | {n} | {fmt_ms(p50)} | {fmt_ms(p99)} | {fmt_ms(p999)} | {fmt_ms(peak)} |")
     return lines
 
 
@@ -183,24 +154,31 @@ def histogram_figure(figures: list[RunFigures], condition: str) -> Any:
     """The figure of one load condition: histograms of the figures on log-spaced bins (so that
     the QP controllers' ~2 ms and NMPC's ~25 ms both show), log counts, controllers
     overlaid, the 25 ms period dashed; every panel titled, one legend for every line (the
-    dashed period included) in the sixth panel."""
+    dashed period included) in the sixth panel. The repeats of a row are pooled into one
+    line; a line names its release where the condition's runs used more than one."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     runs = [f for f in figures if f.condition == condition]
+    several = len({f.release for f in runs}) > 1
+    rows: dict[str, list[RunFigures]] = {}  # line label -> the runs pooled into it
+    for f in runs:
+        rows.setdefault(f"{f.controller}, {f.release} release" if several else f.controller,
+                        []).append(f)
     fig, axes = plt.subplots(2, 3, figsize=(13.0, 6.5))
     flat = axes.ravel()
     legend: dict[str, Any] = {}  # label -> line, over all panels
     for ax, (name, label) in zip(flat, FIGURES):
-        finite = [f.samples_ms[name][np.isfinite(f.samples_ms[name])] for f in runs]
+        pooled = [np.concatenate([f.samples_ms[name] for f in row]) for row in rows.values()]
+        finite = [v[np.isfinite(v)] for v in pooled]
         top = max((v.max() for v in finite if v.size), default=1.0)
         bins = np.geomspace(HISTOGRAM_FLOOR_MS, max(top * 1.1, 10 * HISTOGRAM_FLOOR_MS), 80)
-        for f, values in zip(runs, finite):
+        for row_label, values in zip(rows, finite):
             if values.size:
                 ax.hist(np.maximum(values, HISTOGRAM_FLOOR_MS), bins=bins, histtype="step",
-                        label=f.controller, log=True)
+                        label=row_label, log=True)
         ax.set_xscale("log")
         if top >= 0.5 * PERIOD_MS:
             ax.axvline(PERIOD_MS, color="k", lw=0.8, ls="--",
@@ -215,16 +193,16 @@ def histogram_figure(figures: list[RunFigures], condition: str) -> Any:
     flat[-1].legend(list(legend.values()), list(legend.keys()), loc="center",
                     title="lines (all panels)")
     flat[-1].axis("off")
-    fig.suptitle(f"ECU timing per control cycle, {condition} (values below "
-                 f"{HISTOGRAM_FLOOR_MS} ms in the first bin)")
+    fig.suptitle(f"ECU timing per control cycle, {condition} (a row's repeated runs pooled; "
+                 f"values below {HISTOGRAM_FLOOR_MS} ms in the first bin)")
     fig.tight_layout()
     return fig
 
 
 def as_json(figures: list[RunFigures]) -> list[dict[str, Any]]:
     """JSON-ready figures (no samples)."""
-    keys = ("condition", "controller", "seconds", "cycles", "modes", "overruns",
-            "commands_received", "commands_lost", "command_e2e_errors",
+    keys = ("condition", "controller", "release", "repeat", "seconds", "cycles", "modes",
+            "overruns", "commands_received", "commands_lost", "command_e2e_errors",
             "plant_commands_rejected", "command_gap_max_ms", "plant_tick_overruns",
             "plant_ticks", "lateral_error_max_m", "steal_share", "scheduling")
     out = []

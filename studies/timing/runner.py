@@ -67,7 +67,8 @@ class Placement:
 @dataclass
 class TimingRun:
     """Outcome of one run: the ECU's record, the plant side's result and how each
-    process was scheduled. ``controller`` is the row's label: "NAME (C)" for the C ECU."""
+    process was scheduled. ``controller`` is the row's label: "NAME (C)" for the C ECU;
+    ``release`` the ECU's ``--release`` (clock or sample)."""
 
     controller: str
     seconds: float
@@ -75,6 +76,7 @@ class TimingRun:
     plant: dict[str, Any]
     scheduling: dict[str, str]
     ecu_log: str
+    release: str = "clock"
 
 
 def cpu_times() -> tuple[int, int] | None:
@@ -224,7 +226,8 @@ def run_timing(controller: str, seconds: float, work_dir: Path,
     scheduling["ecu"] = next((ln.split("scheduling: ", 1)[1] for ln in log_text.splitlines()
                               if "scheduling: " in ln), "not requested")
     scheduling["plant"] = plant.get("scheduling", "")
-    return TimingRun(label, seconds, load_timing(timing_file), plant, scheduling, log_text)
+    return TimingRun(label, seconds, load_timing(timing_file), plant, scheduling, log_text,
+                     release)
 
 
 def _wait_for_ready(ecu: subprocess.Popen[Any], log: Path) -> None:
