@@ -1,9 +1,10 @@
 """Table I's rows without training, in minutes, beside the deep default row.
 
-The rows of ``studies.table1.closed_form_rows`` (DMDc, EDMDc, the trainer's least-squares
+The rows of ``studies.table1.CLOSED_FORM_ROWS`` (DMDc, EDMDc, the trainer's least-squares
 lifts ``--form edmdc-linear`` / ``edmdc-bilinear``, the linear bicycle, the single track),
 measured as ``make table1`` measures them (same seeds, same split by run, same test runs
-and figures) but without its hours of deep training. Then, for the 1 s and 2 s open-loop
+and figures: the same cells of the grid ``table1``, run in this process and cached in
+``build/table1/cache/``) but without its hours of deep training. Then, for the 1 s and 2 s open-loop
 RMSE of vy and yaw rate, the best least-squares row (DMDc, EDMDc, edmdc-*) beside Table I's
 default deep row (``studies.table1.DEFAULT_ROW``) read from ``results/table1.json``, with
 the ratio deep / least squares (issue 40 asks for at most 0.9), and whether that file is
@@ -11,7 +12,7 @@ listed stale in ``results/KNOWN_STALE.md`` and why.
 
 Writes ``table1_least_squares.md`` and ``.json`` into ``--out`` (default ``results``).
 CLI: ``python -m studies.table1_least_squares [--data data/wide] [--seeds 0,1,2,3,4]
-[--out results] [--table1 results/table1.json]`` (``make table1-lsq``).
+[--out results] [--table1 results/table1.json] [--models-dir build/table1]`` (``make table1-lsq``).
 """
 from __future__ import annotations
 
@@ -145,6 +146,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results"), help="folder for table1_least_squares.md/.json")
     parser.add_argument("--table1", type=Path, default=Path("results/table1.json"),
                         help="Table I's JSON with the deep rows (make table1)")
+    parser.add_argument("--models-dir", type=Path, default=Path("build/table1"),
+                        help="the cells' cache (cache/), shared with make table1")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     args = parser.parse_args(argv)
     try:
@@ -152,7 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise KoopmanError(f"data directory not found: {args.data} (make table1-lsq generates data/wide)")
         if not args.seeds:
             raise KoopmanError("--seeds must name at least one seed")
-        measured = measure_rows(args.data, [], args.seeds, Path("build/table1"))
+        measured = measure_rows(args.data, [], args.seeds, args.models_dir, {"serial": True})
         comparison = versus_deep(measured.rows, args.seeds, measured.data_hash, args.table1)
         generated_by = "`make table1-lsq` (`python -m studies.table1_least_squares`)"
         title = "Table I, the rows without training: prediction errors on held-out test runs, over seeds"

@@ -15,8 +15,9 @@ from models.koopman import KoopmanModel
 from models.koopman_cli import main as train_main
 from models.koopman_data import load_trajectories, split_runs
 from models.koopman_settings import TrainingSettings
-from studies.table1 import (DEFAULT_ROW, FITTED_ROWS, LEAST_SQUARES_ROWS, WHEEL_STATES, VehicleStates, evaluate,
-                            least_squares_rows)
+from studies.campaign.prediction_rows import fit_closed_form
+from studies.table1 import (CLOSED_FORM_ROWS, DEFAULT_ROW, FITTED_ROWS, LEAST_SQUARES_ROWS, WHEEL_STATES,
+                            VehicleStates, evaluate)
 from studies.table1_least_squares import main
 
 CLOSED_FORM_LABELS = ["DMDc", "EDMDc", *LEAST_SQUARES_ROWS, "linear bicycle (LMPC)", "single track (NMPC)"]
@@ -35,9 +36,9 @@ def test_the_least_squares_rows_are_the_trainers_fit(data_dir: Path, tmp_path: P
     test runs and the same figures."""
     seed = 1
     runs = load_trajectories(data_dir, states=WHEEL_STATES)
-    _, _, test_runs = split_runs(runs, TrainingSettings(seed=seed))
-    label = next(label for label, row_form in LEAST_SQUARES_ROWS.items() if row_form == form)
-    row_predictor = least_squares_rows(runs, seed, test_runs)[label][0]
+    train_runs, _, test_runs = split_runs(runs, TrainingSettings(seed=seed))
+    row = next(row for row in CLOSED_FORM_ROWS if row.fit == form)
+    row_predictor = fit_closed_form(row, seed, runs, train_runs, test_runs).predictor
     assert train_main(["--data", str(data_dir), "--form", form, "--seed", str(seed), "--out", str(tmp_path / "m"),
                        "--no-progress"]) == 0
     trained = KoopmanModel.load(tmp_path / "m")
@@ -67,7 +68,8 @@ def test_the_report_sets_the_best_least_squares_row_beside_the_deep_default(data
                                                                             capsys) -> None:
     table1 = _table1(tmp_path / "results", [0, 1])
     out = tmp_path / "out"
-    assert main(["--data", str(data_dir), "--seeds", "0,1", "--out", str(out), "--table1", str(table1)]) == 0
+    assert main(["--data", str(data_dir), "--seeds", "0,1", "--out", str(out), "--table1", str(table1),
+                 "--models-dir", str(tmp_path / "cells")]) == 0
     report = (out / "table1_least_squares.md").read_text()
     saved = json.loads((out / "table1_least_squares.json").read_text())
     assert [row["label"] for row in saved["rows"]] == CLOSED_FORM_LABELS
@@ -92,7 +94,7 @@ def test_the_report_sets_the_best_least_squares_row_beside_the_deep_default(data
 def test_without_table1_the_report_says_there_is_no_comparison(data_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     assert main(["--data", str(data_dir), "--seeds", "0", "--out", str(out),
-                 "--table1", str(tmp_path / "absent" / "table1.json")]) == 0
+                 "--table1", str(tmp_path / "absent" / "table1.json"), "--models-dir", str(tmp_path / "cells")]) == 0
     report = (out / "table1_least_squares.md").read_text()
     assert "No comparison:" in report and "not found" in report
 

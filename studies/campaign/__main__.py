@@ -62,7 +62,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
                                          write_heatmaps, write_rows_json)
     from studies.campaign.executors import open_executor
     from studies.campaign.runner import (CampaignError, cached_rows, cell_cacheable, cell_task,
-                                         check_c_ecu_built, run_campaign)
+                                         check_c_ecu_built, is_prediction, run_campaign)
     from studies.machine import machine_description
 
     grid = load_grid(args.grid)  # every error before any cell runs
@@ -72,6 +72,8 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CampaignError(f"cannot create {out}: {e.strerror}") from e
+    if is_prediction(grid):
+        return _run_prediction(args, grid)
     appender = CsvAppender(out / "cells.csv", cached_rows(grid, out))
     executor = open_executor(cell_task(grid), address=args.address, workers=args.workers, serial=args.serial)
     try:
@@ -100,6 +102,29 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     if result.rows and len(errors) == len(result.rows):
         print(f"error: every cell failed to run (the first: {errors[0].get('error') or 'no message'})",
               file=sys.stderr)
+        return 1
+    return 0
+
+
+def _run_prediction(args: argparse.Namespace, grid) -> int:
+    """A ``prediction`` grid (Table I's model rows x seeds): its cells' rows into
+    ``rows.json`` (their report is ``python -m studies.table1``, which runs the same cells)."""
+    from studies.campaign.executors import open_executor
+    from studies.campaign.report import ROWS_JSON, write_rows_json
+    from studies.campaign.runner import cell_task, run_campaign
+
+    executor = open_executor(cell_task(grid), address=args.address, workers=args.workers, serial=args.serial)
+    try:
+        result = run_campaign(grid, args.out, executor, progress=args.progress)
+    finally:
+        executor.close()
+    print(f"wrote {write_rows_json(args.out / ROWS_JSON, result.rows)}")
+    print(f"{len(result.rows)}/{result.total} cells finished ({result.computed} computed, "
+          f"{result.cached} cached), {result.failed} failed, {result.wall_s:.0f} s")
+    if result.interrupted:
+        return 130
+    if result.rows and result.failed == len(result.rows):
+        print(f"error: every cell failed (the first: {result.rows[0].get('error') or 'no message'})", file=sys.stderr)
         return 1
     return 0
 

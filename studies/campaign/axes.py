@@ -32,12 +32,16 @@ NO_DISTURBANCE = "none"
 DEFAULT_MODEL = "default"
 #: The ECU of a grid without an ``ecu`` axis (and the only one before the axis existed).
 DEFAULT_ECU = "python"
-#: The runners of the ``runner`` axis: over CAN in lockstep (the default), without CAN, or
-#: one case of the fault catalogue judged (``studies.campaign.fault_case_cell``).
+#: The runners of the ``runner`` axis: over CAN in lockstep (the default), without CAN,
+#: one case of the fault catalogue judged (``studies.campaign.fault_case_cell``), or one
+#: model row x seed (below).
 HIL_RUNNER = "hil"
 CLOSED_LOOP_RUNNER = "closed_loop"
 FAULT_CASE_RUNNER = "fault_case"
-RUNNERS = (HIL_RUNNER, CLOSED_LOOP_RUNNER, FAULT_CASE_RUNNER)
+#: Model rows x seeds, trained or fitted and their open-loop prediction errors measured
+#: (Table I; ``studies.campaign.prediction_grid``): a grid of its own schema.
+PREDICTION_RUNNER = "prediction"
+RUNNERS = (HIL_RUNNER, CLOSED_LOOP_RUNNER, FAULT_CASE_RUNNER, PREDICTION_RUNNER)
 #: The case axis' value of a cell that is not a fault case (a grid without the axis and
 #: without the ``fault_case`` runner has only it); "none" is a case of the catalogue.
 NO_CASE = "-"

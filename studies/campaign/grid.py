@@ -100,17 +100,20 @@ import tomllib
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from models.input_files import read_bounded
 from studies.campaign.axes import (  # noqa: F401 - the axes' names, where they always were
     ALL_CONTROLLERS, AXES, CLOSED_LOOP_RUNNER, DEFAULT_ECU, DEFAULT_MODEL, DEFAULT_TUNING, FAULT_CASE_RUNNER,
     HIL_RUNNER, NO_CASE, NO_DISTURBANCE, NO_FAULT, PROFILE_SPEED_RANGE_KMH, PROFILE_TIME_MAX_S,
-    REQUIRED_AXES, RUNNERS, SCENARIO_VALUE, GridError, axis_values, excludes, fault_catalogue,
+    PREDICTION_RUNNER, REQUIRED_AXES, RUNNERS, SCENARIO_VALUE, GridError, axis_values, excludes, fault_catalogue,
     grid_disturbances, grid_faults, matches, speed_profiles)
 from studies.campaign.fault_axes import check_fault_case_axes, fault_case_left_out
 from studies.campaign.toml_text import to_toml  # noqa: F401 - the cells' scenario text
 from studies.campaign.tuning_override import Override, check_override_fields, grid_tunings, tuning_file
+
+if TYPE_CHECKING:
+    from studies.campaign.prediction_grid import PredictionGrid
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 #: Bytes of a grid file (read no further).
@@ -218,8 +221,9 @@ class Grid:
 
 # ---------------------------------------------------------------------------- loading
 
-def load_grid(file: str | Path) -> Grid:
-    """Read, validate and expand a grid file.
+def load_grid(file: str | Path) -> Grid | PredictionGrid:
+    """Read, validate and expand a grid file (a ``prediction`` grid, Table I's model rows x
+    seeds: ``studies.campaign.prediction_grid``).
 
     Raises:
         GridError: unreadable file, unknown key, axis, value, controller, scenario, fault,
@@ -236,6 +240,12 @@ def load_grid(file: str | Path) -> Grid:
         raise GridError(f"{file}: not UTF-8 text (byte {e.start}: {e.reason})") from None
     except tomllib.TOMLDecodeError as e:
         raise GridError(f"{file}: invalid TOML: {e}") from e
+    runners = raw.get("axes", {}).get("runner") if isinstance(raw.get("axes"), dict) else None
+    if PREDICTION_RUNNER in (runners if isinstance(runners, list) else [runners]):
+        # its own schema (Table I's model rows x seeds); the trainer (torch) is imported only for it
+        from studies.campaign.prediction_grid import load_prediction_grid
+
+        return load_prediction_grid(file, raw, ROOT)
     unknown = sorted(set(raw) - _TOP_KEYS)
     if unknown:
         raise GridError(f"{file}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_TOP_KEYS))}")

@@ -13,7 +13,10 @@ cached result; editing a source file or an artefact recomputes what it could cha
 A cell whose run raised is cached with its error (the same inputs fail the same way); a
 cell whose worker died (Ray) is recorded in the rows but not cached, so the next run
 retries it. A ``fault_case`` cell is never cached (:func:`cell_cacheable`: its verdict holds
-wall-clock measurements; ``studies.campaign.fault_case_cell``).
+wall-clock measurements; ``studies.campaign.fault_case_cell``). A ``prediction`` cell
+(Table I: a model row x a seed, ``studies.campaign.prediction_grid``) has its own key
+(``studies.campaign.prediction_cell``: the row, the seed, the data set's hash and the code of
+that module and its imports) and keeps its trained model in DIR beside ``cache/``.
 
 Exclusive cells (``Cell.exclusive``: the fault cases that measure the ECU's own wall-clock
 behaviour) run after every other cell, one at a time in this process, once the executor's
@@ -32,7 +35,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from firmware_sim.native import DEFAULT_DATA
 from hil.errors import HilError
@@ -41,7 +44,10 @@ from studies.campaign.cell import ROOT, CellJob
 from studies.campaign.executors import Executor, SerialExecutor
 from studies.campaign.fault_case_cell import FaultCaseJob, fault_case_job, run_fault_case_cell
 from studies.campaign.grid import (DEFAULT_ECU, DEFAULT_TUNING, FAULT_CASE_RUNNER, HIL_RUNNER, NO_DISTURBANCE,
-                                   Cell, Grid, effective_values, model_file, to_toml)
+                                   PREDICTION_RUNNER, Cell, Grid, effective_values, model_file, to_toml)
+
+if TYPE_CHECKING:
+    from studies.campaign.prediction_grid import PredictionGrid
 
 #: Bump when what a cell computes changes in a way the key's other parts do not show.
 CACHE_VERSION = 1
@@ -69,14 +75,32 @@ def _digest(path: Path) -> str:
     return file_digest(path)
 
 
-def code_version(root: Path = ROOT) -> str:
-    """sha256 over the cell runner's source files (transitively imported project modules)
-    and :data:`DATA_FILES`."""
+def code_version(root: Path = ROOT, modules: tuple[str, ...] = CELL_MODULES,
+                 data_files: tuple[str, ...] = DATA_FILES) -> str:
+    """sha256 over the cell runner's source files (``modules`` and the project modules they
+    import, transitively) and ``data_files``: by default a scenario cell's
+    (:data:`CELL_MODULES`, :data:`DATA_FILES`)."""
     from studies.provenance import combined_digest, module_sources
 
-    files = {p.relative_to(root).as_posix(): _digest(p) for p in module_sources(CELL_MODULES, root)}
-    files.update({name: _digest(root / name) for name in DATA_FILES})
+    files = {p.relative_to(root).as_posix(): _digest(p) for p in module_sources(modules, root)}
+    files.update({name: _digest(root / name) for name in data_files})
     return combined_digest(files)
+
+
+def grid_code_version(grid: Grid | PredictionGrid) -> str:
+    """:func:`code_version` of ``grid``'s cells: a ``prediction`` grid's modules and files
+    (``studies.campaign.prediction_cell``), else a scenario cell's."""
+    if is_prediction(grid):
+        from studies.campaign.prediction_cell import PREDICTION_DATA_FILES, PREDICTION_MODULES
+
+        return code_version(modules=PREDICTION_MODULES, data_files=PREDICTION_DATA_FILES)
+    return code_version()
+
+
+def is_prediction(grid: Grid | PredictionGrid) -> bool:
+    """Whether ``grid`` is a ``prediction`` grid (Table I's model rows x seeds). Its modules
+    are imported only then: they import the trainer (torch)."""
+    return getattr(grid, "runner", None) == PREDICTION_RUNNER
 
 
 def _repo_relative(path: Path) -> str:
@@ -92,7 +116,7 @@ def check_c_ecu_built(grid: Grid) -> None:
     Raises:
         CampaignError: naming the missing file and ``make firmware``.
     """
-    c_cells = sum(1 for cell in grid.cells if cell.ecu == "c")
+    c_cells = sum(1 for cell in grid.cells if getattr(cell, "ecu", None) == "c")
     missing = [path for path in C_ECU_FILES if not path.is_file()]
     if c_cells and missing:
         raise CampaignError(f"{grid.source}: axes.ecu has \"c\" ({c_cells} of the cells) but the "
@@ -106,9 +130,13 @@ def cell_cacheable(cell: Cell) -> bool:
     return cell.runner != FAULT_CASE_RUNNER
 
 
-def cell_task(grid: Grid) -> Callable[[Any], dict[str, Any]]:
-    """The executors' task function for ``grid``'s cells: a ``fault_case`` grid's (that
-    runner stands alone on its axis), else the scenario runners' ``run_cell``."""
+def cell_task(grid: Grid | PredictionGrid) -> Callable[[Any], dict[str, Any]]:
+    """The executors' task function for ``grid``'s cells: a ``prediction`` or ``fault_case``
+    grid's (each runner stands alone on its axis), else the scenario runners' ``run_cell``."""
+    if is_prediction(grid):
+        from studies.campaign.prediction_cell import run_prediction_cell
+
+        return run_prediction_cell
     if any(cell.runner == FAULT_CASE_RUNNER for cell in grid.cells):
         return run_fault_case_cell
     from studies.campaign.cell import run_cell
@@ -166,6 +194,34 @@ def cell_key(grid: Grid, cell: Cell, version: str | None = None) -> str:
     return cell_job(grid, cell, version or code_version()).key
 
 
+def campaign_jobs(grid: Grid | PredictionGrid, out_dir: Path, version: str | None = None) -> list[Any]:
+    """The workers' jobs of every cell of ``grid`` (in grid order), keyed for the code
+    ``version`` (default: this checkout's, :func:`grid_code_version`); a ``prediction``
+    grid's trained models go to ``out_dir``.
+
+    Raises:
+        CampaignError: a ``prediction`` grid's data set is missing.
+    """
+    version = version or grid_code_version(grid)
+    if not is_prediction(grid):
+        return [cell_job(grid, cell, version) for cell in grid.cells]
+    from models.koopman_data import dataset_hash
+    from studies.campaign.prediction_cell import prediction_job
+
+    if not grid.data_dir.is_dir():
+        raise CampaignError(f"{grid.source}: run.data: no data set in {grid.data_dir} (`make train` or "
+                            "`python -m models.data generate --out DIR --profile wide` writes one)")
+    data_hash = dataset_hash(grid.data_dir)
+    return [prediction_job(grid, cell, version, out_dir, data_hash) for cell in grid.cells]
+
+
+def cell_axes(grid: Grid | PredictionGrid, cell: Any) -> dict[str, Any]:
+    """The axis columns of ``cell``'s row (a scenario cell's: :func:`effective_values`)."""
+    if is_prediction(grid):
+        return cell.as_dict()
+    return effective_values(grid.scenario_document(cell), cell)
+
+
 # ---------------------------------------------------------------------------- cache
 
 class Cache:
@@ -206,7 +262,7 @@ class CampaignResult:
     notes: list[str] = field(default_factory=list)
 
 
-def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: bool = True,
+def run_campaign(grid: Grid | PredictionGrid, out_dir: Path, executor: Executor, *, progress: bool = True,
                  on_row: Callable[[dict[str, Any]], None] | None = None) -> CampaignResult:
     """Run every cell of ``grid`` not yet cached in ``out_dir``; a KeyboardInterrupt stops
     the campaign and returns what finished (``interrupted`` True). The exclusive cells
@@ -217,10 +273,8 @@ def run_campaign(grid: Grid, out_dir: Path, executor: Executor, *, progress: boo
     started = time.monotonic()
     check_c_ecu_built(grid)
     cache = Cache(out_dir)
-    version = code_version()
-    jobs = [cell_job(grid, cell, version) for cell in grid.cells]
-    axes = {job.key: effective_values(grid.scenario_document(cell), cell)
-            for cell, job in zip(grid.cells, jobs)}
+    jobs = campaign_jobs(grid, out_dir)
+    axes = {job.key: cell_axes(grid, cell) for cell, job in zip(grid.cells, jobs)}
     results: dict[str, dict[str, Any]] = {}
     for job in jobs:
         cached = cache.get(job.key) if getattr(job, "cacheable", True) else None
@@ -272,12 +326,11 @@ def _shared_then_exclusive(executor: Executor, jobs: list[Any],
         yield from SerialExecutor(task).run(alone)
 
 
-def cached_rows(grid: Grid, out_dir: Path, version: str | None = None) -> list[dict[str, Any]]:
+def cached_rows(grid: Grid | PredictionGrid, out_dir: Path, version: str | None = None) -> list[dict[str, Any]]:
     """The rows of ``grid``'s cells cached in ``out_dir`` for the code ``version`` (default:
     this checkout's), in grid order; cells without a cached result are left out."""
-    version = version or code_version()
     cache = Cache(out_dir)
-    rows = (cache.get(cell_job(grid, cell, version).key) for cell in grid.cells)
+    rows = (cache.get(job.key) for job in campaign_jobs(grid, out_dir, version))
     return [row for row in rows if row]
 
 
