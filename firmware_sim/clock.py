@@ -157,8 +157,11 @@ class SampleRelease:
     clock as in revision 2 and reports each release with `note_release`. A good sample set
     anchors the grid of control instants N_k = anchor + k * period there: the first one,
     and the first after none for more than ``lost_ns`` (the contract's 100 ms); when the
-    task ran less than ``min_spacing_ns`` before it, the grid anchors at that release
-    instead and the sample does not run the task again. Anchored,
+    task ran less than ``min_spacing_ns`` before it, that release stands for the instant
+    and the sample does not run the task again; the grid anchors at that release, except for
+    a *paced* plant (25 ms, one sample per period), whose grid anchors at the sample and
+    follows each of its samples: one that comes outside the pending instant's window anchors
+    it again, one that releases the task moves the instant to its arrival. Anchored,
     instant N is released by the first good sample set arriving in its window
     [N - ``early_ns``, N + ``watchdog_ns``), and by the period watchdog at N + ``watchdog_ns``
     when none came. One release per instant: later samples of the window only refresh the
@@ -166,7 +169,7 @@ class SampleRelease:
     """
 
     def __init__(self, period_ns: int, early_ns: int, watchdog_ns: int, min_spacing_ns: int,
-                 lost_ns: int) -> None:
+                 lost_ns: int, sample_period_ns: int) -> None:
         if early_ns < 0 or watchdog_ns <= 0 or early_ns + watchdog_ns + min_spacing_ns > period_ns:
             raise ValueError(f"release window [-{early_ns}, +{watchdog_ns}) ns with a spacing of "
                              f"{min_spacing_ns} ns does not fit the period of {period_ns} ns")
@@ -175,6 +178,10 @@ class SampleRelease:
         self.watchdog_ns = watchdog_ns
         self.min_spacing_ns = min_spacing_ns
         self.lost_ns = lost_ns
+        self.sample_period_ns = sample_period_ns
+        #: One sample per control period (a 25 ms plant, slower than a window is wide): its
+        #: samples pace the task, and the grid follows each one.
+        self.paced = sample_period_ns > early_ns + watchdog_ns
         self.reset()
 
     def reset(self) -> None:
@@ -213,19 +220,31 @@ class SampleRelease:
         it releases the task now."""
         restarted = self.last_sample_ns is None or arrival_ns - self.last_sample_ns > self.lost_ns
         self.last_sample_ns = arrival_ns
-        if not self.anchored or restarted:
-            self.anchored = True
-            self.instant_released = True
-            if self.last_release_ns is not None and arrival_ns - self.last_release_ns < self.min_spacing_ns:
-                # the release just before is this instant's: the grid anchors there
-                self.instant_ns = self.last_release_ns
-                return False
-            self.instant_ns = arrival_ns
-            self.last_release_ns = arrival_ns
-            return True
-        if self.instant_released or arrival_ns < self.instant_ns - self.early_ns:
+        off_window = arrival_ns < self.instant_ns - self.early_ns
+        if not self.anchored or restarted or (off_window and self.paced):
+            # A paced plant's sample outside the window (a late first sample, a plant whose
+            # phase moved) anchors the grid too, or each later one would miss its window.
+            return self._anchor(arrival_ns)
+        if self.instant_released or off_window:
             return False
         if self.last_release_ns is not None and arrival_ns - self.last_release_ns < self.min_spacing_ns:
             return False
         self._release(arrival_ns)
+        if self.paced:
+            self.instant_ns = arrival_ns  # the grid follows the plant's phase, drift included
+        return True
+
+    def _anchor(self, arrival_ns: int) -> bool:
+        """Anchor the grid on the sample that arrived at ``arrival_ns``: whether it runs the
+        task. Not when the task ran less than the minimum spacing before it: that release
+        stands for the instant, and the grid anchors there (a 10 ms plant: one of its samples
+        is in every window) or, for a paced plant, at the sample (so that its next sample
+        comes at its instant)."""
+        self.anchored = True
+        self.instant_released = True
+        if self.last_release_ns is not None and arrival_ns - self.last_release_ns < self.min_spacing_ns:
+            self.instant_ns = arrival_ns if self.paced else self.last_release_ns
+            return False
+        self.instant_ns = arrival_ns
+        self.last_release_ns = arrival_ns
         return True

@@ -128,7 +128,7 @@ class Ecu(ControlTask, BusLoop):
         #: Revision 3: the control task released by the plant's samples (None: the clock).
         self._sample_release = (None if self._config.control_release == "clock" else SampleRelease(
             self._period_ns, SAMPLE_WINDOW_EARLY_NS, SAMPLE_WATCHDOG_NS, MIN_RELEASE_SPACING_NS,
-            self._config.sample_lost_ms * NS_PER_MS))
+            self._config.sample_lost_ms * NS_PER_MS, self._config.plant_sample_period_ms * NS_PER_MS))
         self.timing = TimingRecorder(self._config.timing_capacity)
         self._closed = False
         self._warned: set[str] = set()

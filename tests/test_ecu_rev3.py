@@ -22,16 +22,17 @@ from test_ecu_lockstep import Rig, buses, moving_plant  # noqa: F401 (buses: the
 MS = NS_PER_MS
 
 
-def new_release() -> SampleRelease:
+def new_release(plant_ms: int = 25) -> SampleRelease:
     return SampleRelease(25 * MS, SAMPLE_WINDOW_EARLY_NS, SAMPLE_WATCHDOG_NS, MIN_RELEASE_SPACING_NS,
-                         100 * MS)
+                         100 * MS, plant_ms * MS)
 
 
-def releases(sample_ms: list[float], until_ms: int, step_ms: float = 0.5) -> list[tuple[float, str]]:
+def releases(sample_ms: list[float], until_ms: int, step_ms: float = 0.5,
+             plant_ms: int = 25) -> list[tuple[float, str]]:
     """(time ms, "sample" | "watchdog") of every release, time advancing in ``step_ms``
     with the samples at ``sample_ms`` (the ECU's order: windows closed first, then the
-    sample)."""
-    release = new_release()
+    sample), the ECU told the plant's period ``plant_ms``."""
+    release = new_release(plant_ms)
     pending = sorted(sample_ms)
     out = []
     t = 0.0
@@ -49,7 +50,7 @@ def releases(sample_ms: list[float], until_ms: int, step_ms: float = 0.5) -> lis
 def test_a_10_ms_plant_releases_on_the_sample_nearest_each_25_ms_instant() -> None:
     """Revision 2's plant, unchanged: one sample in every window, spacing 30 / 20 ms, a
     25 ms mean period, never the watchdog."""
-    got = releases([10.0 * k for k in range(41)], 400)
+    got = releases([10.0 * k for k in range(41)], 400, plant_ms=10)
     print("releases:", got)
     times = [t for t, _ in got]
     assert all(kind == "sample" for _, kind in got)
@@ -78,7 +79,7 @@ def test_a_lost_sample_still_gives_a_cycle_at_the_watchdog() -> None:
 def test_samples_faster_than_the_period_release_once_per_instant_at_least_15_ms_apart() -> None:
     """A 1 ms burst of samples: one release per 25 ms instant, never closer than the
     minimum spacing."""
-    got = releases([float(t) for t in range(0, 200)], 200)
+    got = releases([float(t) for t in range(0, 200)], 200, plant_ms=10)
     times = [t for t, _ in got]
     print("releases:", got)
     assert len(times) == 9  # instants 0, 25, ... 200
@@ -95,14 +96,54 @@ def test_a_late_loop_releases_the_newest_instant_and_skips_the_older_ones() -> N
 
 def test_a_restarted_plant_anchors_the_grid_again() -> None:
     """No sample for more than 100 ms (SAFE_STOP): the next one anchors the grid anew and
-    runs the task, unless the watchdog ran it less than 15 ms before (then the grid is
-    anchored there all the same and the next sample runs it)."""
+    runs the task, unless the watchdog ran it less than 15 ms before (then that release
+    stands for the instant and the next sample runs the task: a 25 ms plant's grid anchors
+    at the sample, so that it is served at any phase against the old grid). A 10 ms plant's
+    grid anchors at the release (one of its samples is in every window), at most 35 ms
+    between releases."""
     got = releases([0, 25, 50, 275, 300], 310)
     print("releases:", got)
     assert [t for t, kind in got if kind == "sample"] == [0, 25, 50, 275, 300]
     assert [t for t, kind in got if kind == "watchdog"][-1] == 257.5
     got = releases([0, 25, 50, 261, 286], 290)
     assert [t for t, kind in got if kind == "sample"] == [0, 25, 50, 286]  # 261: 3.5 ms after 257.5
+    for gap in (7.5, 10.0, 12.0, 14.5):  # anchored at 257.5, these samples came after every window
+        restart = 257.5 + gap
+        samples = [restart + 25.0 * k for k in range(6)]
+        got = releases([0, 25, 50, *samples], round(samples[-1]) + 1)
+        assert [t for t, kind in got if t > 257.5] == [pytest.approx(s, abs=0.5) for s in samples[1:]], (gap, got)
+        assert all(kind == "sample" for t, kind in got if t > 257.5), (gap, got)
+    for gap in (0.0, 5.0, 7.5, 10.0, 14.5):  # a 10 ms plant restarted at any phase
+        samples = [257.5 + gap + 10.0 * k for k in range(12)]
+        got = releases([0, 10, 20, 30, 40, 50, *samples], round(samples[-1]) + 1, plant_ms=10)
+        times = [t for t, _ in got]
+        assert max(b - a for a, b in zip(times, times[1:]) if a >= 257.5) <= 35.0, (gap, got)
+
+
+def test_a_25_ms_plant_off_its_window_moves_the_grid() -> None:
+    """A 25 ms plant whose first sample came 7.5 ms before its next one (the phase of the
+    following ones), or whose clock drifts 0.5 ms per period either way: its sample outside
+    the pending instant's window anchors the grid again (one instant to the watchdog), and
+    each sample that releases the task moves the instant to its arrival (drift followed)."""
+    got = releases([0.0, *[7.5 + 25.0 * k for k in range(1, 12)]], 290)
+    print("late first sample:", got)
+    assert got[-10:] == [(pytest.approx(7.5 + 25.0 * k, abs=0.5), "sample") for k in range(2, 12)]
+    for drift in (0.5, -0.5):
+        samples = [(25.0 + drift) * k for k in range(60)]
+        got = releases(samples, round(samples[-1]) + 1)
+        watchdog = [t for t, kind in got if kind == "watchdog"]
+        print(f"drift {drift} ms per period: watchdog releases at {watchdog}")
+        assert len(watchdog) <= 2 and all(kind == "sample" for _, kind in got[-20:]), got
+        assert min(b - a for (a, _), (b, _) in zip(got, got[1:])) >= MIN_RELEASE_SPACING_NS / MS
+
+
+def test_a_10_ms_plant_off_a_window_does_not_move_the_grid() -> None:
+    """The rules above are the 25 ms plant's: a 10 ms plant's samples between two windows only
+    refresh the newest sample, as in revision 2 (the releases of the first test)."""
+    release = new_release(plant_ms=10)
+    assert release.on_sample(0)
+    release.on_time(10 * MS)
+    assert not release.on_sample(10 * MS) and release.instant_ns == 25 * MS
 
 
 def test_control_release_is_checked() -> None:

@@ -26,6 +26,7 @@ static void reset_run(ecu_node_t *node) {
   node->overruns = 0;
   node->cycles = 0;
   ecu_release_reset(&node->release);
+  node->release.sample_period_ns = (int64_t)(node->plant_period_ms ? node->plant_period_ms : SAMPLE_PERIOD_MS) * NS_PER_MS;
 }
 
 void ecu_node_start(ecu_node_t *node, ecu_core_t *core, const ecu_path_pool_t *paths, ecu_excite_t *excite,
@@ -164,6 +165,7 @@ void ecu_node_set_sample_release(ecu_node_t *node) { node->sample_release = 1; }
 void ecu_node_set_plant_period(ecu_node_t *node, int period_ms) {
   node->plant_period_ms = period_ms;
   node->rx.sample_period_ms = period_ms;
+  node->release.sample_period_ns = (int64_t)period_ms * NS_PER_MS;
 }
 
 int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns) {

@@ -37,24 +37,40 @@ static int spaced(const ecu_release_t *release, int64_t now_ns) {
   return !release->last_release.set || now_ns - release->last_release.ns >= MIN_RELEASE_SPACING_NS;
 }
 
+/* A plant with one sample per control period (25 ms, slower than a window is wide): its
+ * samples pace the task, and the grid follows each one. */
+static int paced(const ecu_release_t *release) {
+  return release->sample_period_ns > SAMPLE_WINDOW_EARLY_NS + SAMPLE_WATCHDOG_NS;
+}
+
+/* Anchor the grid on the sample that arrived at arrival_ns: 1 when it runs the task. Not
+ * when the task ran less than the minimum spacing before it: that release stands for the
+ * instant, and the grid anchors there (a 10 ms plant: one of its samples is in every
+ * window) or, for a paced plant, at the sample (its next sample comes at its instant). */
+static int anchor(ecu_release_t *release, int64_t arrival_ns) {
+  release->anchored = 1;
+  release->instant_released = 1;
+  if (!spaced(release, arrival_ns)) {
+    release->instant_ns = paced(release) ? arrival_ns : release->last_release.ns;
+    return 0;
+  }
+  release->instant_ns = arrival_ns;
+  ecu_release_note(release, arrival_ns);
+  return 1;
+}
+
 int ecu_release_on_sample(ecu_release_t *release, int64_t arrival_ns) {
   int restarted = !release->last_sample.set || arrival_ns - release->last_sample.ns > SAMPLE_LOST_MS * NS_PER_MS;
   release->last_sample.set = 1;
   release->last_sample.ns = arrival_ns;
-  if (!release->anchored || restarted) {
-    release->anchored = 1;
-    release->instant_released = 1;
-    if (!spaced(release, arrival_ns)) { /* the release just before is this instant's: the grid anchors there */
-      release->instant_ns = release->last_release.ns;
-      return 0;
-    }
-    release->instant_ns = arrival_ns;
-    ecu_release_note(release, arrival_ns);
-    return 1;
-  }
-  if (release->instant_released || arrival_ns < release->instant_ns - SAMPLE_WINDOW_EARLY_NS) return 0;
+  int off_window = arrival_ns < release->instant_ns - SAMPLE_WINDOW_EARLY_NS;
+  /* A paced plant's sample outside the window (a late first sample, a plant whose phase
+   * moved) anchors the grid too, or each later one would miss its window. */
+  if (!release->anchored || restarted || (off_window && paced(release))) return anchor(release, arrival_ns);
+  if (release->instant_released || off_window) return 0;
   if (!spaced(release, arrival_ns)) return 0;
   release->instant_released = 1;
   ecu_release_note(release, arrival_ns);
+  if (paced(release)) release->instant_ns = arrival_ns; /* the grid follows the plant's phase, drift included */
   return 1;
 }

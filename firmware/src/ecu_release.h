@@ -5,8 +5,12 @@
  * Unanchored (from the start, after ecu_release_reset), the node releases the task on its
  * 25 ms clock as in revision 2 and reports each release with ecu_release_note. A good
  * sample set anchors the grid of control instants N_k = anchor + k * 25 ms there: the
- * first one, and the first after none for more than 100 ms (at the release just before it
- * when that was less than 15 ms earlier). Anchored, instant N is released
+ * first one, and the first after none for more than 100 ms (when the task ran less than
+ * 15 ms before it, that release stands for the instant and the grid anchors there, for a
+ * paced plant, sample_period_ns 25 ms, at the sample). A paced plant's grid follows each
+ * of its samples: one outside the pending instant's window anchors it again, one that
+ * releases the task moves the instant to its arrival.
+ * Anchored, instant N is released
  * by the first good sample set arriving in [N - 2.5 ms, N + 7.5 ms), else by the period
  * watchdog at N + 7.5 ms; one release per instant; two releases at least 15 ms apart.
  */
@@ -22,6 +26,7 @@ typedef struct {
   int64_t instant_ns;   /* the pending control instant N (anchored) */
   int instant_released; /* N has had its release */
   ecu_when_t last_release, last_sample;
+  int64_t sample_period_ns; /* the plant's (10 or 25 ms); ecu_release_reset keeps it */
 } ecu_release_t;
 
 /* Unanchored, nothing released (start-up, handshake, jump of virtual time). */
