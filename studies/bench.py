@@ -59,7 +59,7 @@ import numpy as np  # noqa: E402
 from controller.base import Controller, VehicleSample  # noqa: E402
 from controller.reference import ReferencePath  # noqa: E402
 from studies.closed_loop import CONTROL_PERIOD_MS, PLANT_PERIOD_MS, TICK_MS  # noqa: E402
-from studies.machine import load_average, machine_description  # noqa: E402
+from studies.machine import load_average, machine_description, speed_reference  # noqa: E402
 from studies.step_timing import (BenchError, ControllerTiming, Percentiles, record_samples,  # noqa: E402
                                  time_controllers)
 
@@ -74,6 +74,8 @@ PAPER_MEAN_MS = {"lmpc": 2.36, "dkmpc": 261.0, "eso-dkmpc": 370.0, "nmpc": 3076.
 #: The label of the ECU overhead's row.
 ECU_OVERHEAD_ROW = "ECU overhead (no law)"
 TOP_FUNCTIONS = 15
+#: The row of NMPC with its NLP compiled (controller/nlp_library.py), as in real time.
+NMPC_COMPILED_ROW = "nmpc (compiled NLP)"
 
 
 def registered_names() -> list[str]:
@@ -94,6 +96,13 @@ def build_controllers(names: Sequence[str]) -> tuple[dict[str, Controller], dict
             built[name] = create_controller(name)
         except Exception as e:  # noqa: BLE001 - reported in the table's notes and the exit status
             errors[name] = f"{type(e).__name__}: {e}"
+    if "nmpc" in built:  # NMPC as the real-time ECU runs it: the NLP compiled, no budget here
+        try:
+            compiled = create_controller("nmpc")
+            compiled.set_time_budget(None, compiled=True)  # type: ignore[attr-defined]
+            built[NMPC_COMPILED_ROW] = compiled
+        except Exception as e:  # noqa: BLE001 - as above
+            errors[NMPC_COMPILED_ROW] = f"{type(e).__name__}: {e}"
     return built, errors
 
 
@@ -212,7 +221,11 @@ def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float,
             f"- Load average (1 / 5 / 15 min): {' / '.join(f'{v:.2f}' for v in load_start)} at the "
             f"start, {' / '.join(f'{v:.2f}' for v in load_end)} at the end. A load above "
             f"{os.cpu_count()} (the CPUs) means other work was waiting for a core: the wall "
-            "tails then include that waiting, the CPU-time columns do not."]
+            "tails then include that waiting, the CPU-time columns do not.",
+            f"- Speed reference: {speed_reference():.2f} ms (a fixed workload of a Python loop and "
+            "small numpy operations, the fastest of 7 runs, `studies/machine.py`): a virtual "
+            "machine's CPU name does not say how fast its host is. Compare step times between "
+            "results files only where this figure is alike."]
 
 
 def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] | None,
@@ -239,6 +252,10 @@ def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] 
               "solver share: the solver's time summed over the steps / the step wall time summed. Not solved: steps whose "
               "status was not SOLVED. Paper: average per step (MATLAB, CasADi / IPOPT, Intel i7 "
               "at 1.10 GHz)."]
+    if NMPC_COMPILED_ROW in timings:
+        lines += ["", f"{NMPC_COMPILED_ROW}: NMPC as the real-time ECU runs it, its NLP's functions "
+                  "compiled once into a shared library (controller/nlp_library.py, docs/controllers.md) "
+                  "instead of evaluated by CasADi's virtual machine; the same iterates (no budget here)."]
     if c_rows:
         lines += ["", "NAME (C): the C firmware's control step (libecu.so, `make firmware`; "
                   "docs/firmware.md) on the same samples, timed alternately with its Python twin in a "
@@ -267,6 +284,7 @@ def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any]
     ``c_core`` (``note``: why some or all are missing)."""
     return {
         "command": command, "machine": machine_description(), "node": platform.node(),
+        "speed_reference_ms": speed_reference(),
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "load_average_start": list(load_start), "load_average_end": list(load_end),
         "recording": recording, "baseline": BASELINE,
@@ -311,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-ecu", action="store_true", help="leave out the ECU overhead")
     parser.add_argument("--no-c", action="store_true", help="leave out the C core's rows (make firmware)")
     parser.add_argument("--profile", metavar="NAME", default=None,
-                        help="also print a cProfile of NAME's steps on the same samples")
+                        help="also print a cProfile of NAME's steps on the same samples; writes no file")
     parser.add_argument("--out", type=Path, default=Path("results/bench.md"))
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = parser.parse_args(argv)
@@ -341,6 +359,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {name} not built: {error}", file=sys.stderr)
     load_end = load_average()
     text = report(timings, overhead, recording, command, load_start, load_end, not_built, c_rows, c_note)
+    if args.profile:  # a look at one controller: printed, the committed report left alone
+        print(text)
+        print(profile_steps(args.profile, samples, path))
+        return 1 if not_built else 0
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     written = [args.out]
@@ -350,8 +372,6 @@ def main(argv: list[str] | None = None) -> int:
                                                 load_end, not_built, c_rows, c_note), indent=2) + "\n")
         written.append(args.json)
     print(text)
-    if args.profile:
-        print(profile_steps(args.profile, samples, path))
     print(f"wrote {', '.join(str(p) for p in written)}")
     return 1 if not_built else 0
 

@@ -35,13 +35,17 @@ def test_bench_times_every_registered_controller_on_the_same_samples(tmp_path: P
     rows = _rows(text)
     c_rows = {f"{name} (C)" for name in NATIVE_CONTROLLERS if name in registry.CONTROLLERS}
     built = DEFAULT_LIBRARY.is_file()
-    assert set(rows) == set(registry.CONTROLLERS) | {bench.ECU_OVERHEAD_ROW} | (c_rows if built else set())
+    # NMPC a second time as the real-time ECU runs it (its NLP compiled)
+    assert set(rows) == (set(registry.CONTROLLERS) | {bench.ECU_OVERHEAD_ROW, bench.NMPC_COMPILED_ROW}
+                         | (c_rows if built else set()))
     assert ("is not built (make firmware)" in text) != built
     assert "Load average (1 / 5 / 15 min)" in text and "OPENBLAS_NUM_THREADS=1" in text
+    assert "- Speed reference: " in text
     assert f"{STEPS} samples of `{step_timing.RECORDING_SCENARIO}`" in text
 
     document = json.loads(out_json.read_text())
-    assert list(document["controllers"]) == list(registry.CONTROLLERS)
+    assert 0 < document["speed_reference_ms"] < 1000
+    assert list(document["controllers"]) == [*registry.CONTROLLERS, bench.NMPC_COMPILED_ROW]
     assert document["not_built"] == {}
     for name, timing in document["controllers"].items():
         for kind in ("wall", "cpu"):
@@ -106,3 +110,12 @@ def test_bench_refuses_unknown_controllers_and_too_few_steps(tmp_path: Path,
     assert bench.main(["--steps", "1", "--out", str(tmp_path / "x.md")]) == 1
     assert capsys.readouterr().err.startswith("error:")
     assert not (tmp_path / "x.md").exists()
+
+
+def test_profile_prints_and_writes_no_file(tmp_path, capsys):
+    out = tmp_path / "bench.md"
+    assert bench.main(["--steps", "3", "--no-ecu", "--no-c", "--controllers", "lmpc",
+                       "--profile", "lmpc", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "cProfile of lmpc `step()` x 2" in printed and "| lmpc |" in printed
+    assert not out.exists() and "wrote" not in printed

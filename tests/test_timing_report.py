@@ -18,13 +18,14 @@ from studies.timing.report import FIGURES, RunFigures, percentile_table, summary
 
 def _run(condition: str = "idle", controller: str = "eso-dkmpc", release: str = "sample",
          repeat: int = 1, task: float = 1.0, latency: float = 1.5, age: float = 0.1,
-         overruns: int = 0, seconds: float = 45.0) -> RunFigures:
+         overruns: int = 0, seconds: float = 45.0, modes: dict[str, int] | None = None) -> RunFigures:
     """A run's figures with the p99 (ms) of task time, RX-to-TX latency and input age given;
-    the other figures 0."""
+    the law running on all 1760 cycles unless ``modes`` says otherwise; the other figures 0."""
     p99 = {"task_time": task, "rx_to_tx_latency": latency, "input_age": age}
     values = {f.name: 0 for f in dataclasses.fields(RunFigures)}
     values.update(condition=condition, controller=controller, release=release, repeat=repeat,
-                  seconds=seconds, overruns=overruns, modes={"ACTIVE": 1760},
+                  seconds=seconds, overruns=overruns, cycles=1760,
+                  modes=modes or {"ACTIVE": 1760},
                   command_gap_max_ms=30.0, steal_share=0.0, scheduling={},
                   stats={name: (p99.get(name, 0.0) / 2, p99.get(name, 0.0), p99.get(name, 0.0),
                                 p99.get(name, 0.0), 1760) for name, _ in FIGURES},
@@ -112,6 +113,22 @@ def test_spread_table_gives_each_repeated_row_its_p99_spread_and_leaves_single_r
 
 
 # ------------------------------------------------------------------ goal lines
+def test_a_run_whose_law_did_not_run_meets_no_goal():
+    """A controller that fell into SAFE_STOP at the start has no overruns and a short task:
+    its row must not pass for a met goal (the NMPC rows of make timing once did)."""
+    stopped = {"ACTIVE": 4, "SAFE_STOP": 1756}
+    lines = goal_lines([_run(controller="nmpc", release="clock", modes=stopped),
+                        _run(controller="lmpc", release="clock", modes={"ACTIVE": 1700, "DEGRADED": 60}),
+                        _run(release="clock", modes=stopped)])
+    print("\n".join(lines))
+    nmpc = next(line for line in lines if line.startswith("- idle, clock release: nmpc overruns"))
+    assert "NOT met (the law ran on 4 of 1760 cycles of run 1 (SAFE_STOP 1756))" in nmpc
+    lmpc = next(line for line in lines if line.startswith("- idle, clock release: lmpc overruns"))
+    assert ": met;" in lmpc                    # DEGRADED cycles ran the law too
+    task = next(line for line in lines if "ESO-DKMPC (Python ECU) task time" in line)
+    assert "NOT met (the law ran on 4 of 1760 cycles" in task
+
+
 def test_goal_lines_judge_every_run_and_give_the_spread():
     runs = [_run(repeat=1, latency=1.0), _run(repeat=2, latency=3.5), _run(repeat=3, latency=2.0)]
     lines = goal_lines(runs)
@@ -206,13 +223,14 @@ def test_the_report_states_run_lengths_releases_goals_and_spread(tmp_path):
                             started="2026-12-05 12:00 UTC", wall_s=600.0,
                             loads={"idle": "load average (1 min) 0.10 before, 0.20 after"},
                             stress_pinning=[], pngs=[tmp_path / "timing_idle.png"],
-                            idle_states="held at 0 us")
+                            idle_states="held at 0 us", speed_reference_ms=3.25)
     text = "\n".join(_report(grouped(runs), context))
     print(text[:3000])
     assert "`python -m studies.timing.bench --repeats 2 --out 'x y.md'` (`make timing`)" in text
     assert ("- Run lengths: eso-dkmpc rows 45 s per run, 2 runs per ECU and release "
             "(clock, sample); nmpc: 30 s, one run (clock release). 9 runs in all, "
             "10.0 min of wall time (start-up included).") in text
+    assert "- Speed reference: 3.25 ms before the first run" in text
     for heading in ("## Goals (issue 37)", "## Run-to-run spread", "## Summary\n",
                     "## Percentiles (ms)", "![timing_idle](timing_idle.png)"):
         assert heading in text

@@ -37,6 +37,7 @@ from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from hil.errors import HilError  # noqa: E402
+from studies.machine import speed_reference  # noqa: E402
 from studies.timing.cpu_latency import CpuLatencyRequest  # noqa: E402
 from studies.timing.goals import goal_lines, spread_table  # noqa: E402
 from studies.timing.plan import (REPEATED_CONTROLLER, RELEASES, RunSpec,  # noqa: E402
@@ -136,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     loads: dict[str, str] = {}
     stress_pinning: list[str] = []
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    speed = speed_reference()  # before any run: the machine idle as the idle runs see it
     wall_start = time.monotonic()
     with CpuLatencyRequest(0, requested=args.cpu_latency == "hold") as latency:
         for condition in conditions:
@@ -167,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     (args.work / "summary.json").write_text(json.dumps(as_json(figures), indent=1) + "\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     context = ReportContext(argv=argv, plan=plan, started=started, wall_s=wall_s, loads=loads,
-                            stress_pinning=stress_pinning, pngs=pngs, idle_states=idle_states)
+                            stress_pinning=stress_pinning, pngs=pngs, idle_states=idle_states,
+                            speed_reference_ms=speed)
     args.out.write_text("\n".join(_report(figures, context)) + "\n")
     print(f"wrote {args.out}, {', '.join(map(str, pngs))} ({wall_s / 60:.1f} min)")
     return 0
@@ -197,6 +200,7 @@ class ReportContext:
     stress_pinning: list[str]
     pngs: list[Path]
     idle_states: str
+    speed_reference_ms: float = float("nan")
 
 
 def durations_line(plan: list[RunSpec], conditions: int, wall_s: float) -> str:
@@ -225,6 +229,10 @@ def _report(figures: list[RunFigures], context: ReportContext) -> list[str]:
         "# ECU timing (issues 9, 37)", "",
         f"`{command}` (`make timing`), started {context.started} on `{platform.node()}` "
         f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs).", "",
+        f"- Speed reference: {context.speed_reference_ms:.2f} ms before the first run (a fixed "
+        "workload, the fastest of 7 runs, `studies/machine.py`; `make bench` states it too): a "
+        "virtual machine's CPU name does not say how fast its host is, so compare figures "
+        "between results files only where this one is alike.",
         durations_line(context.plan, len(conditions), context.wall_s),
         "- Release: what released the ECU's control task (docs/can-contract.md): `clock` = the "
         "ECU's own 25 ms clock (contract revision 2, the ECUs' default); `sample` = the arrival of "

@@ -23,6 +23,11 @@ GOAL_TASK_P99_MS = 2.0
 GOAL_C_TASK_P99_MS = 0.25
 #: Issue 9: ESO-DKMPC's task time p99 at most this multiple of LMPC's.
 GOAL_LMPC_RATIO = 2.0
+#: A run speaks for a goal only when the law ran (ACTIVE or DEGRADED) on at least this
+#: share of its cycles: a controller that fell into SAFE_STOP has no overruns to count.
+MIN_CONTROLLING_SHARE = 0.95
+#: The modes in which the law runs.
+CONTROLLING_MODES = ("ACTIVE", "DEGRADED")
 #: The figures whose p99 the spread table gives: (field, label).
 SPREAD_FIGURES = (("rx_to_tx_latency", "RX-to-TX"), ("task_time", "task time"),
                   ("input_age", "input age"))
@@ -90,11 +95,27 @@ def spread_table(figures: list[RunFigures], min_runs: int = 2) -> list[str]:
     return lines
 
 
+def law_idle(runs: list[RunFigures]) -> str | None:
+    """Why ``runs`` cannot speak for a goal (the law ran on too few cycles of a run), or
+    None when it ran on at least `MIN_CONTROLLING_SHARE` of every run's cycles."""
+    for f in runs:
+        ran = sum(f.modes.get(mode, 0) for mode in CONTROLLING_MODES)
+        if f.cycles == 0 or ran < MIN_CONTROLLING_SHARE * f.cycles:
+            others = ", ".join(f"{mode} {n}" for mode, n in f.modes.items() if mode not in CONTROLLING_MODES)
+            return (f"the law ran on {ran} of {f.cycles} cycles of run {f.repeat}"
+                    + (f" ({others})" if others else ""))
+    return None
+
+
 def _verdict(runs: list[RunFigures], field: str, limit_ms: float) -> str:
-    """``met (n of n runs), p99 ...`` or ``NOT met (k of n runs within), p99 ...``."""
+    """``met (n of n runs), p99 ...`` or ``NOT met (k of n runs within), p99 ...``; NOT met
+    whenever the law did not run (`law_idle`)."""
     values = [f.stats[field][1] for f in runs]
     within = sum(1 for v in values if np.isfinite(v) and v <= limit_ms)
-    word = "met" if within == len(values) else "NOT met"
+    idle = law_idle(runs)
+    word = "met" if within == len(values) and idle is None else "NOT met"
+    if idle is not None:
+        word += f" ({idle})"
     figure = spread(values)
     measured = (f"p99 {figure.describe()} ms" if len(values) == 1 else
                 f"p99 min / median / max {figure.describe()} ms")
@@ -135,9 +156,11 @@ def goal_lines(figures: list[RunFigures]) -> list[str]:
                     continue
                 overruns = [f.overruns for f in runs]
                 seconds = ", ".join(dict.fromkeys(f"{f.seconds:g}" for f in runs))
+                idle = law_idle(runs)
+                verdict = "met" if not any(overruns) and idle is None else "NOT met"
                 lines.append(f"- {where}: {row} overruns at 25 ms (goal 0): "
                              f"{', '.join(map(str, overruns))} in {len(runs)} run"
                              f"{'s' if len(runs) > 1 else ''} of {seconds} s: "
-                             f"{'met' if not any(overruns) else 'NOT met'}; commands lost: "
+                             f"{verdict}{f' ({idle})' if idle else ''}; commands lost: "
                              f"{', '.join(str(f.commands_lost) for f in runs)}")
     return lines
