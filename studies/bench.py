@@ -44,6 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402 (after the BLAS setting on purpose)
 import cProfile  # noqa: E402
 import dataclasses  # noqa: E402
+import functools  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
@@ -59,7 +60,8 @@ import numpy as np  # noqa: E402
 from controller.base import Controller, VehicleSample  # noqa: E402
 from controller.reference import ReferencePath  # noqa: E402
 from studies.closed_loop import CONTROL_PERIOD_MS, PLANT_PERIOD_MS, TICK_MS  # noqa: E402
-from studies.machine import load_average, machine_description, speed_reference  # noqa: E402
+from studies.machine import load_average, machine_description  # noqa: E402
+from studies.speed_reference import speed_reference  # noqa: E402
 from studies.step_timing import (BenchError, ControllerTiming, Percentiles, record_samples,  # noqa: E402
                                  time_controllers)
 
@@ -211,6 +213,12 @@ def goal_line(timings: Mapping[str, ControllerTiming]) -> str | None:
             f"p99 ratio {goal.wall.p99_ms / base.wall.p99_ms:.2f}.")
 
 
+@functools.cache
+def machine_speed_ms() -> float:
+    """The speed reference of this run (measured once: the report and the JSON agree)."""
+    return speed_reference()
+
+
 def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float, float, float]) -> list[str]:
     """Where and under what load the benchmark ran."""
     import osqp
@@ -222,8 +230,8 @@ def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float,
             f"start, {' / '.join(f'{v:.2f}' for v in load_end)} at the end. A load above "
             f"{os.cpu_count()} (the CPUs) means other work was waiting for a core: the wall "
             "tails then include that waiting, the CPU-time columns do not.",
-            f"- Speed reference: {speed_reference():.2f} ms (a fixed workload of a Python loop and "
-            "small numpy operations, the fastest of 7 runs, `studies/machine.py`): a virtual "
+            f"- Speed reference: {machine_speed_ms():.2f} ms (a fixed workload of a Python loop and "
+            "small numpy operations, the fastest of 7 runs, `studies/speed_reference.py`): a virtual "
             "machine's CPU name does not say how fast its host is. Compare step times between "
             "results files only where this figure is alike."]
 
@@ -284,7 +292,7 @@ def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any]
     ``c_core`` (``note``: why some or all are missing)."""
     return {
         "command": command, "machine": machine_description(), "node": platform.node(),
-        "speed_reference_ms": speed_reference(),
+        "speed_reference_ms": machine_speed_ms(),
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "load_average_start": list(load_start), "load_average_end": list(load_end),
         "recording": recording, "baseline": BASELINE,

@@ -37,7 +37,7 @@ from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from hil.errors import HilError  # noqa: E402
-from studies.machine import speed_reference  # noqa: E402
+from studies.speed_reference import speed_reference  # noqa: E402
 from studies.timing.cpu_latency import CpuLatencyRequest  # noqa: E402
 from studies.timing.goals import goal_lines, spread_table  # noqa: E402
 from studies.timing.plan import (REPEATED_CONTROLLER, RELEASES, RunSpec,  # noqa: E402
@@ -230,7 +230,7 @@ def _report(figures: list[RunFigures], context: ReportContext) -> list[str]:
         f"`{command}` (`make timing`), started {context.started} on `{platform.node()}` "
         f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPUs).", "",
         f"- Speed reference: {context.speed_reference_ms:.2f} ms before the first run (a fixed "
-        "workload, the fastest of 7 runs, `studies/machine.py`; `make bench` states it too): a "
+        "workload, the fastest of 7 runs, `studies/speed_reference.py`; `make bench` states it too): a "
         "virtual machine's CPU name does not say how fast its host is, so compare figures "
         "between results files only where this one is alike.",
         durations_line(context.plan, len(conditions), context.wall_s),
