@@ -74,3 +74,33 @@ int ecu_release_on_sample(ecu_release_t *release, int64_t arrival_ns) {
   if (paced(release)) release->instant_ns = arrival_ns; /* the grid follows the plant's phase, drift included */
   return 1;
 }
+
+int ecu_release_script(int64_t sample_period_ns, const int32_t *kinds, const int64_t *times_ns, int32_t n,
+                       int32_t *released, int32_t *skipped, int64_t *instants_ns) {
+  if (n < 0 || (n > 0 && (!kinds || !times_ns || !released || !skipped || !instants_ns))) return -1;
+  ecu_release_t release;
+  release.sample_period_ns = sample_period_ns;
+  ecu_release_reset(&release);
+  for (int32_t i = 0; i < n; i++) {
+    int64_t t = times_ns[i];
+    int missed = 0, flags = 0;
+    switch (kinds[i]) {
+    case ECU_RELEASE_TIME:
+      flags = ecu_release_on_time(&release, t, &missed);
+      break;
+    case ECU_RELEASE_SAMPLE:
+      if (release.anchored) flags = ecu_release_on_time(&release, t, &missed);
+      flags |= ecu_release_on_sample(&release, t) << 1;
+      break;
+    case ECU_RELEASE_CLOCK:
+      ecu_release_note(&release, t);
+      break;
+    default:
+      return -1;
+    }
+    released[i] = flags;
+    skipped[i] = missed;
+    instants_ns[i] = release.anchored ? release.instant_ns : 0;
+  }
+  return 0;
+}

@@ -20,6 +20,7 @@
 #include <stdint.h>
 
 #include "ecu_contract.h"
+#include "ecu_types.h"
 
 typedef struct {
   int anchored;
@@ -42,5 +43,18 @@ int ecu_release_on_time(ecu_release_t *release, int64_t now_ns, int *skipped);
 /* A good plant sample set arrived at arrival_ns (ecu_release_on_time first): 1 when it
  * releases the task now. */
 int ecu_release_on_sample(ecu_release_t *release, int64_t arrival_ns);
+
+/* The rule fed a script of events, as the node feeds it (tests/test_release_rule_c.py gives
+ * the Python rule the same scripts; the node itself never calls this). Event i at
+ * times_ns[i] is kinds[i]: ECU_RELEASE_TIME, time passing (the watchdog, when anchored);
+ * ECU_RELEASE_SAMPLE, a good plant sample set (the watchdog first, when anchored, then the
+ * sample's own release); ECU_RELEASE_CLOCK, a release of the node's own 25 ms clock
+ * (unanchored). Out, per event: released[i] bit 0 the watchdog released the task, bit 1
+ * the sample did; skipped[i] the instants skipped; instants_ns[i] the pending instant
+ * after it (0 unanchored). sample_period_ns: the plant's (10 or 25 ms). Returns 0, or -1
+ * for n < 0, a null array or an unknown kind (outputs then undefined from that event). */
+enum { ECU_RELEASE_TIME = 0, ECU_RELEASE_SAMPLE = 1, ECU_RELEASE_CLOCK = 2 };
+ECU_API int ecu_release_script(int64_t sample_period_ns, const int32_t *kinds, const int64_t *times_ns, int32_t n,
+                               int32_t *released, int32_t *skipped, int64_t *instants_ns);
 
 #endif
