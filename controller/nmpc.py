@@ -13,7 +13,8 @@ Real time: the ECU gives a wall-clock budget per step (``set_time_budget``, real
 only), and the NLP's functions run compiled (``controller.nlp_library``, same iterates, half
 the step time); IPOPT stops at it (``max_wall_time``, status MAX_ITERATIONS) and the step falls back
 to the shifted previous solution, the last one that converged, as on any solver failure.
-The warm start is kept from that solution, so the next step starts from it again.
+The next step warm-starts from IPOPT's last iterate of the stopped solve, so that a solve
+too slow from a cold start converges over the following steps.
 """
 from __future__ import annotations
 
@@ -203,11 +204,17 @@ class Nmpc(SteeringMpc):
         states = solution[:self._n_states].reshape(n_pred + 1, N_STATE).T  # (6, Np + 1)
         steer = solution[self._n_states:self._n_states + n_ctrl]
         slack = solution[self._n_states + n_ctrl:]
-        if status in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE) and np.all(np.isfinite(solution)):
+        converged = status in (SolverStatus.SOLVED, SolverStatus.SOLVED_INACCURATE)
+        # A budget run out (real time) leaves IPOPT's last iterate for this very problem: the
+        # next step goes on from it (shifted like a solution), so that a run of solves too
+        # slow to converge from a cold start converges over a few steps instead of starting
+        # cold again every step.
+        interrupted = stats.get("return_status") == "Maximum_WallTime_Exceeded"
+        if (converged or interrupted) and np.all(np.isfinite(solution)):
             self._warm = {"states": states, "lam_x": np.asarray(result["lam_x"]).ravel(),
                           "lam_g": np.asarray(result["lam_g"]).ravel()}
-        elif stats.get("return_status") != "Maximum_WallTime_Exceeded":
-            self._warm = None  # a budget run out keeps the last converged solution's warm start
+        else:
+            self._warm = None
         return Plan(status=status, steer=steer, iterations=int(stats.get("iter_count", 0)),
                     solve_time_s=float(stats.get("t_wall_total", 0.0)), cost=float(result["f"]),
                     predicted_pose=states[3:6, 1:].T.copy(), predicted_state=states[0:3, 1:].T.copy(),

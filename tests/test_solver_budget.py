@@ -57,3 +57,39 @@ def test_the_ecu_gives_the_budget_in_real_time_only(lockstep: bool, expected: li
     with pytest.raises(ConfigError, match="solver_budget_ms"):
         EcuConfig(solver_budget_ms=25)
     assert np.isclose(EcuConfig().solver_budget_ms, 15)
+
+
+class _CappedSolver:
+    """IPOPT capped at ``iterations`` per solve, the cap reported as the wall-clock budget's
+    (``Maximum_WallTime_Exceeded``): a deterministic stand-in for a budget that a cold start
+    runs past and a warm start does not."""
+
+    def __init__(self, problem, iterations: int) -> None:
+        import casadi as ca
+
+        self._solver = ca.nlpsol("capped", "ipopt", problem, {
+            "expand": True, "print_time": False, "record_time": True,
+            "ipopt": {"print_level": 0, "sb": "yes", "max_iter": iterations, "warm_start_init_point": "yes"}})
+
+    def __call__(self, **arguments):
+        return self._solver(**arguments)
+
+    def stats(self) -> dict:
+        stats = dict(self._solver.stats())
+        if stats["return_status"] == "Maximum_Iterations_Exceeded":
+            stats["return_status"] = "Maximum_WallTime_Exceeded"
+        return stats
+
+
+def test_a_solve_stopped_by_the_budget_is_carried_on_at_the_next_step() -> None:
+    """A cold start takes more than 6 IPOPT iterations here, a warm one 5-6. With 6 per step, the
+    first step runs out; the next one goes on from its iterate and converges, and so does
+    every step after it. Starting cold again each time, as before, never converged: 12
+    fallbacks in a row, which the ECU turns into SAFE_STOP after 4."""
+    controller = create_controller("nmpc")
+    controller.set_path(ReferencePath.double_lane_change())
+    controller._solver = _CappedSolver(controller._problem, 6)
+    steps = [controller.step(SAMPLE)[1] for _ in range(12)]
+    print([(debug.status.name, debug.iterations) for debug in steps])
+    assert steps[0].status == SolverStatus.MAX_ITERATIONS and steps[0].fallback
+    assert all(debug.status == SolverStatus.SOLVED and not debug.fallback for debug in steps[1:])
