@@ -44,7 +44,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402 (after the BLAS setting on purpose)
 import cProfile  # noqa: E402
 import dataclasses  # noqa: E402
-import functools  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
@@ -213,14 +212,9 @@ def goal_line(timings: Mapping[str, ControllerTiming]) -> str | None:
             f"p99 ratio {goal.wall.p99_ms / base.wall.p99_ms:.2f}.")
 
 
-@functools.cache
-def machine_speed_ms() -> float:
-    """The speed reference of this run (measured once: the report and the JSON agree)."""
-    return speed_reference()
-
-
-def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float, float, float]) -> list[str]:
-    """Where and under what load the benchmark ran."""
+def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float, float, float],
+                  speed_ms: float) -> list[str]:
+    """Where and under what load the benchmark ran; ``speed_ms`` the speed reference."""
     import osqp
 
     return [f"- Machine: `{platform.node()}`, {machine_description()}, numpy {np.__version__}, "
@@ -230,7 +224,7 @@ def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float,
             f"start, {' / '.join(f'{v:.2f}' for v in load_end)} at the end. A load above "
             f"{os.cpu_count()} (the CPUs) means other work was waiting for a core: the wall "
             "tails then include that waiting, the CPU-time columns do not.",
-            f"- Speed reference: {machine_speed_ms():.2f} ms (a fixed workload of a Python loop and "
+            f"- Speed reference: {speed_ms:.2f} ms (a fixed workload of a Python loop and "
             "small numpy operations, the fastest of 7 runs, `studies/speed_reference.py`): a virtual "
             "machine's CPU name does not say how fast its host is. Compare step times between "
             "results files only where this figure is alike."]
@@ -239,12 +233,14 @@ def machine_lines(load_start: tuple[float, float, float], load_end: tuple[float,
 def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] | None,
            recording: str, command: str, load_start: tuple[float, float, float],
            load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None,
-           c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None) -> str:
+           c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None,
+           speed_ms: float = float("nan")) -> str:
     """The whole Markdown file: header, the table, how to read it (and the controllers
-    that could not be built, with why; the C core's rows ``c_rows`` or why there are none)."""
+    that could not be built, with why; the C core's rows ``c_rows`` or why there are none;
+    ``speed_ms`` the speed reference measured at the start)."""
     lines = ["# Controller compute time per step (`make bench`)", "",
              f"`{command}`, one process, one run.", "",
-             *machine_lines(load_start, load_end),
+             *machine_lines(load_start, load_end, speed_ms),
              f"- Inputs: {recording}; every controller fed the same samples in turn (order "
              "rotated per sample), open loop; each controller's first step (set-up) left out.",
              "", *bench_table({**timings, **(c_rows or {})}, overhead), ""]
@@ -287,12 +283,13 @@ def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] 
 def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] | None,
             recording: str, command: str, load_start: tuple[float, float, float],
             load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None,
-            c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None) -> dict[str, Any]:
+            c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None,
+            speed_ms: float = float("nan")) -> dict[str, Any]:
     """Every figure of the report, JSON-ready (times in ms); the C core's rows under
     ``c_core`` (``note``: why some or all are missing)."""
     return {
         "command": command, "machine": machine_description(), "node": platform.node(),
-        "speed_reference_ms": machine_speed_ms(),
+        "speed_reference_ms": speed_ms,
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "load_average_start": list(load_start), "load_average_end": list(load_end),
         "recording": recording, "baseline": BASELINE,
@@ -352,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         (f" --controllers {','.join(names)}" if args.controllers else "") + \
         (" --no-ecu" if args.no_ecu else "") + (" --no-c" if args.no_c else "")
     load_start = load_average()
+    speed_ms = speed_reference()  # with the load: the machine as the run found it
     not_built: dict[str, str] = {}
     try:
         samples, path, recording = record_samples(args.steps)
@@ -366,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
         for name, error in not_built.items():
             print(f"error: {name} not built: {error}", file=sys.stderr)
     load_end = load_average()
-    text = report(timings, overhead, recording, command, load_start, load_end, not_built, c_rows, c_note)
+    text = report(timings, overhead, recording, command, load_start, load_end, not_built, c_rows, c_note,
+                  speed_ms=speed_ms)
     if args.profile:  # a look at one controller: printed, the committed report left alone
         print(text)
         print(profile_steps(args.profile, samples, path))
@@ -377,7 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(as_json(timings, overhead, recording, command, load_start,
-                                                load_end, not_built, c_rows, c_note), indent=2) + "\n")
+                                                load_end, not_built, c_rows, c_note, speed_ms),
+                                        indent=2) + "\n")
         written.append(args.json)
     print(text)
     print(f"wrote {', '.join(str(p) for p in written)}")

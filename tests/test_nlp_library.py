@@ -4,15 +4,13 @@ again, and clear errors (with the virtual machine kept) when no compiler can bui
 from __future__ import annotations
 
 import logging
-import os
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
 import pytest
 
 from controller.base import VehicleSample
-from controller.nlp_library import NlpLibraryError, compiled_solver
+from controller.nlp_library import NlpLibraryError, cache_dir, compiled_solver
 from controller.reference import ReferencePath
 from controller.registry import create_controller
 
@@ -88,8 +86,7 @@ def test_nmpc_in_real_time_runs_the_compiled_nlp_with_the_same_plans():
     """A budget long enough never to stop IPOPT: the compiled NLP (real time) and the
     virtual machine (lockstep) give the same commands, iterations and costs to the bit."""
     assert _nmpc_commands(60.0, 6) == _nmpc_commands(None, 6)
-    cache = Path(os.environ.get("NLP_LIBRARY_DIR", Path(__file__).resolve().parents[1] / "build" / "nlp"))
-    assert list(cache.glob("nmpc_*.so"))
+    assert list(cache_dir().glob("nmpc_*.so"))
 
 
 def test_nmpc_without_a_compiler_keeps_the_virtual_machine_and_says_so(tmp_path, monkeypatch, caplog):

@@ -30,9 +30,8 @@ Script = list[tuple[int, int]]  # (kind, time ns)
 
 
 @pytest.fixture(scope="module")
-def c_script():
-    """``ecu_release_script`` of an up-to-date libecu.so, as (sample period ns, script) ->
-    (released, skipped, instants) arrays."""
+def release_script():
+    """``ecu_release_script`` of an up-to-date libecu.so (ctypes, argument types set)."""
     build = subprocess.run(["make", "-s", "--no-print-directory", "firmware"], cwd=ROOT,
                            capture_output=True, text=True, check=False)
     assert build.returncode == 0, build.stdout + build.stderr
@@ -42,6 +41,13 @@ def c_script():
     i32, i64 = ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_int64)
     function.argtypes = [ctypes.c_int64, i32, i64, ctypes.c_int32, i32, i32, i64]
     function.restype = ctypes.c_int
+    return function
+
+
+@pytest.fixture(scope="module")
+def c_script(release_script):
+    """(sample period ns, script) -> (released, skipped, instants) arrays of the C rule."""
+    i32, i64 = ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_int64)
 
     def run(sample_period_ns: int, script: Script) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = len(script)
@@ -49,9 +55,9 @@ def c_script():
         times = np.array([t for _, t in script], dtype=np.int64)
         released, skipped = np.zeros(n, np.int32), np.zeros(n, np.int32)
         instants = np.zeros(n, np.int64)
-        status = function(sample_period_ns, kinds.ctypes.data_as(i32), times.ctypes.data_as(i64), n,
-                          released.ctypes.data_as(i32), skipped.ctypes.data_as(i32),
-                          instants.ctypes.data_as(i64))
+        status = release_script(sample_period_ns, kinds.ctypes.data_as(i32), times.ctypes.data_as(i64), n,
+                                released.ctypes.data_as(i32), skipped.ctypes.data_as(i32),
+                                instants.ctypes.data_as(i64))
         assert status == 0
         return released, skipped, instants
     return run
@@ -79,8 +85,7 @@ def python_script(sample_period_ns: int, script: Script) -> tuple[np.ndarray, np
     return np.array(released), np.array(skipped), np.array(instants)
 
 
-def timeline(sample_ms: list[float], until_ms: float, step_ms: float = 0.5,
-             clock_until_first_sample: bool = True) -> Script:
+def timeline(sample_ms: list[float], until_ms: float, step_ms: float = 0.5) -> Script:
     """Time advancing in ``step_ms`` with the samples at ``sample_ms`` (the node's order:
     time first, then the sample); before the first sample, the node's own clock releases
     every 25 ms (revision 2's releases, unanchored)."""
@@ -90,7 +95,7 @@ def timeline(sample_ms: list[float], until_ms: float, step_ms: float = 0.5,
     first_sample = pending[0] if pending else until_ms + 1
     while t <= until_ms:
         script.append((TIME, round(t * MS)))
-        if clock_until_first_sample and t < first_sample and t >= next_clock:
+        if next_clock <= t < first_sample:
             script.append((CLOCK, round(t * MS)))
             next_clock += 25.0
         while pending and pending[0] <= t:
@@ -150,13 +155,10 @@ def test_random_sample_timelines_release_alike_in_c_and_python(c_script, period_
         assert np.array_equal(c_values, py_values)
 
 
-def test_the_script_refuses_bad_input(c_script) -> None:
-    from firmware_sim.native import DEFAULT_LIBRARY
-
-    function = ctypes.CDLL(str(DEFAULT_LIBRARY)).ecu_release_script
+def test_the_script_refuses_bad_input(release_script) -> None:
     kinds, times = (ctypes.c_int32 * 1)(7), (ctypes.c_int64 * 1)(0)
     out32, out32b, out64 = (ctypes.c_int32 * 1)(), (ctypes.c_int32 * 1)(), (ctypes.c_int64 * 1)()
-    assert function(ctypes.c_int64(25 * MS), kinds, times, 1, out32, out32b, out64) == -1  # unknown kind
-    assert function(ctypes.c_int64(25 * MS), kinds, times, -1, out32, out32b, out64) == -1  # n < 0
-    assert function(ctypes.c_int64(25 * MS), None, times, 1, out32, out32b, out64) == -1    # no array
-    assert function(ctypes.c_int64(25 * MS), None, None, 0, None, None, None) == 0          # empty script
+    assert release_script(25 * MS, kinds, times, 1, out32, out32b, out64) == -1   # unknown kind
+    assert release_script(25 * MS, kinds, times, -1, out32, out32b, out64) == -1  # n < 0
+    assert release_script(25 * MS, None, times, 1, out32, out32b, out64) == -1    # no array
+    assert release_script(25 * MS, None, None, 0, None, None, None) == 0          # empty script
