@@ -6,6 +6,7 @@ thresholds (20 ms, 100 ms) are exact; lockstep times are multiples of 1 ms.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -158,8 +159,8 @@ class SampleRelease:
     anchors the grid of control instants N_k = anchor + k * period there: the first one,
     and the first after none for more than ``lost_ns`` (the contract's 100 ms); when the
     task ran less than ``min_spacing_ns`` before it, that release stands for the instant
-    and the sample does not run the task again; the grid anchors at that release, except for
-    a *paced* plant (25 ms, one sample per period), whose grid anchors at the sample and
+    and the sample does not run the task again; the grid anchors near that release, in phase
+    with the samples (`_in_phase`), except for a *paced* plant (25 ms, one sample per period), whose grid anchors at the sample and
     follows each of its samples: one that comes outside the pending instant's window anchors
     it again, one that releases the task moves the instant to its arrival. Anchored,
     instant N is released by the first good sample set arriving in its window
@@ -237,14 +238,25 @@ class SampleRelease:
     def _anchor(self, arrival_ns: int) -> bool:
         """Anchor the grid on the sample that arrived at ``arrival_ns``: whether it runs the
         task. Not when the task ran less than the minimum spacing before it: that release
-        stands for the instant, and the grid anchors there (a 10 ms plant: one of its samples
-        is in every window) or, for a paced plant, at the sample (so that its next sample
-        comes at its instant)."""
+        stands for the instant, and the grid anchors within half a phase step of it, in phase
+        with the samples (`_in_phase`; a 10 ms plant: one of its samples is in every window),
+        or, for a paced plant, at the sample (so that its next sample comes at its instant)."""
         self.anchored = True
         self.instant_released = True
         if self.last_release_ns is not None and arrival_ns - self.last_release_ns < self.min_spacing_ns:
-            self.instant_ns = arrival_ns if self.paced else self.last_release_ns
+            self.instant_ns = arrival_ns if self.paced else self._in_phase(self.last_release_ns, arrival_ns)
             return False
         self.instant_ns = arrival_ns
         self.last_release_ns = arrival_ns
         return True
+
+    def _in_phase(self, release_ns: int, arrival_ns: int) -> int:
+        """The instant nearest ``release_ns`` that is in phase with the samples arriving at
+        ``arrival_ns`` + k x the sample period, modulo the phase step g = gcd(period, sample
+        period) (5 ms for a 10 ms plant): release + ((arrival - release + g/2) mod g) - g/2.
+        Samples then sit at the instants and 5 ms after them, 2.5 ms inside both edges of
+        their window. Anchored at the release itself (until 2026-12-05), they could sit at
+        the window's early edge, where jitter of a few tenths of a millisecond moved every
+        other one to the watchdog, 10 ms older."""
+        step = math.gcd(self.period_ns, self.sample_period_ns)
+        return release_ns + (arrival_ns - release_ns + step // 2) % step - step // 2

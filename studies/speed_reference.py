@@ -4,8 +4,10 @@ A virtual machine's CPU model often says only "AMD EPYC", while the host behind 
 twice as fast on one day as on another: every step figure of ``make bench``, the solvers'
 own times included, doubled between two runs of 2026-12-05, and the older code measured on
 the newer machine gave the newer figures (0.050 / 0.070 ms against 0.049 / 0.068 ms for the
-C ESO-DKMPC step, p50 / p99). `speed_reference` times a fixed workload, so that two results
-files say whether their machines were alike.
+C ESO-DKMPC step, p50 / p99: `python -m studies.bench --controllers eso-dkmpc,lmpc --no-ecu`
+in a worktree of 49ecf84 and in the newer tree, side by side, after `make firmware` in each).
+`speed_reference` times a fixed workload, so that two results files say whether their
+machines were alike.
 """
 from __future__ import annotations
 

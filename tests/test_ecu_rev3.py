@@ -9,6 +9,8 @@ on the bus: ``tests/test_conformance_rev3.py``.
 """
 from __future__ import annotations
 
+import random
+
 import pytest
 from can_defs.frames import CtrlMode, FrameId
 
@@ -144,6 +146,33 @@ def test_a_10_ms_plant_off_a_window_does_not_move_the_grid() -> None:
     assert release.on_sample(0)
     release.on_time(10 * MS)
     assert not release.on_sample(10 * MS) and release.instant_ns == 25 * MS
+
+
+def test_a_10_ms_plant_after_a_clock_release_sits_inside_its_windows_at_any_phase() -> None:
+    """The first sample of a 10 ms plant comes 0-15 ms after a release of the ECU's clock
+    (or 0.4 ms before it, stamped first and taken after): that release stands for the
+    instant, and the grid anchors in phase with the samples, so that each sits at its
+    instant or 5 ms after it, 2.5 ms inside both edges of its window. With 1 ms of jitter
+    either way no instant goes to the watchdog. Anchored at the release itself (the rule
+    until 2026-12-05), the phases within 1 ms of an edge lost samples to the watchdog: 18
+    of the 61 phases here, 1 to 6 instants each."""
+    rng = random.Random(7)
+    failed = []
+    for phase in [-0.4, *(0.25 * k for k in range(60))]:
+        release = new_release(plant_ms=10)
+        release.note_release(0)
+        release.note_release(25 * MS)
+        samples = [25.0 + phase + 10.0 * k + rng.uniform(-1.0, 1.0) for k in range(60)]
+        watchdog, offsets = 0, []
+        for sample in samples:
+            watchdog += release.on_time(round(sample * MS))[0]
+            if release.on_sample(round(sample * MS)):
+                offsets.append(sample - release.instant_ns / MS)  # after its instant, ms
+        if watchdog:
+            failed.append((phase, watchdog))
+        # 0 or 5 ms, give or take the anchoring sample's jitter and its own
+        assert len(offsets) >= 20 and -2.0 - 1e-6 <= min(offsets) and max(offsets) <= 7.0 + 1e-6, (phase, offsets)
+    assert not failed, f"(phase ms, watchdog releases): {failed}"
 
 
 def test_control_release_is_checked() -> None:

@@ -115,6 +115,15 @@ def _cases() -> list[tuple[str, int, Script]]:
     for phase in (0.0, 7.0, 13.5, 24.0):
         samples = [phase + 25.0 * k + (2.0 if k % 2 else -2.0) * (k > 0) for k in range(20)]
         cases.append((f"25 ms plant, phase {phase} ms, 2 ms jitter", 25 * MS, timeline(samples, samples[-1] + 1)))
+    for phase in (0.3, 2.4, 2.6, 7.4, 12.6, 14.9):  # anchored in phase with the samples
+        samples = [25.0 + phase + 10.0 * k for k in range(12)]
+        cases.append((f"10 ms plant, first sample {phase} ms after a clock release", 10 * MS,
+                      timeline(samples, samples[-1] + 1, step_ms=0.1)))
+    # a sample stamped 0.4 ms before the clock's release and taken after it
+    early = [(CLOCK, 0), (CLOCK, 25 * MS), (SAMPLE, round(24.6 * MS))]
+    later = timeline([24.6 + 10.0 * k for k in range(1, 12)], 140.0, step_ms=0.1)
+    cases.append(("10 ms plant, first sample 0.4 ms before a clock release", 10 * MS,
+                  early + [event for event in later if event[0] != CLOCK and event[1] > 25 * MS]))
     for drift in (0.5, -0.5):
         samples = [5.0 + (25.0 + drift) * k for k in range(60)]
         cases.append((f"drift {drift} ms per period", 25 * MS, timeline(samples, samples[-1] + 1)))
@@ -161,4 +170,5 @@ def test_the_script_refuses_bad_input(release_script) -> None:
     assert release_script(25 * MS, kinds, times, 1, out32, out32b, out64) == -1   # unknown kind
     assert release_script(25 * MS, kinds, times, -1, out32, out32b, out64) == -1  # n < 0
     assert release_script(25 * MS, None, times, 1, out32, out32b, out64) == -1    # no array
+    assert release_script(0, kinds, times, 0, out32, out32b, out64) == -1        # no plant period
     assert release_script(25 * MS, None, None, 0, None, None, None) == 0          # empty script

@@ -43,15 +43,36 @@ static int paced(const ecu_release_t *release) {
   return release->sample_period_ns > SAMPLE_WINDOW_EARLY_NS + SAMPLE_WATCHDOG_NS;
 }
 
+static int64_t gcd(int64_t a, int64_t b) {
+  while (b != 0) {
+    int64_t r = a % b;
+    a = b;
+    b = r;
+  }
+  return a;
+}
+
+/* The instant nearest release_ns in phase with the samples arriving at arrival_ns + k x the
+ * sample period, modulo the phase step g = gcd(period, sample period) (5 ms for a 10 ms
+ * plant): release + ((arrival - release + g/2) mod g) - g/2, the mod taken non-negative as
+ * Python's. The samples then sit 2.5 ms inside both edges of their windows. */
+static int64_t in_phase(const ecu_release_t *release, int64_t release_ns, int64_t arrival_ns) {
+  int64_t step = gcd(period, release->sample_period_ns);
+  int64_t rest = (arrival_ns - release_ns + step / 2) % step;
+  if (rest < 0) rest += step;
+  return release_ns + rest - step / 2;
+}
+
 /* Anchor the grid on the sample that arrived at arrival_ns: 1 when it runs the task. Not
  * when the task ran less than the minimum spacing before it: that release stands for the
- * instant, and the grid anchors there (a 10 ms plant: one of its samples is in every
- * window) or, for a paced plant, at the sample (its next sample comes at its instant). */
+ * instant, and the grid anchors within half a phase step of it, in phase with the samples
+ * (a 10 ms plant: one of its samples is in every window), or, for a paced plant, at the
+ * sample (its next sample comes at its instant). */
 static int anchor(ecu_release_t *release, int64_t arrival_ns) {
   release->anchored = 1;
   release->instant_released = 1;
   if (!spaced(release, arrival_ns)) {
-    release->instant_ns = paced(release) ? arrival_ns : release->last_release.ns;
+    release->instant_ns = paced(release) ? arrival_ns : in_phase(release, release->last_release.ns, arrival_ns);
     return 0;
   }
   release->instant_ns = arrival_ns;
@@ -77,7 +98,8 @@ int ecu_release_on_sample(ecu_release_t *release, int64_t arrival_ns) {
 
 int ecu_release_script(int64_t sample_period_ns, const int32_t *kinds, const int64_t *times_ns, int32_t n,
                        int32_t *released, int32_t *skipped, int64_t *instants_ns) {
-  if (n < 0 || (n > 0 && (!kinds || !times_ns || !released || !skipped || !instants_ns))) return -1;
+  if (n < 0 || sample_period_ns <= 0 || (n > 0 && (!kinds || !times_ns || !released || !skipped || !instants_ns)))
+    return -1;
   ecu_release_t release;
   release.sample_period_ns = sample_period_ns;
   ecu_release_reset(&release);

@@ -6,8 +6,9 @@
  * 25 ms clock as in revision 2 and reports each release with ecu_release_note. A good
  * sample set anchors the grid of control instants N_k = anchor + k * 25 ms there: the
  * first one, and the first after none for more than 100 ms (when the task ran less than
- * 15 ms before it, that release stands for the instant and the grid anchors there, for a
- * paced plant, sample_period_ns 25 ms, at the sample). A paced plant's grid follows each
+ * 15 ms before it, that release stands for the instant and the grid anchors within 2.5 ms
+ * of it, in phase with the samples, for a paced plant, sample_period_ns 25 ms, at the
+ * sample). A paced plant's grid follows each
  * of its samples: one outside the pending instant's window anchors it again, one that
  * releases the task moves the instant to its arrival.
  * Anchored, instant N is released

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from studies.timing import report
 from studies.timing.report import RunFigures, fmt_ms
 
 #: Issue 37 (and issue 9 before it): RX-to-TX latency p99 of ESO-DKMPC in both ECUs, ms.
@@ -26,8 +27,8 @@ GOAL_LMPC_RATIO = 2.0
 #: A run speaks for a goal only when the law ran (ACTIVE or DEGRADED) on at least this
 #: share of its cycles: a controller that fell into SAFE_STOP has no overruns to count.
 MIN_CONTROLLING_SHARE = 0.95
-#: The modes in which the law runs.
-CONTROLLING_MODES = ("ACTIVE", "DEGRADED")
+#: The modes in which the law runs, by name (as `RunFigures.modes` counts them).
+CONTROLLING_MODES = tuple(mode.name for mode in report.CONTROLLING_MODES)
 #: The figures whose p99 the spread table gives: (field, label).
 SPREAD_FIGURES = (("rx_to_tx_latency", "RX-to-TX"), ("task_time", "task time"),
                   ("input_age", "input age"))

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from can_defs.frames import CtrlMode
 
 from studies.timing.runner import TimingRun
 
@@ -25,9 +26,9 @@ FIGURES = (("release_jitter", "release jitter"), ("task_time", "task time"),
 QUANTILES = (50.0, 99.0, 99.9)
 #: Lower end of the log-spaced histogram bins, ms.
 HISTOGRAM_FLOOR_MS = 0.01
-#: CTRL_MODE values in which the controller runs (ACTIVE, DEGRADED).
-CONTROLLING_MODES = (2, 3)
-_MODE_NAMES = {0: "INIT", 1: "STANDBY", 2: "ACTIVE", 3: "DEGRADED", 4: "SAFE_STOP", 5: "FAULT"}
+#: CTRL_MODE values in which the controller runs.
+CONTROLLING_MODES = (CtrlMode.ACTIVE, CtrlMode.DEGRADED)
+_MODE_NAMES = {int(mode): mode.name for mode in CtrlMode}
 
 
 @dataclass(frozen=True)
