@@ -12,16 +12,21 @@ the stamps to the current commit instead of rerunning hours of studies:
    was current at ``REV`` (its inputs and sources as committed at ``REV`` give the recorded
    digest), where every file that changed since then is code the smoke runs (the Python
    modules that ``eso-hil run`` and ``eso-ecu`` import, the fault injection and studies/
-   left out, and the C ECU's firmware/src; :func:`smoke_sources`) and whose command
-   does not measure the machine or the build (``make timing``, ``make bench``, ``make
-   can-bench``, ``make firmware-footprint``: their figures are what a code change moves).
-   A changed data file (tuning, artefact, scenario, path, DBC), study module or training
-   code always needs the rerun.
+   left out, and the C ECU's firmware/src; :func:`smoke_sources`) or code the training
+   smoke runs (the trainer and the data generator, ``studies.restamp_training``), and whose
+   command does not measure the machine or the build (``make timing``, ``make bench``,
+   ``make can-bench``, ``make firmware-footprint``: their figures are what a code change
+   moves). A changed data file (tuning, artefact, scenario, path, DBC) or study module
+   always needs the rerun.
 2. **The smoke subset** of the closed-loop studies, run at ``REV`` (a git worktree under
    ``--workdir``, its C ECU built there) and on this checkout: a lockstep run over CAN
    (``eso-hil run``) of every controller of the Python ECU and of the C ECU under the
    shipped tuning, on ``dlc_smoke`` and on the same lane change under a steering offset, a
    crosswind and a yaw-rate bias (:data:`DISTURBED_SMOKE`).
+   When a candidate's changes reach the trainer's own code, the training smoke runs too
+   (``studies.restamp_training``): a small data set generated and short trainings of the
+   default form and of a least-squares lift, in both trees; their artefacts must be equal,
+   array for array, byte for byte.
 3. **The check.** Each frame log must equal its twin frame for frame: identifier, payload and
    time since the first frame (to 0.1 ms: the stamps carry the wall-clock start; not for
    HIL_SYNC_ACK, whose stamp races the next tick and whose payload names its tick), with CTRL_DIAG's wall-clock signals (SOLVE_TIME_US,
@@ -50,6 +55,8 @@ import cantools
 
 from can_defs.log_reader import LogFileError, read_log_frames
 from studies import provenance
+from studies.restamp_training import (TrainingSmokeError, artefact_difference, default_form, training_smoke,
+                                      training_sources)
 
 #: The entry points of the smoke runs: ``eso-hil run`` and the Python ECU's command line.
 SMOKE_ENTRY_MODULES = ("hil.commands.run", "firmware_sim.__main__")
@@ -135,7 +142,7 @@ def candidates(base_root: Path, root: Path = provenance.ROOT,
     base revision's checkout) may restamp, and the others with the reason for each;
     ``covered``: the files the smoke runs (default :func:`smoke_sources` of ``root``)."""
     manifest = provenance.load_manifest(root)
-    covered = smoke_sources(root) if covered is None else covered
+    covered = smoke_sources(root) | training_sources(root) if covered is None else covered
     eligible: list[Candidate] = []
     refused: dict[str, str] = {}
     for entry in provenance.check(root):
@@ -354,6 +361,13 @@ def main(argv: list[str] | None = None) -> int:
         base_logs = smoke_runs(base_tree, args.workdir.resolve() / "logs-base")
         logs = smoke_runs(root, args.workdir.resolve() / "logs-now")
         differences = [d for d in (first_difference(a, b, database) for a, b in zip(base_logs, logs)) if d]
+        trainer_only = training_sources(root) - smoke_sources(root)
+        models: list[Path] = []
+        if not differences and any(set(c.changed) & trainer_only for c in chosen):
+            form = default_form(root)
+            base_models = training_smoke(base_tree, args.workdir.resolve() / "training-base", form)
+            models = training_smoke(root, args.workdir.resolve() / "training-now", form)
+            differences = [d for d in (artefact_difference(a, b) for a, b in zip(base_models, models)) if d]
         if differences:
             print("the smoke subset differs from the base; nothing restamped:", file=sys.stderr)
             for line in differences:
@@ -361,11 +375,13 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         restamp(chosen, args.base, command, root, checked_commit)
         dropped = drop_known_stale_rows({c.path for c in chosen}, root)
-        print(f"{len(logs)} smoke runs equal to the base's; restamped {len(chosen)} results file(s)")
+        trained = f" and {len(models)} smoke trainings" if models else ""
+        print(f"{len(logs)} smoke runs{trained} equal to the base's; restamped {len(chosen)} results file(s)")
         for removed in dropped:
             print(f"results/{provenance.KNOWN_STALE_NAME}: row of `{removed}` removed")
         return 0
-    except (RestampError, provenance.ProvenanceError, subprocess.SubprocessError, OSError) as exc:
+    except (RestampError, TrainingSmokeError, provenance.ProvenanceError, subprocess.SubprocessError,
+            OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -69,7 +69,7 @@ def test_the_smoke_covers_the_ecus_and_the_plant_not_training_or_studies() -> No
     covered = restamp.smoke_sources(ROOT)
     assert {"controller/observed_mpc.py", "hil/recorder.py", "models/vehicle.py", "firmware_sim/ecu.py",
             "firmware/src/ecu_core.c"} <= covered
-    assert "models/koopman_train.py" not in covered  # training: the smoke trains nothing
+    assert "models/koopman_train.py" not in covered  # training: the closed-loop smoke trains nothing
     # the smoke injects no fault and runs no replay: their code is not covered
     assert not {"hil/faults.py", "hil/fault_injector.py", "hil/fault_cases/catalogue.py", "hil/replay.py",
                 "hil/commands/faults.py"} & covered
