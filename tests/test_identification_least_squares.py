@@ -1,0 +1,108 @@
+"""studies.identification_least_squares (issue 40, item 3 on the identification log): the
+refusal of models tested on other pieces, the table and ratios from made-up figures, the
+cache key, and the CLI's errors. No training and no log: a few seconds."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from models.errors import KoopmanError
+from studies.identification_least_squares import (
+    DEEP_LABEL, GOAL_RATIO, cache_key, check_same_test_pieces, main, markdown, split_options, summarise)
+
+
+def _figures(vx: float, vy: float, yaw_rate: float) -> dict[str, dict[str, float]]:
+    """Made-up figures of one model: the 2 s RMSE twice the 1 s one."""
+    return {state: {"one_step_rmse": value / 10, "1 s": value, "2 s": 2 * value}
+            for state, value in (("vx", vx), ("vy", vy), ("yaw_rate", yaw_rate))}
+
+
+def _split(test: list[str]) -> dict[str, list[str]]:
+    return {"train": ["log#000"], "validation": ["log#001"], "test": test}
+
+
+def test_same_test_pieces_in_any_order_are_accepted() -> None:
+    pieces = check_same_test_pieces({"deep seed 0": _split(["log#004", "log#019"]),
+                                     "edmdc-linear": _split(["log#019", "log#004"])})
+    assert pieces == ["log#004", "log#019"]
+
+
+def test_other_test_pieces_are_refused_naming_the_model() -> None:
+    with pytest.raises(KoopmanError, match=r"not tested on the same pieces.*deep seed 1"):
+        check_same_test_pieces({"deep seed 0": _split(["log#004", "log#019"]),
+                                "deep seed 1": _split(["log#004", "log#007"])})
+
+
+def test_no_model_is_refused() -> None:
+    with pytest.raises(KoopmanError, match="no model"):
+        check_same_test_pieces({})
+
+
+def test_summary_mean_min_max_and_ratio_to_the_best_lift() -> None:
+    deep = [_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)]
+    lifts = {"edmdc-linear": _figures(0.05, 0.030, 0.010), "edmdc-bilinear": _figures(0.05, 0.015, 0.020)}
+    summary = summarise(deep, lifts)
+    cell = summary["rows"][0]["figures"]["vy"]["1 s"]
+    assert cell == pytest.approx({"mean": 0.015, "min": 0.010, "max": 0.020})
+    goals = {(g["state"], g["horizon"]): g for g in summary["goals"]}
+    assert set(goals) == {(s, h) for s in ("vy", "yaw_rate") for h in ("1 s", "2 s")}
+    vy = goals[("vy", "1 s")]
+    assert vy["best_least_squares"] == "edmdc-bilinear"
+    assert vy["ratio"] == pytest.approx(0.015 / 0.015)
+    assert vy["met"] is False
+    yaw = goals[("yaw_rate", "2 s")]
+    assert yaw["best_least_squares"] == "edmdc-linear"
+    assert yaw["ratio"] == pytest.approx(0.003 / 0.010)
+    assert yaw["met"] is True and yaw["goal"] == GOAL_RATIO
+
+
+def test_markdown_names_each_goal_with_its_ratio_and_verdict() -> None:
+    summary = summarise([_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)],
+                        {"edmdc-linear": _figures(0.05, 0.030, 0.010),
+                         "edmdc-bilinear": _figures(0.05, 0.015, 0.020)})
+    text = markdown(summary, Path("build/identification/drive_changed.log"), [0, 1], ["log#004", "log#019"])
+    assert f"| {DEEP_LABEL}, 2 seeds | " in text
+    assert "0.0150 [0.0100, 0.0200]" in text
+    assert "- vy, 1 s: deep 0.0150 / edmdc-bilinear 0.0150 = 1.00: NOT met." in text
+    assert "- yaw_rate, 2 s: deep 0.0060 / edmdc-linear 0.0200 = 0.30: met." in text
+    assert "seeds 0, 1 (2 seeds)" in text
+    assert "log#004, log#019" in text
+
+
+def test_cache_key_depends_on_log_vehicle_and_options() -> None:
+    base = cache_key("a" * 64, "b" * 64, ["--seed", "0"])
+    assert base == cache_key("a" * 64, "b" * 64, ["--seed", "0"])
+    assert len({base, cache_key("c" * 64, "b" * 64, ["--seed", "0"]),
+                cache_key("a" * 64, "c" * 64, ["--seed", "0"]), cache_key("a" * 64, "b" * 64, ["--seed", "1"])}) == 4
+
+
+def test_split_options_pin_the_test_and_validation_pieces() -> None:
+    assert split_options(None) == []
+    assert split_options(_split(["log#004", "log#019"])) == ["--val-runs", "log#001", "--test-runs",
+                                                              "log#004,log#019"]
+
+
+def test_cli_missing_log_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    vehicle = tmp_path / "vehicle.toml"
+    vehicle.write_text("")
+    code = main(["--log", str(tmp_path / "missing.log"), "--vehicle", str(vehicle), "--out", str(tmp_path / "out"),
+                 "--work", str(tmp_path / "work")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("error: --log ") and "missing.log" in err and "make identify" in err
+    assert not (tmp_path / "work").exists() and not (tmp_path / "out").exists()
+
+
+def test_cli_missing_vehicle_file_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "drive.log"
+    log.write_text("")
+    code = main(["--log", str(log), "--vehicle", str(tmp_path / "none.toml"), "--out", str(tmp_path / "out")])
+    assert code == 2
+    assert "error: --vehicle " in capsys.readouterr().err
+
+
+def test_cli_bad_seeds_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--log", "x.log", "--vehicle", "v.toml", "--out", str(tmp_path), "--seeds", "0,a"])
+    assert exit_info.value.code == 2
