@@ -36,6 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from models.errors import KoopmanError, ModelError
+from studies.provenance import file_digest
 
 REPO = Path(__file__).resolve().parents[1]
 #: The least-squares lifts of the trainer, fitted in closed form from the same log.
@@ -51,14 +52,6 @@ STEM = "least_squares"
 #: The trainer's default sample time (its --ts), the one make identify trains at.
 TS = 0.025
 DEEP_LABEL = "deep (make identify's default form)"
-
-
-def _file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def cache_key(log_sha256: str, vehicle_sha256: str, options: Sequence[str]) -> str:
@@ -222,7 +215,7 @@ def run_study(log: Path, vehicle: Path, out: Path, seeds: Sequence[int], work: P
             raise KoopmanError(f"{option} {path}: file not found{hint}")
     if not out.parent.is_dir() and out.parent != Path(""):
         raise KoopmanError(f"--out {out}: folder {out.parent} does not exist")
-    digests = (_file_sha256(log), _file_sha256(vehicle))
+    digests = (file_digest(log), file_digest(vehicle))  # both checked to exist above
     threads = ["--threads", "1"]
     folders: dict[str, Path] = {}
     # seed 0 draws the split as make identify does; every other model is given that split
