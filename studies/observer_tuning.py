@@ -7,15 +7,15 @@ poles and decay of the controllers with an observer, on the tuning set
 disturbances, so on that set the sweep could only learn that it costs something: it chose
 the slowest pole on its grid. This module reruns the sweep's observer stage (stage 2: the
 observer fields over a grid, every other field at the tuning file's value) for each
-controller with an observer, on the tuning set and two steady drives
+controller with an observer, on the tuning set and three steady drives
 (``studies.steady_drives``: long straights around one gentle curve, where a constant
 disturbance leaves a standing offset), plus the same ten each with one constant disturbance
-(:data:`TUNING_DISTURBANCES`). Sizes and paths differ from those the
+(:data:`TUNING_DISTURBANCES`): 22 runs. Sizes and paths differ from those the
 disturbance study reports (``make disturbances``): the study's two sizes per disturbance and
 its lane change and straight-curve-straight path never enter here.
 
 Objective, runs and failure penalty: the sweep's
-(``studies.tuning_sweep_executor.objective``, the mean e_Y RMSE over the 20 runs, a run
+(``studies.tuning_sweep_executor.objective``, the mean e_Y RMSE over the 22 runs, a run
 that does not complete counts 10 m). The setting with the smallest objective is written
 into ``controller/tuning.toml`` (its observer fields only, each table's other fields
 untouched) unless ``--no-write``; ``results/observer_tuning.md`` and ``.json`` list every
@@ -104,14 +104,16 @@ TUNING_DISTURBANCES: dict[str, dict[str, Any]] = {
     # the steady drives (studies.steady_drives): where a disturbance leaves a standing offset
     "steady_70kmh_mu085": {"crosswind_force_n": 600.0, "crosswind_cp_m": 0.4},
     "steady_40kmh_mu05": {"bank_angle_rad": -0.05},
+    # the only other yaw-rate bias run is curvy at mu 0.4, where its offset never shows
+    "steady_55kmh_mu07": {"yaw_rate_bias_rad_s": 0.007},
 }
 #: The comment the written observer fields carry in the tuning file.
 TUNING_COMMENT = "chosen by make {target} on the tuning set with disturbances, results/{report}.md"
 
 
 def disturbed_tuning_set() -> list[Scenario]:
-    """The tuning set and the two steady drives (``studies.steady_drives``), then each again
-    with its disturbance (named ``<manoeuvre>+disturbed``): 20 scenarios."""
+    """The tuning set and the three steady drives (``studies.steady_drives``), then each again
+    with its disturbance (named ``<manoeuvre>+disturbed``): 22 scenarios."""
     from models.disturbance import Disturbances
 
     nominal = tuning_scenarios() + steady_scenarios()

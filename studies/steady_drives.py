@@ -2,14 +2,19 @@
 
 The tuning set (``studies.tuning_set``) is made of smooth random paths whose curvature never
 stops changing: a constant disturbance shows there as part of a transient, never as the
-standing lateral offset an observer exists to remove. These two drives add what it lacks:
+standing lateral offset an observer exists to remove. These three drives add what it lacks:
 long straights around one gentle curve, at speeds, radii, friction and disturbance sizes
 that the disturbance study (``make disturbances``: 50 km/h, R 50 m, 90 degrees) never uses.
+Each carries one disturbance in the observer tuning (``studies.observer_tuning``); the third
+exists so that the yaw-rate sensor bias, whose only other tuning run is a curvy low-mu drive
+where its offset drowns in the curves' error, is tuned where it leaves a standing offset.
 
 - ``steady_70kmh_mu085``: 120 m of straight, 40 m clothoids into and out of R 150 m,
   45 degrees in all, 150 m of straight; 70 km/h, mu 0.85.
 - ``steady_40kmh_mu05``: 80 m of straight, 20 m clothoids into and out of R 80 m,
   60 degrees in all, 100 m of straight; 40 km/h, mu 0.5.
+- ``steady_55kmh_mu07``: 100 m of straight, 30 m clothoids into and out of R 110 m,
+  50 degrees in all, 130 m of straight; 55 km/h, mu 0.7.
 
 Each runs until 1 m before its final straight's end. Written files (committed; regenerate
 with ``python -m studies.steady_drives``; ``tests/test_steady_drives.py`` checks they equal
@@ -51,6 +56,9 @@ STEADY_DRIVES: tuple[SteadyDrive, ...] = (
     SteadyDrive("steady_40kmh_mu05", 19, StraightCurveLayout(first_straight_m=80.0, clothoid_m=20.0,
                                                              radius_m=80.0, turn_deg=60.0,
                                                              final_straight_m=100.0, margin_m=30.0), 40.0, 0.5),
+    SteadyDrive("steady_55kmh_mu07", 20, StraightCurveLayout(first_straight_m=100.0, clothoid_m=30.0,
+                                                             radius_m=110.0, turn_deg=50.0,
+                                                             final_straight_m=130.0, margin_m=35.0), 55.0, 0.7),
 )
 
 

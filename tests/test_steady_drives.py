@@ -31,5 +31,5 @@ def test_the_steady_drives_are_no_evaluation_path_and_end_on_a_straight() -> Non
 def test_every_tuning_run_has_its_disturbed_twin() -> None:
     scenarios = disturbed_tuning_set()
     names = [s.name for s in scenarios]
-    assert len(names) == 20 and set(TUNING_DISTURBANCES) == {n for n in names if not n.endswith("+disturbed")}
+    assert len(names) == 22 and set(TUNING_DISTURBANCES) == {n for n in names if not n.endswith("+disturbed")}
     assert {f"{n}+disturbed" for n in TUNING_DISTURBANCES} <= set(names)
