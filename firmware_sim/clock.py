@@ -12,7 +12,7 @@ from typing import Callable
 
 from can_defs.frames import HANDSHAKE_TICK
 
-from firmware_sim.config import NS_PER_MS, NS_PER_S
+from firmware_sim.config import NS_PER_MS, NS_PER_S, PHASE_FOLLOW_DIVISOR
 
 __all__ = ["HANDSHAKE_TICK", "LockstepClock", "RealtimeSchedule", "SampleRelease", "TickAdvance",
            "TickKind", "clock_ns"]
@@ -233,6 +233,8 @@ class SampleRelease:
         self._release(arrival_ns)
         if self.paced:
             self.instant_ns = arrival_ns  # the grid follows the plant's phase, drift included
+        else:
+            self.instant_ns += self._phase_follow(arrival_ns)
         return True
 
     def _anchor(self, arrival_ns: int) -> bool:
@@ -250,6 +252,27 @@ class SampleRelease:
         self.last_release_ns = arrival_ns
         return True
 
+    def _phase_step_ns(self) -> int:
+        """g = gcd(period, sample period): the samples' phase step against the grid (5 ms
+        for a 10 ms plant)."""
+        return math.gcd(self.period_ns, self.sample_period_ns)
+
+    def _phase_follow(self, arrival_ns: int) -> int:
+        """The move of the pending instant N for a 10 ms plant's sample that released it at
+        ``arrival_ns``: its phase error e = ((arrival - N + g/2) mod g) - g/2 divided by
+        ``PHASE_FOLLOW_DIVISOR``, truncated toward zero as C's integer division.
+
+        The first sample in real time can come apart from the phase of the next ones (-0.8
+        to +1.5 ms in ``make timing``), and the plant's clock can drift against the ECU's:
+        either puts the samples near a window's edge, where jitter gives an instant to the
+        watchdog. A fraction of the error per release averages the jitter (1/8: a time
+        constant of 8 periods, 0.2 s). In lockstep every sample and instant lie on the 5 ms
+        ticks, so e = 0 and nothing moves."""
+        step = self._phase_step_ns()
+        error = (arrival_ns - self.instant_ns + step // 2) % step - step // 2
+        move = abs(error) // PHASE_FOLLOW_DIVISOR
+        return move if error >= 0 else -move
+
     def _in_phase(self, release_ns: int, arrival_ns: int) -> int:
         """The instant nearest ``release_ns`` that is in phase with the samples arriving at
         ``arrival_ns`` + k x the sample period, modulo the phase step g = gcd(period, sample
@@ -258,5 +281,5 @@ class SampleRelease:
         their window. Anchored at the release itself (until 2026-12-05), they could sit at
         the window's early edge, where jitter of a few tenths of a millisecond moved every
         other one to the watchdog, 10 ms older."""
-        step = math.gcd(self.period_ns, self.sample_period_ns)
+        step = self._phase_step_ns()
         return release_ns + (arrival_ns - release_ns + step // 2) % step - step // 2

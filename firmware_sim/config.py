@@ -55,6 +55,10 @@ SAMPLE_WINDOW_EARLY_NS = 2_500_000
 SAMPLE_WATCHDOG_NS = 7_500_000
 #: Rev. 3 minimum spacing of two releases (period - window width), ns (*contract*).
 MIN_RELEASE_SPACING_NS = 15_000_000
+#: Rev. 3 rule 4: a sample set that releases the task moves a 10 ms plant's pending instant
+#: by its phase error divided by this (truncated toward zero, ns), so the grid follows the
+#: samples' phase (*contract*).
+PHASE_FOLLOW_DIVISOR = 8
 
 
 #: Lost bus (*contract*, rev. 2): receive errors that persist this long are a lost bus.

@@ -175,6 +175,61 @@ def test_a_10_ms_plant_after_a_clock_release_sits_inside_its_windows_at_any_phas
     assert not failed, f"(phase ms, watchdog releases): {failed}"
 
 
+def _watchdog_releases(samples_ms: list[float]) -> tuple[int, list[float]]:
+    """A 10 ms plant whose first sample comes 12 ms after a release of the ECU's clock:
+    (watchdog releases, each releasing sample's offset from its instant in ms)."""
+    release = new_release(plant_ms=10)
+    release.note_release(0)
+    watchdog, offsets = 0, []
+    for sample in samples_ms:
+        watchdog += release.on_time(round(sample * MS))[0]
+        if release.on_sample(round(sample * MS)):
+            offsets.append((sample - release.instant_ns / MS) % 5.0)
+    return watchdog, offsets
+
+
+def _drifting_plant(rng: random.Random, anchor_error_ms: float, drift_ms: float, n: int) -> list[float]:
+    """Samples of a 10 ms plant: the first at 12 ms, the next ones ``anchor_error_ms`` off its
+    phase, the plant's clock ``drift_ms`` slower per sample, 0.7 ms of jitter either way."""
+    return [12.0] + [12.0 + anchor_error_ms + (10.0 + drift_ms) * k + rng.uniform(-0.7, 0.7) for k in range(1, n)]
+
+
+@pytest.mark.parametrize("anchor_error_ms, drift_ms", [(2.0, 0.0), (2.2, 0.0), (0.0, 0.01), (0.0, -0.01),
+                                                       (1.5, 0.005)])
+def test_a_10_ms_plant_s_grid_follows_the_samples_phase(monkeypatch, anchor_error_ms: float,
+                                                        drift_ms: float) -> None:
+    """The first sample in real time can come apart from the next ones' phase (-0.8 to
+    +1.5 ms in make timing), and a plant's clock can drift against the ECU's (1000 ppm here:
+    0.01 ms per sample, 20 ms over the run). Either puts samples at a window's edge, where
+    jitter gives instants to the watchdog. Each releasing sample moves the instant by 1/8 of
+    its phase error, so the samples settle at their instant or 5 ms after it: no watchdog
+    release after the first 0.5 s. With the grid fixed (the rule until 2026-12-06) the same
+    samples give instants to the watchdog."""
+    import firmware_sim.clock as clock
+    samples = _drifting_plant(random.Random(11), anchor_error_ms, drift_ms, 2000)
+    watchdog, offsets = _watchdog_releases(samples)
+    settled = [min(o, 5.0 - o) for o in offsets[20:]]  # distance from the nearest of 0 and 5 ms
+    print(f"followed: {watchdog} watchdog releases, phase error up to {max(settled):.2f} ms after 0.5 s")
+    assert watchdog == 0 and max(settled) < 1.0
+    monkeypatch.setattr(clock, "PHASE_FOLLOW_DIVISOR", 10**15)  # the grid fixed
+    watchdog_fixed, _ = _watchdog_releases(samples)
+    print(f"fixed grid: {watchdog_fixed} watchdog releases")
+    assert watchdog_fixed > 0
+
+
+def test_a_10_ms_plant_s_phase_follow_is_nothing_in_lockstep() -> None:
+    """Samples and instants on the 5 ms ticks: the phase error is 0 and the grid is the one
+    the in-phase anchor gives, 25 ms apart for the whole run."""
+    release = new_release(plant_ms=10)
+    release.note_release(0)
+    instants = set()
+    for k in range(1, 400):
+        release.on_time(10 * k * MS)
+        release.on_sample(10 * k * MS)
+        instants.add(release.instant_ns)
+    assert all(instant % (25 * MS) == 0 for instant in instants)
+
+
 def test_control_release_is_checked() -> None:
     assert EcuConfig().control_release == "clock"  # revision 2 unless asked
     EcuConfig(control_release="sample")

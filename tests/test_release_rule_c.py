@@ -5,7 +5,7 @@ libecu.so exports ``ecu_release_script``: the C rule fed a script of events the 
 node feeds it (time passing, a good sample set, a release of the node's own clock). The
 same scripts go through the Python rule the way the Python node feeds it. The scripts are
 those of tests/test_ecu_rev3.py (a 10 ms and a 25 ms plant, a late first sample, drift
-either way, lost samples, restarts at every phase, a burst, a late loop) and random ones;
+either way, a 10 ms plant's phase followed, lost samples, restarts at every phase, a burst, a late loop) and random ones;
 every release, skipped instant and pending instant must agree.
 """
 from __future__ import annotations
@@ -127,6 +127,11 @@ def _cases() -> list[tuple[str, int, Script]]:
     for drift in (0.5, -0.5):
         samples = [5.0 + (25.0 + drift) * k for k in range(60)]
         cases.append((f"drift {drift} ms per period", 25 * MS, timeline(samples, samples[-1] + 1)))
+    for error, drift in ((1.5, 0.0), (-0.8, 0.0), (0.0, 0.01), (0.0, -0.01), (2.2, 0.005)):
+        # a 10 ms plant's grid follows the samples' phase: an anchor off the next samples' phase, drift
+        samples = [12.0] + [12.0 + error + (10.0 + drift) * k + (0.3 if k % 3 else -0.4) for k in range(1, 300)]
+        cases.append((f"10 ms plant {error} ms off its anchor's phase, drift {drift} ms per sample", 10 * MS,
+                      timeline(samples, samples[-1] + 1, step_ms=0.1)))
     for gap in (7.5, 10.0, 12.0, 14.5):
         samples = [0, 25, 50, *[257.5 + gap + 25.0 * k for k in range(6)]]
         cases.append((f"25 ms plant restarted {gap} ms after the watchdog", 25 * MS,

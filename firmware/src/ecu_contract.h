@@ -27,6 +27,9 @@
 #define SAMPLE_WINDOW_EARLY_NS 2500000LL
 #define SAMPLE_WATCHDOG_NS 7500000LL
 #define MIN_RELEASE_SPACING_NS 15000000LL
+/* Rule 4: a sample set that releases the task moves a 10 ms plant's pending instant by its
+ * phase error divided by this (truncated toward zero), so the grid follows the samples. */
+#define PHASE_FOLLOW_DIVISOR 8
 #define JUMP_THRESHOLD_MS 100
 #define BEFORE_TICK_0_MS (-5)
 #define HANDSHAKE_TICK 0xFFFFFFFFu

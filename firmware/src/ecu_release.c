@@ -52,6 +52,19 @@ static int64_t gcd(int64_t a, int64_t b) {
   return a;
 }
 
+/* The move of the pending instant for a 10 ms plant's sample that released it at arrival_ns:
+ * its phase error e = ((arrival - N + g/2) mod g) - g/2 over PHASE_FOLLOW_DIVISOR, truncated
+ * toward zero, so that the grid follows the samples' phase (a first sample apart from the
+ * next ones' phase, a drifting clock) and jitter is averaged. 0 in lockstep. */
+static int64_t phase_follow(const ecu_release_t *release, int64_t arrival_ns) {
+  int64_t step = gcd(period, release->sample_period_ns);
+  int64_t rest = (arrival_ns - release->instant_ns + step / 2) % step;
+  if (rest < 0) rest += step;
+  int64_t error = rest - step / 2;
+  int64_t move = (error >= 0 ? error : -error) / PHASE_FOLLOW_DIVISOR;
+  return error >= 0 ? move : -move;
+}
+
 /* The instant nearest release_ns in phase with the samples arriving at arrival_ns + k x the
  * sample period, modulo the phase step g = gcd(period, sample period) (5 ms for a 10 ms
  * plant): release + ((arrival - release + g/2) mod g) - g/2, the mod taken non-negative as
@@ -92,7 +105,10 @@ int ecu_release_on_sample(ecu_release_t *release, int64_t arrival_ns) {
   if (!spaced(release, arrival_ns)) return 0;
   release->instant_released = 1;
   ecu_release_note(release, arrival_ns);
-  if (paced(release)) release->instant_ns = arrival_ns; /* the grid follows the plant's phase, drift included */
+  if (paced(release))
+    release->instant_ns = arrival_ns; /* the grid follows the plant's phase, drift included */
+  else
+    release->instant_ns += phase_follow(release, arrival_ns);
   return 1;
 }
 
