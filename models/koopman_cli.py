@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gain-anchor", type=float, default=defaults.gain_anchor, metavar="W",
                    help="weight of the gain anchor: the small-signal steer response held to local fits of the "
                         "training runs' gentle samples (scheduled form); 0 (default) for off")
+    p.add_argument("--gain-anchor-vy", type=float, default=defaults.gain_anchor_vy, metavar="W",
+                   help="with --gain-anchor: weight of its lateral-velocity term, the small-signal steer "
+                        "response's vy held to the same local fits (error of vy / r in m); 0 (default) for off")
     p.add_argument("--val-runs", type=_names, default=(), metavar="RUN,...",
                    help="runs (file names without .csv) for validation (default: --val-fraction of the runs)")
     p.add_argument("--test-runs", type=_names, default=(), metavar="RUN,...",
@@ -133,7 +136,7 @@ DEEP_ONLY_OPTIONS = (
     "--features", "--seq-len", "--epochs", "--steps-per-epoch", "--batch-size", "--hidden",
     "--lifted-weight", "--speed-knots", "--small-signal-accel", "--unscheduled-states",
     "--mirror-symmetric", "--even-features", "--servo-lag", "--lateral-per-step", "--steer-bilinear",
-    "--gain-anchor", "--patience", "--learning-rate", "--lr-decay", "--threads", "--device",
+    "--gain-anchor", "--gain-anchor-vy", "--patience", "--learning-rate", "--lr-decay", "--threads", "--device",
 )
 
 
@@ -184,7 +187,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             unscheduled_states=args.unscheduled_states,
             mirror_symmetric=args.mirror_symmetric, even_features=args.even_features,
             servo_lag=args.servo_lag, lateral_per_step=args.lateral_per_step,
-            steer_bilinear=args.steer_bilinear, gain_anchor=args.gain_anchor, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
+            steer_bilinear=args.steer_bilinear, gain_anchor=args.gain_anchor,
+            gain_anchor_vy=args.gain_anchor_vy, learning_rate=args.learning_rate, lr_decay=args.lr_decay,
             seed=args.seed, threads=args.threads, device=args.device,
         )
         check_outputs(args)

@@ -55,6 +55,9 @@ class TrainingSettings:
     ``gain_anchor`` w > 0 (scheduled form without dictionary; recorded only when on) adds
     w times the gain anchor's loss (``models/koopman_train_anchor.py``): the model's
     small-signal steer response held to local fits of the training runs' gentle samples.
+    ``gain_anchor_vy`` w > 0 (with ``gain_anchor``; recorded only when on) adds w times the
+    anchor's lateral-velocity term: the model's step-steer vy held to the same fits, its error
+    that of vy / r in metres.
     """
 
     n_features: int = 5
@@ -80,6 +83,7 @@ class TrainingSettings:
     lateral_per_step: bool = False
     steer_bilinear: bool = False
     gain_anchor: float = 0.0
+    gain_anchor_vy: float = 0.0
     val_fraction: float = 0.15
     test_fraction: float = 0.15
     val_runs: tuple[str, ...] = ()
@@ -117,6 +121,8 @@ class TrainingSettings:
             "steer_bilinear": self.mirror_symmetric or not self.steer_bilinear,
             "gain_anchor": self.gain_anchor >= 0 and (self.gain_anchor == 0 or (self.form == "scheduled"
                                                                                 and not self.dictionary)),
+            # The vy targets are the yaw targets times vy / r: they need the yaw anchor's.
+            "gain_anchor_vy": self.gain_anchor_vy >= 0 and (self.gain_anchor_vy == 0 or self.gain_anchor > 0),
             "val_fraction": 0 < self.val_fraction < 0.5,
             "val_runs": not set(self.val_runs) & set(self.test_runs),
             "test_fraction": 0 < self.test_fraction < 0.5,
@@ -145,6 +151,8 @@ def settings_json(settings: TrainingSettings) -> dict:
         del out["steer_bilinear"]
     if not settings.gain_anchor:
         del out["gain_anchor"]
+    if not settings.gain_anchor_vy:
+        del out["gain_anchor_vy"]
     return out
 
 
@@ -152,13 +160,15 @@ def settings_json(settings: TrainingSettings) -> dict:
 OPTION_COLUMNS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "servo_lag": (("steer_measured",), ("steer",)),
     "gain_anchor": (("vx", "vy", "yaw_rate", "steer_measured"), ("torque", "steer")),
+    "gain_anchor_vy": (("vx", "vy", "yaw_rate", "steer_measured"), ("torque", "steer")),
 }
 
 
 def missing_columns(settings: TrainingSettings, states: Sequence[str], inputs: Sequence[str]) -> list[str]:
     """One line per option that is on although the data lack a column it needs: the servo
-    lag and the gain anchor (the mirror symmetry names a column without a parity itself,
-    ``models.koopman_train_symmetric.parities``). Empty when every option on can run."""
+    lag, the gain anchor and its vy term (the mirror symmetry names a column without a
+    parity itself, ``models.koopman_train_symmetric.parities``). Empty when every option on
+    can run."""
     problems = []
     for option, (needed_states, needed_inputs) in OPTION_COLUMNS.items():
         if not getattr(settings, option):

@@ -56,7 +56,7 @@ from models.koopman_data import dataset_hash, load_trajectories  # noqa: F401 - 
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
 from models.koopman_settings import TrainingSettings, settings_json
 from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES  # noqa: F401 - re-exported
-from models.koopman_train_anchor import GainAnchor, anchor_targets
+from models.koopman_train_anchor import GainAnchor, anchor_targets, lateral_velocity_targets
 from models.koopman_train_net import KoopmanNet, least_squares_start
 from models.koopman_train_symmetric import SERVO_INPUT, SERVO_STATE, MirrorKoopmanNet, parities, shared_servo_scaling
 from models.koopman_train_windows import SequenceSet
@@ -190,8 +190,10 @@ def train(
             knot_weights=[knot_weights(np.array(knots), r.states[:, 0]) for r in train_runs] if knots else None))
     net = net.to(device)
     anchor_targets_ = anchor_targets(train_runs, friction) if settings.gain_anchor > 0 else None
+    vy_targets = lateral_velocity_targets(anchor_targets_) if settings.gain_anchor_vy > 0 else None
     anchor = (None if anchor_targets_ is None
-              else GainAnchor(anchor_targets_, state_scaling, input_scaling, knots, device, state_names, input_names))
+              else GainAnchor(anchor_targets_, state_scaling, input_scaling, knots, device, state_names, input_names,
+                              vy_targets))
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=settings.lr_decay)
     sampler = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -211,6 +213,8 @@ def train(
         running = {"prediction": 0.0, "reconstruction": 0.0, "lifted": 0.0}
         if anchor is not None:
             running["anchor"] = 0.0
+        if vy_targets is not None:
+            running["anchor_vy"] = 0.0
         for step in range(settings.steps_per_epoch):
             which = torch.randint(len(train_set), (settings.batch_size,), generator=sampler).to(device)
             x_n, psi_n, u_n, weights = train_set.batch(which)
@@ -222,8 +226,10 @@ def train(
                 losses["prediction"] = (torch.mean(window[:, None, None] * losses["error"] ** 2)
                                         / torch.mean(window))
             if anchor is not None:  # a training term only: validation keeps the prediction loss
-                losses["anchor"] = anchor.loss(net)
+                losses.update(anchor.losses(net))
                 losses["prediction"] = losses["prediction"] + settings.gain_anchor * losses["anchor"]
+                if vy_targets is not None:
+                    losses["prediction"] = losses["prediction"] + settings.gain_anchor_vy * losses["anchor_vy"]
             loss = _total(losses, settings)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -281,6 +287,8 @@ def train(
     meta["test_open_loop_steps"] = OPEN_LOOP_STEPS
     if anchor_targets_ is not None:
         meta["gain_anchor_targets"] = anchor_targets_.as_json()
+    if vy_targets is not None:
+        meta["gain_anchor_vy_targets"] = vy_targets.as_json()
     elapsed = time.perf_counter() - started
     meta["training_seconds"] = round(elapsed, 1)
     model.metadata = meta

@@ -21,8 +21,9 @@ def _lateral_step(x: np.ndarray, steer: float, speed: float) -> np.ndarray:
                      0.8 * delta + 0.2 * steer])
 
 
-def _runs(offset: float = 0.0) -> list[Trajectory]:
-    """One run per anchor speed at constant speed, the steer ``offset`` plus a small random signal."""
+def _runs(offset: float = 0.0, lateral_step=_lateral_step) -> list[Trajectory]:
+    """One run per anchor speed at constant speed of the car ``lateral_step`` (default this
+    module's), the steer ``offset`` plus a small random signal."""
     rng = np.random.default_rng(4)
     runs = []
     for speed in ANCHOR_SPEEDS:
@@ -30,7 +31,7 @@ def _runs(offset: float = 0.0) -> list[Trajectory]:
         x, states = np.zeros(3), []
         for k in range(400):
             states.append([speed, *x])
-            x = _lateral_step(x, steer[k], speed)
+            x = lateral_step(x, steer[k], speed)
         runs.append(Trajectory(f"v{speed:g}", np.array(states), np.c_[np.full(400, 100.0), steer], STATES, INPUTS))
     return runs
 

@@ -162,6 +162,9 @@ def test_every_form_trains_on_throttle_brake_and_steer(tmp_path: Path, form: str
     (["--mirror-symmetric"], "no parity known for ['throttle', 'brake']"),
     (["--gain-anchor", "10"], "--gain-anchor needs the column(s) ['steer_measured', 'torque']"),
     (["--mirror-symmetric", "--steer-bilinear", "--inputs", "throttle,brake"], "no parity known"),
+    (["--gain-anchor", "10", "--gain-anchor-vy", "10"],
+     "--gain-anchor-vy needs the column(s) ['steer_measured', 'torque']"),
+    (["--gain-anchor-vy", "10"], "gain_anchor_vy=10.0 is invalid"),  # the vy term without the yaw anchor
 ])
 def test_options_for_our_inputs_are_one_error_line_naming_what_is_missing(tmp_path: Path, capsys, options,
                                                                           named) -> None:
