@@ -1,12 +1,13 @@
 # The observer stage of the tuning procedure on the tuning set with disturbances added
 # (issue 35; studies/observer_tuning.py, docs/tuning.md): the observer fields of ESO-DKMPC,
 # LMPC-ESO and DMDc-ESO over a grid, every other field at the tuning file's value, on the 8
-# tuning manoeuvres and the same 8 with one constant disturbance each. Writes the chosen
-# observer fields into controller/tuning.toml. About 35 min with 2 workers on 2 cores.
+# tuning manoeuvres and 3 steady drives, and the same 11 with one constant disturbance each.
+# Writes the chosen observer fields into controller/tuning.toml. About 50 min with 2 workers
+# on 2 cores.
 .PHONY: tune-observer
 
 TUNE_OBSERVER_ARGS ?=
-## tune the observers on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning.* (~35 min)
+## tune the observers on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning.* (~50 min)
 tune-observer: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_tuning --out results --workers 2 $(TUNE_OBSERVER_ARGS)
 	$(PROVENANCE_STAMP) $(addprefix results/observer_tuning.,md json) \
@@ -24,12 +25,12 @@ observer-variants: setup
 		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.observer_variants
 
 # The second observer stage (studies/observer_tuning.py --stage slip-target): the bound and
-# the fade of the heading target's steady side slip (controller/steady_slip.py) for the same
-# three controllers on the same 16 runs, every other field at the tuning file's value (so
-# after tune-observer). About 5 min with 2 workers on 2 cores.
+# the fade of the heading target's steady side slip (controller/steady_slip.py) for every
+# MPC on the observer stage's 22 runs, every other field at the tuning file's value (so
+# after tune-observer). About 25 min with 2 workers on 2 cores.
 .PHONY: tune-slip-target
 TUNE_SLIP_TARGET_ARGS ?=
-## tune the heading target's side slip on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning_slip_target.* (~5 min)
+## tune the heading target's side slip on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning_slip_target.* (~25 min)
 tune-slip-target: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_tuning --stage slip-target --out results --workers 2 $(TUNE_SLIP_TARGET_ARGS)
 	$(PROVENANCE_STAMP) $(addprefix results/observer_tuning_slip_target.,md json) \
