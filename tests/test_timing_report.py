@@ -13,7 +13,7 @@ from studies.timing.goals import (GOAL_C_TASK_P99_MS, GOAL_LATENCY_P99_MS, GOAL_
                                   goal_lines, spread, spread_table)
 from studies.timing.plan import (RUN_OVERHEAD_S, estimated_seconds, parse_releases,
                                  plan_runs)
-from studies.timing.report import FIGURES, RunFigures, percentile_table, summary_table
+from studies.timing.report import FIGURES, RunFigures, percentile_table, summary_table, watchdog_releases
 
 
 def _run(condition: str = "idle", controller: str = "eso-dkmpc", release: str = "sample",
@@ -239,3 +239,18 @@ def test_the_report_states_run_lengths_releases_goals_and_spread(tmp_path):
     assert rows[:4] == [["eso-dkmpc", "clock", "1"], ["eso-dkmpc", "clock", "2"],
                         ["eso-dkmpc", "sample", "1"], ["eso-dkmpc", "sample", "2"]]
     assert "- idle, sample release: ESO-DKMPC (C ECU) RX-to-TX latency p99 <= 3 ms: met" in text
+
+
+# ------------------------------------------------------------------ watchdog releases
+def test_watchdog_releases_are_the_cycles_released_at_or_after_the_window_end():
+    """A sample releases inside [N - 2.5, N + 7.5) ms; the watchdog at N + 7.5 ms or later."""
+    jitter_ms = np.array([0.0, 5.0, -2.4, 7.499, 7.5, 7.6, 32.5, np.nan])
+    assert watchdog_releases(jitter_ms / 1e3) == 3
+
+
+def test_the_summary_counts_watchdog_releases_for_the_sample_release_only():
+    runs = [dataclasses.replace(_run(release="clock"), watchdog_releases=None),
+            dataclasses.replace(_run(release="sample"), watchdog_releases=6)]
+    summary = summary_table(runs)
+    assert summary[0].endswith("| max abs e_Y (m) | watchdog releases |")
+    assert summary[2].endswith("| - |") and summary[3].endswith("| 6 |")

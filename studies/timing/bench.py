@@ -260,7 +260,8 @@ def _report(figures: list[RunFigures], context: ReportContext) -> list[str]:
         "plant started to its end (the ECU's own CLOCK_MONOTONIC stamps).",
         "- Figures (ECU's per-cycle record, `firmware_sim/timing.py`): release jitter = task "
         "start - ideal release (with the sample release: the release minus its control instant, "
-        "0 and +5 ms alternating with a 10 ms plant, up to +7.5 ms for the watchdog); task time "
+        "0 and +5 ms alternating with a 10 ms plant, +7.5 ms or more for the watchdog: the "
+        "watchdog releases column counts those cycles); task time "
         "= the whole control task; solver time = the QP / NLP solver's own statistic (cycles in "
         "ACTIVE / DEGRADED only); input age = task start - arrival of the newest plant sample; "
         "RX-to-TX latency = that arrival -> TX of the command. Overruns: tasks not finished at "

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from can_defs.frames import CtrlMode
 
+from firmware_sim.config import NS_PER_MS, SAMPLE_WATCHDOG_NS
 from studies.timing.runner import TimingRun
 
 SETTLE_S = 1.0
@@ -57,6 +58,9 @@ class RunFigures:
     scheduling: dict[str, str]
     release: str = "clock"
     repeat: int = 1
+    #: Sample release: cycles released by the period watchdog (no good sample in the
+    #: instant's window); None with the clock release, which has no watchdog.
+    watchdog_releases: int | None = None
 
 
 def _stats(values_ms: np.ndarray) -> tuple[float, float, float, float, int]:
@@ -65,6 +69,13 @@ def _stats(values_ms: np.ndarray) -> tuple[float, float, float, float, int]:
         return (float("nan"),) * 4 + (0,)
     p50, p99, p999 = np.percentile(values_ms, QUANTILES)
     return float(p50), float(p99), float(p999), float(values_ms.max()), int(values_ms.size)
+
+
+def watchdog_releases(release_jitter_s: np.ndarray) -> int:
+    """Cycles of a sample-released run that the period watchdog released: their release
+    comes SAMPLE_WATCHDOG_NS or more after its control instant (a sample releases inside
+    the window, earlier). ``release_jitter_s``: (cycles,) release minus instant, s."""
+    return int(np.count_nonzero(release_jitter_s * 1e3 >= SAMPLE_WATCHDOG_NS / NS_PER_MS))
 
 
 def run_figures(run: TimingRun, condition: str, settle_s: float = SETTLE_S,
@@ -104,7 +115,9 @@ def run_figures(run: TimingRun, condition: str, settle_s: float = SETTLE_S,
         lateral_error_max_m=float(run.plant["tracking"]["lateral_error_m"]["max_abs"]),
         steal_share=float(run.plant.get("steal_share", float("nan"))),
         stats={name: _stats(values) for name, values in samples.items()},
-        samples_ms=samples, scheduling=dict(run.scheduling), release=run.release, repeat=repeat)
+        samples_ms=samples, scheduling=dict(run.scheduling), release=run.release, repeat=repeat,
+        watchdog_releases=(watchdog_releases(columns["release_jitter"][window]) if run.release == "sample"
+                           else None))
 
 
 def fmt_ms(value: float) -> str:
@@ -116,15 +129,16 @@ def summary_table(figures: list[RunFigures]) -> list[str]:
     """Markdown: one row per run with the deadline and loss figures."""
     lines = ["| load | controller | release | run | s | cycles (ACTIVE) | overruns at 25 ms "
              "| commands lost | largest command gap at the plant (ms) | task p99 (ms) | RX-to-TX p99 (ms) "
-             "| plant ticks late | CPU steal by the host | max abs e_Y (m) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| plant ticks late | CPU steal by the host | max abs e_Y (m) | watchdog releases |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for f in figures:
         lines.append(
             f"| {f.condition} | {f.controller} | {f.release} | {f.repeat} | {f.seconds:g} "
             f"| {f.cycles} ({f.modes.get('ACTIVE', 0)}) | {f.overruns} | {f.commands_lost} "
             f"| {fmt_ms(f.command_gap_max_ms)} | {fmt_ms(f.stats['task_time'][1])} "
             f"| {fmt_ms(f.stats['rx_to_tx_latency'][1])} | {f.plant_tick_overruns} of "
-            f"{f.plant_ticks} | {100 * f.steal_share:.1f} % | {f.lateral_error_max_m:.3f} |")
+            f"{f.plant_ticks} | {100 * f.steal_share:.1f} % | {f.lateral_error_max_m:.3f} "
+            f"| {'-' if f.watchdog_releases is None else f.watchdog_releases} |")
     return lines
 
 
@@ -205,7 +219,7 @@ def as_json(figures: list[RunFigures]) -> list[dict[str, Any]]:
     keys = ("condition", "controller", "release", "repeat", "seconds", "cycles", "modes",
             "overruns", "commands_received", "commands_lost", "command_e2e_errors",
             "plant_commands_rejected", "command_gap_max_ms", "plant_tick_overruns",
-            "plant_ticks", "lateral_error_max_m", "steal_share", "scheduling")
+            "plant_ticks", "lateral_error_max_m", "steal_share", "scheduling", "watchdog_releases")
     out = []
     for f in figures:
         record = {key: getattr(f, key) for key in keys}
