@@ -8,7 +8,7 @@ disturbances. Every variant starts from the tuning file's ``[eso-dkmpc]`` table:
 - ``no innovation bound``: ``eso_innovation_limit`` 0 (g2 of eq. 13 the identity);
 - ``w on vy, yaw rate only``: the estimate used on the two physical lateral rows of the
   lifted state only (nd = 2 instead of n_z), the other rows' estimate dropped;
-- ``bias estimate on``: ``yaw_rate_bias_pole`` 0.99;
+- ``bias estimate off``: ``yaw_rate_bias_pole`` 1 (the shipped tuning has it on, 0.99);
 - ``course-angle cost``: the yaw rows of the QP's cost on the course angle (heading plus
   vy / vx, vy predicted, affine in the steering) instead of the heading, on top of the
   shipped heading target;
@@ -107,8 +107,8 @@ def variants() -> dict[str, Callable[[], Any]]:
         "no innovation bound": lambda: EsoDkmpc(model, dataclasses.replace(table, eso_innovation_limit=0.0),
                                                 longitudinal),
         "w on vy, yaw rate only": lambda: LateralRowsOnly(model, table, longitudinal),
-        "bias estimate on": lambda: EsoDkmpc(model, dataclasses.replace(table, yaw_rate_bias_pole=0.99),
-                                             longitudinal),
+        "bias estimate off": lambda: EsoDkmpc(model, dataclasses.replace(table, yaw_rate_bias_pole=1.0),
+                                              longitudinal),
         "course-angle cost": lambda: CourseAngleCost(model, table, longitudinal),
         "slip target 0.02 / 0.003": lambda: EsoDkmpc(model, dataclasses.replace(
             table, slip_target_limit=0.02, slip_target_gate=0.003), longitudinal),

@@ -115,7 +115,7 @@ target_speed_kmh = [50.0]
 @pytest.mark.slow
 @pytest.mark.parametrize("disturbance, observer", [
     ("steer_offset_rad = 0.02", {}),  # the shipped tuning
-    ("yaw_rate_bias_rad_s = 0.01", {"yaw_rate_bias_pole": 0.99}),  # with the bias estimate on
+    ("yaw_rate_bias_rad_s = 0.01", {"yaw_rate_bias_pole": 0.99}),  # the bias estimate on, as shipped
     # the car must crab: with the heading target moved by the steady side slip
     ("crosswind_force_n = 800.0\ncrosswind_cp_m = 0.6", {"slip_target_limit": 0.02, "slip_target_gate": 0.003}),
     ("bank_angle_rad = 0.06", {"slip_target_limit": 0.02, "slip_target_gate": 0.003}),
@@ -161,7 +161,7 @@ def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offs
 
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "steer_offset_rad = 0.02\nyaw_rate_bias_rad_s = 0.01"),
                                    duration_s=6.0)
-    # The bias estimate on in both (the shipped tuning leaves it off) and the bound reached.
+    # The bias estimate on in both (as the shipped tuning has it) and the bound reached.
     python = controller_with("eso-dkmpc", yaw_rate_bias_pole=0.99)
     twin = Twin(python, _c_core_with(native, tmp_path, yaw_rate_bias_pole=0.99), frozenset({60, 61}))
     result = run_closed_loop(scenario, twin)

@@ -20,7 +20,7 @@ def test_every_variant_builds_and_steps_within_the_limits() -> None:
         command, _ = _step(controller, sample)
         assert abs(command.steer_angle) <= 0.3, name
     assert built["no innovation bound"].tuning.eso_innovation_limit == 0.0
-    assert built["bias estimate on"].tuning.yaw_rate_bias_pole == 0.99
+    assert built["bias estimate off"].tuning.yaw_rate_bias_pole == 1.0
     assert built["ESO-DKMPC (shipped)"].tuning.eso_innovation_limit > 0.0
     assert built["slip target 0.02 / 0.003"].tuning.slip_target_limit == 0.02
 
