@@ -18,7 +18,7 @@ import numpy as np
 
 from controller.base import Command, VehicleSample
 from controller.lifted_mpc import VEHICLE_STATES, LiftedMpc, PredictionMaps, decayed_sums
-from controller.observed_mpc import ObservedMpc, innovation_bound
+from controller.observed_mpc import ObservedMpc
 from controller.tuning import ControllerTuning, EsoDkmpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains
 from models.eso_dk import observer_params
@@ -63,7 +63,7 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
             tuning = self._eso_tuning
             gains = design_gains(local.A, tuning.eso_pole, second_pole=tuning.eso_second_pole, structure="matrix")
             params = observer_params(local if self._scheduled else self.model, gains.beta1, gains.beta2,
-                                     innovation_bound(tuning, LATERAL_ROWS))
+                                     self.innovation_bound(LATERAL_ROWS))
             if tuning.disturbance_decay == 1.0:
                 # A held estimate enters as a constant input does: C_P S_i, the very product
                 # the maps already hold (same operands, same bits), so it is not built twice.

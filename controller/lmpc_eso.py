@@ -24,7 +24,7 @@ import numpy as np
 from controller.base import Command, VehicleSample
 from controller.lifted_mpc import decayed_sums
 from controller.lmpc import MIN_MODEL_SPEED, SPEED_QUANTUM, DiscreteLateralModel, Lmpc
-from controller.observed_mpc import ObservedMpc, innovation_bound
+from controller.observed_mpc import ObservedMpc
 from controller.tuning import ControllerTuning, EsoQpMpcTuning, LongitudinalTuning
 from models.eso import EsoParams, ExtendedStateObserver, design_gains
 
@@ -67,7 +67,7 @@ class LmpcEso(ObservedMpc, Lmpc):
         a = np.asarray(a, dtype=float)
         gains = design_gains(a, tuning.eso_pole, second_pole=tuning.eso_second_pole, structure="matrix")
         params = EsoParams(a, np.asarray(b, dtype=float).reshape(2, 1), np.zeros(2), gains.beta1, gains.beta2,
-                           g2=innovation_bound(tuning, (0, 1)))  # the state is [vy, yaw_rate]
+                           g2=self.innovation_bound((0, 1)))  # the state is [vy, yaw_rate]
         if len(self._observer_cache) >= _OBSERVER_CACHE_SIZE:
             self._observer_cache.clear()
         cached = self._observer_cache[key] = (

@@ -28,14 +28,8 @@ import numpy as np
 from controller.base import Command, SolverStatus, StepDebug, VehicleSample
 from controller.mpc_base import Plan, SteeringMpc
 from controller.tuning import EsoQpMpcTuning
-from models.eso import ExtendedStateObserver, InnovationSaturation, innovated_disturbance
+from models.eso import ExtendedStateObserver, PersistentInnovationBound, innovated_disturbance
 from models.yaw_rate_bias import YawRateBiasState, yaw_rate_bias_update
-
-
-def innovation_bound(tuning: EsoQpMpcTuning, lateral_rows: tuple[int, int]) -> InnovationSaturation:
-    """The observer's g2 (eq. 13): the tuning's bound on the innovation's vy and yaw-rate
-    entries, at ``lateral_rows`` of the observer's state."""
-    return InnovationSaturation(lateral_rows, tuning.eso_innovation_limit)
 
 
 class ObservedMpc(SteeringMpc):
@@ -48,6 +42,18 @@ class ObservedMpc(SteeringMpc):
 
     observer: ExtendedStateObserver
     _eso_tuning: EsoQpMpcTuning
+
+    def innovation_bound(self, lateral_rows: tuple[int, int]) -> PersistentInnovationBound:
+        """The observer's g2 (eq. 13): the tuning's bound on the innovation's vy and yaw-rate
+        entries, at ``lateral_rows`` of the observer's state. One object per controller,
+        shared by the observer's parameters at every speed: its widening is the observer's
+        state (``models.eso.PersistentInnovationBound``)."""
+        bound = getattr(self, "_innovation_bound", None)
+        if bound is None:
+            tuning = self._eso_tuning
+            bound = self._innovation_bound = PersistentInnovationBound(
+                lateral_rows, tuning.eso_innovation_limit, tuning.eso_innovation_persistence)
+        return bound
 
     def reset(self) -> None:
         """Forget plans, progress, the observer state and the yaw-rate bias estimate."""
@@ -73,6 +79,7 @@ class ObservedMpc(SteeringMpc):
         observer when needed (the estimate is then zero)."""
         if not self._observer_running:
             self.observer.reset(observed_state)
+            self._innovation_bound_restart()
             self._observer_running = True
             self._observer_reset = True
             return self.observer.disturbance_estimate
@@ -80,9 +87,20 @@ class ObservedMpc(SteeringMpc):
 
     def observe(self, observed_state: np.ndarray, model_input: np.ndarray) -> None:
         """Advance the observer with the step's state (n,) and the input applied (n_u,); a
-        non-finite value makes it restart on the next step instead."""
+        non-finite value makes it restart on the next step instead. The innovation bound
+        then counts the step's innovation (after the update that used it)."""
+        innovation = np.asarray(observed_state, dtype=float) - self.observer.lifted_state_estimate
         if not self.observer.update(observed_state, model_input):
             self._observer_running = False
+            return
+        bound = getattr(self, "_innovation_bound", None)
+        if bound is not None:
+            bound.advance(innovation)
+
+    def _innovation_bound_restart(self) -> None:
+        bound = getattr(self, "_innovation_bound", None)
+        if bound is not None:
+            bound.restart()
 
     def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
                   sample: VehicleSample | None = None) -> tuple[Command, StepDebug]:

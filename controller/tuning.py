@@ -148,14 +148,18 @@ class EsoDkmpcTuning(QpMpcTuning):
     step i of the prediction adds ``disturbance_decay**i * w_hat``; 1 holds it constant,
     as eq. 15 does. ``eso_innovation_limit`` bounds the innovation that moves w_hat in one
     step (``models.eso.InnovationSaturation`` on the vy and yaw-rate entries, m/s and
-    rad/s; 0: no bound). ``yaw_rate_bias_pole`` is the pole of the yaw-rate sensor bias
-    estimate from the heading (``models.yaw_rate_bias``; 1: no estimate).
+    rad/s; 0: no bound). ``eso_innovation_persistence`` widens that bound while the
+    innovation stays beyond it with one sign (``models.eso.PersistentInnovationBound``: by
+    the limit once per that many steps, up to 4 times the limit; 0: a fixed bound).
+    ``yaw_rate_bias_pole`` is the pole of the yaw-rate sensor bias estimate from the heading
+    (``models.yaw_rate_bias``; 1: no estimate).
     """
 
     eso_pole: float
     eso_second_pole: float
     disturbance_decay: float
     eso_innovation_limit: float
+    eso_innovation_persistence: float
     yaw_rate_bias_pole: float
 
 
@@ -267,6 +271,7 @@ _RULES: dict[str, _Rule] = {
     "eso_second_pole": (lambda v: 0.0 <= v < 1.0, "must be in [0, 1)"),
     "disturbance_decay": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
     "eso_innovation_limit": (lambda v: 0.0 <= v <= 10.0, "must be in [0, 10] (0: no bound)"),
+    "eso_innovation_persistence": (lambda v: 0.0 <= v <= 1000.0, "must be in [0, 1000] steps (0: a fixed bound)"),
     "yaw_rate_bias_pole": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1] (1: no estimate)"),
     "slip_target_limit": (lambda v: 0.0 <= v <= 0.2, "must be in [0, 0.2] rad (0: off)"),
     "slip_target_gate": (lambda v: 0.0 < v <= 1.0, "must be in (0, 1] rad"),

@@ -15,6 +15,20 @@ tune-observer: setup
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) $(PROVENANCE_DMDC) \
 		$(PROVENANCE_TUNING_SET) --modules studies.observer_tuning models.disturbance
 
+# The refinement right after tune-observer (studies/observer_tuning.py --stage refine): the
+# innovation bound's widening while the innovation keeps its sign, and a finer grid of the
+# yaw-rate bias pole, for the same three controllers on the same 22 runs, every other field
+# at the tuning file's value. About 12 min with 2 workers on 2 cores.
+.PHONY: tune-observer-refine
+TUNE_OBSERVER_REFINE_ARGS ?=
+## refine the observers (innovation bound's widening, bias pole) on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning_refine.* (~12 min)
+tune-observer-refine: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_tuning --stage refine --out results --workers 2 $(TUNE_OBSERVER_REFINE_ARGS)
+	$(PROVENANCE_STAMP) $(addprefix results/observer_tuning_refine.,md json) \
+		--command "$(call provenance_command,tune-observer-refine,TUNE_OBSERVER_REFINE_ARGS)" \
+		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) $(PROVENANCE_DMDC) \
+		$(PROVENANCE_TUNING_SET) --modules studies.observer_tuning models.disturbance
+
 # The observer's design choices against variants that each change one (docs/eso.md): about
 # 1 min on 2 cores (30 closed-loop runs without CAN).
 .PHONY: observer-variants
@@ -27,7 +41,7 @@ observer-variants: setup
 # The second observer stage (studies/observer_tuning.py --stage slip-target): the bound and
 # the fade of the heading target's steady side slip (controller/steady_slip.py) for every
 # MPC on the observer stage's 22 runs, every other field at the tuning file's value (so
-# after tune-observer). About 25 min with 2 workers on 2 cores.
+# after tune-observer and tune-observer-refine). About 25 min with 2 workers on 2 cores.
 .PHONY: tune-slip-target
 TUNE_SLIP_TARGET_ARGS ?=
 ## tune the heading target's side slip on the tuning set + disturbances -> controller/tuning.toml, results/observer_tuning_slip_target.* (~25 min)

@@ -21,7 +21,15 @@ into ``controller/tuning.toml`` (its observer fields only, each table's other fi
 untouched) unless ``--no-write``; ``results/observer_tuning.md`` and ``.json`` list every
 evaluation.
 
-A second stage, ``--stage slip-target`` (``make tune-slip-target``, after this one), runs
+A refinement, ``--stage refine`` (``make tune-observer-refine``, right after this stage),
+runs the same procedure over :data:`REFINE_GRID` for the same controllers, every other
+field at the tuning file's value (the ones this stage just chose): the innovation bound's
+widening while the innovation keeps its sign (``eso_innovation_persistence``,
+``models.eso.PersistentInnovationBound``; 0 keeps the fixed bound) and a finer grid of the
+yaw-rate bias pole than this stage's two levels. It writes ``observer_tuning_refine.md``
+and ``.json``.
+
+A second stage, ``--stage slip-target`` (``make tune-slip-target``, after the refinement), runs
 the same procedure over :data:`SLIP_TARGET_GRID`: the bound and the fade of the heading
 target's measured side slip (``controller.steady_slip``), every other field (the observer
 fields just chosen included) at the tuning file's value. The target is a part of every
@@ -29,7 +37,7 @@ MPC's cost, not of the observer, so this stage tunes every MPC (DKMPC, LMPC and 
 too): no baseline keeps the heading cost that the disturbances punish while the observer's
 controllers lose it. It writes ``observer_tuning_slip_target.md`` and ``.json``.
 
-Usage: ``python -m studies.observer_tuning [--stage observer|slip-target] [--controllers ...]
+Usage: ``python -m studies.observer_tuning [--stage observer|refine|slip-target] [--controllers ...]
 [--workers N] [--out DIR] [--no-write] [--no-progress]``.
 """
 from __future__ import annotations
@@ -67,6 +75,12 @@ OBSERVER_GRID = SweepGrid((
     ("eso_innovation_limit", (0.0, 0.003, 0.01)),
     ("yaw_rate_bias_pole", (1.0, 0.99)),
 ))
+#: The refinement after the observer grid: the innovation bound's widening (steps per limit;
+#: 0: a fixed bound) and the yaw-rate bias pole on a finer grid (1: no estimate).
+REFINE_GRID = SweepGrid((
+    ("eso_innovation_persistence", (0.0, 10.0, 20.0, 40.0)),
+    ("yaw_rate_bias_pole", (1.0, 0.99, 0.97, 0.95)),
+))
 #: The second stage: the heading target's measured side slip, bounded (0: off) and faded
 #: with the reference's bend. 0.04 rad is about the slip of a 1 kN crosswind at 50 km/h.
 SLIP_TARGET_GRID = SweepGrid((
@@ -88,6 +102,7 @@ class Stage:
 
 STAGES = {
     "observer": Stage(OBSERVER_GRID, "observer_tuning", "tune-observer", OBSERVED_CONTROLLERS),
+    "refine": Stage(REFINE_GRID, "observer_tuning_refine", "tune-observer-refine", OBSERVED_CONTROLLERS),
     "slip-target": Stage(SLIP_TARGET_GRID, "observer_tuning_slip_target", "tune-slip-target", MPC_NAMES),
 }
 #: One constant disturbance per tuning manoeuvre (``[disturbances]`` keys of

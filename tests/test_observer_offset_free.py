@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from controller.eso_dkmpc import LATERAL_ROWS
-from models.eso import EsoShapeError, InnovationSaturation
+from models.eso import PERSISTENCE_MAX_FACTOR, EsoShapeError, InnovationSaturation, PersistentInnovationBound
 from models.koopman import KoopmanModel
 from models.yaw_rate_bias import YawRateBiasState, yaw_rate_bias_update
 from c_twin import Twin, assert_twin_steps_equal
@@ -33,6 +33,41 @@ def test_innovation_bound_is_the_identity_below_the_limit_and_scales_above() -> 
     assert np.isnan(bound(np.array([0.0, math.nan, 0.0, 0.0]))[1])
     with pytest.raises(EsoShapeError, match="innovation limit"):
         InnovationSaturation((1, 2), -1.0)
+
+
+def test_persistent_bound_widens_while_the_innovation_keeps_its_sign_beyond_it() -> None:
+    bound = PersistentInnovationBound((1, 2), 0.003, 10.0)
+    beyond = np.array([0.5, 0.012, -0.003, 0.3])  # the vy entry leads: sign +
+    for n in range(1, 6):
+        assert bound.limit == pytest.approx(0.003 * (1.0 + (n - 1) / 10.0))
+        assert np.max(np.abs(bound(beyond)[[1, 2]])) == pytest.approx(bound.limit)
+        bound.advance(beyond)
+        assert bound.saturated_steps == n
+    bound.advance(-beyond)  # a sign change starts a new count
+    assert bound.saturated_steps == 1 and bound.sign == -1.0
+    bound.advance(np.array([0.5, 0.001, 0.002, 0.3]))  # within the bound: back to the limit
+    assert bound.saturated_steps == 0 and bound.limit == 0.003
+    for _ in range(1000):  # never wider than PERSISTENCE_MAX_FACTOR x the limit
+        bound.advance(beyond * 100.0)
+    assert bound.limit == pytest.approx(0.003 * PERSISTENCE_MAX_FACTOR)
+    bound.advance(np.array([0.0, math.nan, 0.0, 0.0]))  # non-finite: back to the limit
+    assert bound.limit == 0.003
+    bound.advance(beyond)
+    bound.restart()
+    assert bound.saturated_steps == 0 and bound.limit == 0.003
+
+
+def test_persistent_bound_with_zero_persistence_is_the_fixed_bound() -> None:
+    fixed, persistent = InnovationSaturation((1, 2), 0.003), PersistentInnovationBound((1, 2), 0.003, 0.0)
+    beyond = np.array([0.5, 0.012, -0.003, 0.3])
+    for _ in range(5):
+        persistent.advance(beyond)
+        assert np.array_equal(persistent(beyond), fixed(beyond)) and persistent.limit == 0.003
+    unbounded = PersistentInnovationBound((1, 2), 0.0, 10.0)
+    unbounded.advance(beyond)
+    assert np.array_equal(unbounded(beyond), beyond) and unbounded.saturated_steps == 0
+    with pytest.raises(EsoShapeError, match="persistence"):
+        PersistentInnovationBound((1, 2), 0.003, -1.0)
 
 
 def _turning_samples(bias: float, n: int, yaw_rate: float = 0.2) -> list[tuple[float, float]]:
@@ -115,6 +150,7 @@ target_speed_kmh = [50.0]
 @pytest.mark.slow
 @pytest.mark.parametrize("disturbance, observer", [
     ("steer_offset_rad = 0.02", {}),  # the shipped tuning
+    ("steer_offset_rad = 0.02", {"eso_innovation_persistence": 10.0}),  # the bound widening
     ("yaw_rate_bias_rad_s = 0.01", {"yaw_rate_bias_pole": 0.99}),  # the bias estimate on, as shipped
     # the car must crab: with the heading target moved by the steady side slip
     ("crosswind_force_n = 800.0\ncrosswind_cp_m = 0.6", {"slip_target_limit": 0.02, "slip_target_gate": 0.003}),
