@@ -157,10 +157,11 @@ def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, fie
 
     records = collect(TUNING, ROOT / "models" / "artifacts" / "dk_d5")
     record = records["tuning.dkmpc"]
-    # The last two values, in TUNING_FIELDS order (the fields before them are scalars but
-    # the two state bounds and the schedule speeds: 31 values for 24 + 2 fields).
-    assert record.size == 31 and TUNING_FIELDS[-2:] == ("qp_steer_rate_limit", "delay_compensation_s")
-    index = record.size - 2 + TUNING_FIELDS[-2:].index(field)
+    # The field's value: every field after the state bounds and the schedule speeds is a
+    # scalar (32 values for 25 + 2 fields), so it sits as far from the record's end as the
+    # field from TUNING_FIELDS' end.
+    assert record.size == 32 and len(TUNING_FIELDS) == 27
+    index = record.size - len(TUNING_FIELDS) + TUNING_FIELDS.index(field)
     record[index] = value
     bad = tmp_path / "ecu_data.bin"
     write_data(records, bad)

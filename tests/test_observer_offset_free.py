@@ -189,21 +189,36 @@ def _c_core_with(native, folder: Path, controller: str = "eso-dkmpc", **observer
     return native.NativeController(controller, path)
 
 
-def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offset(native, tmp_path: Path) -> None:
+@pytest.mark.parametrize("persistence", [0.0, 10.0])
+def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offset(native, tmp_path: Path,
+                                                                                    persistence: float) -> None:
     """The yaw-rate bias estimate and the innovation bound in the C core: under a sensor bias
     and a steering offset on a straight (both act, the bound is reached in the first steps),
-    the same commands, status and iterations as the Python ESO-DKMPC step for step."""
+    the same commands, status and iterations as the Python ESO-DKMPC step for step, with
+    the fixed bound and with the bound widening (eso_innovation_persistence)."""
     from studies.closed_loop import run_closed_loop
 
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "steer_offset_rad = 0.02\nyaw_rate_bias_rad_s = 0.01"),
                                    duration_s=6.0)
     # The bias estimate on in both (as the shipped tuning has it) and the bound reached.
-    python = controller_with("eso-dkmpc", yaw_rate_bias_pole=0.99)
-    twin = Twin(python, _c_core_with(native, tmp_path, yaw_rate_bias_pole=0.99), frozenset({60, 61}))
+    fields = {"yaw_rate_bias_pole": 0.99, "eso_innovation_persistence": persistence}
+    python = controller_with("eso-dkmpc", **fields)
+    twin = Twin(python, _c_core_with(native, tmp_path, **fields), frozenset({60, 61}))
+    widest = 0
+    original_advance = python.innovation_bound((1, 2)).advance
+
+    def advance(z_tilde: np.ndarray) -> None:
+        nonlocal widest
+        original_advance(z_tilde)
+        widest = max(widest, python.innovation_bound((1, 2)).saturated_steps)
+
+    python.innovation_bound((1, 2)).advance = advance
     result = run_closed_loop(scenario, twin)
     assert result.completed, result.failure
     assert_twin_steps_equal("eso-dkmpc", twin)
     assert abs(python.yaw_rate_bias) > 0.005  # the estimate moved: the corrected path ran
+    print(f"persistence {persistence}: the bound widened over at most {widest} steps")
+    assert (widest >= 10) == (persistence > 0.0)  # the widening ran where it is on
 
 
 @pytest.mark.parametrize("controller", ["eso-dkmpc", "dkmpc", "lmpc"])
@@ -251,3 +266,25 @@ def test_c_core_refuses_the_slip_target_fields_python_refuses(native, tmp_path: 
     document[controller].update(slip_target_limit=0.2, slip_target_gate=1.0)
     parse_tuning(document)
     _c_core_with(native, tmp_path, controller, slip_target_limit=0.2, slip_target_gate=1.0)
+
+
+@pytest.mark.parametrize("value", [-1.0, 1000.5, math.nan])
+def test_both_loaders_refuse_an_innovation_persistence_out_of_range(native, tmp_path: Path, value: float) -> None:
+    """eso_innovation_persistence outside [0, 1000] steps: refused by the Python loader and
+    by the C core's, each naming the field; the ends of the range load in both."""
+    import tomllib
+
+    from controller.errors import TuningError
+    from controller.tuning import DEFAULT_TUNING_PATH, parse_tuning
+    from firmware_sim.errors import ConfigError
+
+    document = tomllib.loads(Path(DEFAULT_TUNING_PATH).read_text())
+    document["eso-dkmpc"]["eso_innovation_persistence"] = value
+    with pytest.raises(TuningError, match=r"\[eso-dkmpc\] eso_innovation_persistence must be "):
+        parse_tuning(document)
+    with pytest.raises(ConfigError, match="eso_innovation_persistence in \\[0, 1000\\]"):
+        _c_core_with(native, tmp_path, eso_innovation_persistence=value)
+    for end in (0.0, 1000.0):
+        document["eso-dkmpc"]["eso_innovation_persistence"] = end
+        assert parse_tuning(document).eso_dkmpc.eso_innovation_persistence == end
+        _c_core_with(native, tmp_path, eso_innovation_persistence=end)

@@ -32,6 +32,9 @@ typedef struct {
   /* The actuator terms (MpcTuning, issue 37; 0: off): the QP's steer-rate rows (rad/s) and
    * the fixed part of the delay the prediction starts after (s). */
   double qp_steer_rate_limit, delay_compensation_s;
+  /* Steps per widening of the innovation bound while the innovation keeps its sign beyond
+   * it (models.eso.PersistentInnovationBound; 0: a fixed bound; NaN where the table has none). */
+  double eso_innovation_persistence;
 } ecu_tuning_t;
 
 typedef struct {

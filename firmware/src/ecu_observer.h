@@ -17,6 +17,10 @@ typedef struct {
    * has_bias_previous 0: none (start, or after a gap). */
   double yaw_rate_bias, bias_previous_yaw, bias_previous_rate;
   int has_bias_previous;
+  /* The innovation bound's widening (models.eso.PersistentInnovationBound): consecutive
+   * steps beyond the bound with the sign saturated_sign (0: none). */
+  int saturated_steps;
+  double saturated_sign;
 } ecu_observer_t;
 
 /* Controller.reset: both observers start again. */
