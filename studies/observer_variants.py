@@ -8,7 +8,10 @@ disturbances. Every variant starts from the tuning file's ``[eso-dkmpc]`` table:
 - ``no innovation bound``: ``eso_innovation_limit`` 0 (g2 of eq. 13 the identity);
 - ``w on vy, yaw rate only``: the estimate used on the two physical lateral rows of the
   lifted state only (nd = 2 instead of n_z), the other rows' estimate dropped;
-- ``bias estimate off``: ``yaw_rate_bias_pole`` 1 (the shipped tuning has it on, 0.99);
+- ``bound widening 10 steps``: ``eso_innovation_persistence`` 10 (the bound widens by the
+  limit every 10 steps while the innovation keeps its sign beyond it; the tuning keeps it
+  off, results/observer_tuning_refine.md);
+- ``bias estimate off``: ``yaw_rate_bias_pole`` 1 (the shipped tuning has it on);
 - ``course-angle cost``: the yaw rows of the QP's cost on the course angle (heading plus
   vy / vx, vy predicted, affine in the steering) instead of the heading, on top of the
   shipped heading target;
@@ -106,6 +109,8 @@ def variants() -> dict[str, Callable[[], Any]]:
         "ESO-DKMPC (shipped)": lambda: EsoDkmpc(model, table, longitudinal),
         "no innovation bound": lambda: EsoDkmpc(model, dataclasses.replace(table, eso_innovation_limit=0.0),
                                                 longitudinal),
+        "bound widening 10 steps": lambda: EsoDkmpc(model, dataclasses.replace(table, eso_innovation_persistence=10.0),
+                                                    longitudinal),
         "w on vy, yaw rate only": lambda: LateralRowsOnly(model, table, longitudinal),
         "bias estimate off": lambda: EsoDkmpc(model, dataclasses.replace(table, yaw_rate_bias_pole=1.0),
                                               longitudinal),
