@@ -199,9 +199,13 @@ def base_checkout(revision: str, workdir: Path, root: Path = provenance.ROOT) ->
 def build_firmware(tree: Path) -> None:
     """``make firmware`` in ``tree`` (the C ECU of the smoke runs). The environment's install
     stamp counts as up to date (``make -o``): a worktree's fresh pyproject.toml must not
-    reinstall the shared virtual environment as an editable install of the worktree."""
+    reinstall the shared virtual environment as an editable install of the worktree. The
+    generators import ``tree``'s own packages (``PYTHONPATH``, as the smoke runs do): the
+    shared environment's editable install points at the checkout, whose tuning loader may
+    want fields the base's tuning file does not have."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
     done = subprocess.run(["make", "--no-print-directory", "-o", ".venv/.installed", "firmware"], cwd=tree,
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, env=env)
     if done.returncode != 0:
         raise RestampError(f"make firmware in {tree} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
 
