@@ -1,7 +1,7 @@
 """``make bench``: the one compute-time benchmark of the controllers, side by side.
 
-    python -m studies.bench [--steps N] [--controllers a,b,...] [--profile NAME]
-        [--out results/bench.md] [--json results/bench.json]
+    python -m studies.bench [--steps N] [--controllers a,b,...] [--no-ecu] [--no-c] [--no-cadence]
+        [--profile NAME] [--out results/bench.md] [--json results/bench.json]
 
 1. Recording (``studies/step_timing.py``, shared with ``make bench-native``):
    ``RECORDING_DRIVER`` (LMPC) drives the four-wheel plant through the
@@ -28,6 +28,10 @@
    lockstep on a private python-can virtual bus, fed the recorded samples as plant frames:
    its control task time (mode logic, guard, encode and TX of two frames) is what the ECU
    adds to a controller's step.
+5. At the control cadence (``studies/step_cadence.py``; ``--no-cadence`` leaves it out):
+   ESO-DKMPC (Python, and its C core) on the first ``CADENCE_STEPS`` samples, back to back
+   and then one step per 25 ms period with a sleep in between, as the ECU runs it: on a
+   virtual machine the wait costs the next step its warm caches.
 
 BLAS runs single-threaded (``OPENBLAS_NUM_THREADS=1``, set before numpy is imported): on a
 2-core machine a threaded OpenBLAS turns a 3x3 matrix exponential from microseconds into
@@ -61,6 +65,7 @@ from controller.reference import ReferencePath  # noqa: E402
 from studies.closed_loop import CONTROL_PERIOD_MS, PLANT_PERIOD_MS, TICK_MS  # noqa: E402
 from studies.machine import load_average, machine_description  # noqa: E402
 from studies.speed_reference import speed_reference  # noqa: E402
+from studies.step_cadence import CADENCE_STEPS, CadenceRow, cadence_json, cadence_rows, cadence_table  # noqa: E402
 from studies.step_timing import (BenchError, ControllerTiming, Percentiles, record_samples,  # noqa: E402
                                  time_controllers)
 
@@ -234,10 +239,12 @@ def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] 
            recording: str, command: str, load_start: tuple[float, float, float],
            load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None,
            c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None,
-           speed_ms: float = float("nan")) -> str:
+           speed_ms: float = float("nan"), cadence: Sequence[CadenceRow] = (),
+           cadence_note: str | None = None) -> str:
     """The whole Markdown file: header, the table, how to read it (and the controllers
     that could not be built, with why; the C core's rows ``c_rows`` or why there are none;
-    ``speed_ms`` the speed reference measured at the start)."""
+    ``speed_ms`` the speed reference measured at the start; ``cadence``: the headline
+    controller's step at the control cadence, ``studies.step_cadence``)."""
     lines = ["# Controller compute time per step (`make bench`)", "",
              f"`{command}`, one process, one run.", "",
              *machine_lines(load_start, load_end, speed_ms),
@@ -277,6 +284,10 @@ def report(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any] 
                   f"p50 {tick.p50_ms:.3f} / p99 {tick.p99_ms:.3f} / max {tick.max_ms:.3f} ms. "
                   "The deadlines, jitter and latency of the ECU in real time are `make timing`'s "
                   "(results/timing.md)."]
+    if cadence:
+        lines += ["", *cadence_table(cadence)]
+    if cadence_note:
+        lines += ["", f"{cadence_note}."]
     return "\n".join(lines) + "\n"
 
 
@@ -284,9 +295,10 @@ def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any]
             recording: str, command: str, load_start: tuple[float, float, float],
             load_end: tuple[float, float, float], not_built: Mapping[str, str] | None = None,
             c_rows: Mapping[str, ControllerTiming] | None = None, c_note: str | None = None,
-            speed_ms: float = float("nan")) -> dict[str, Any]:
+            speed_ms: float = float("nan"), cadence: Sequence[CadenceRow] = (),
+            cadence_note: str | None = None) -> dict[str, Any]:
     """Every figure of the report, JSON-ready (times in ms); the C core's rows under
-    ``c_core`` (``note``: why some or all are missing)."""
+    ``c_core`` (``note``: why some or all are missing); the cadence rows under ``cadence``."""
     return {
         "command": command, "machine": machine_description(), "node": platform.node(),
         "speed_reference_ms": speed_ms,
@@ -299,6 +311,7 @@ def as_json(timings: Mapping[str, ControllerTiming], overhead: Mapping[str, Any]
         "ecu_overhead": None if overhead is None else
         {key: dataclasses.asdict(value) if isinstance(value, Percentiles) else value
          for key, value in overhead.items()},
+        "cadence": {"rows": cadence_json(cadence), "note": cadence_note},
     }
 
 
@@ -333,6 +346,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="comma-separated names (default: every name in the registry)")
     parser.add_argument("--no-ecu", action="store_true", help="leave out the ECU overhead")
     parser.add_argument("--no-c", action="store_true", help="leave out the C core's rows (make firmware)")
+    parser.add_argument("--no-cadence", action="store_true",
+                        help="leave out the step at the control cadence (studies/step_cadence.py)")
     parser.add_argument("--profile", metavar="NAME", default=None,
                         help="also print a cProfile of NAME's steps on the same samples; writes no file")
     parser.add_argument("--out", type=Path, default=Path("results/bench.md"))
@@ -347,7 +362,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     command = "python -m studies.bench" + (f" --steps {args.steps}" if args.steps else "") + \
         (f" --controllers {','.join(names)}" if args.controllers else "") + \
-        (" --no-ecu" if args.no_ecu else "") + (" --no-c" if args.no_c else "")
+        (" --no-ecu" if args.no_ecu else "") + (" --no-c" if args.no_c else "") + \
+        (" --no-cadence" if args.no_cadence else "")
     load_start = load_average()
     speed_ms = speed_reference()  # with the load: the machine as the run found it
     not_built: dict[str, str] = {}
@@ -357,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
         timings = time_controllers(controllers, samples, path)
         c_rows, c_note = ({}, None) if args.no_c else c_core_timings(list(controllers), samples, path)
         overhead = None if args.no_ecu else measure_ecu_overhead(samples)
+        cadence, cadence_note = ([], None) if args.no_cadence or GOAL_CONTROLLER not in controllers else \
+            cadence_rows(GOAL_CONTROLLER, samples[:CADENCE_STEPS + 1], path, with_c=not args.no_c)
     except BenchError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
@@ -365,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {name} not built: {error}", file=sys.stderr)
     load_end = load_average()
     text = report(timings, overhead, recording, command, load_start, load_end, not_built, c_rows, c_note,
-                  speed_ms=speed_ms)
+                  speed_ms=speed_ms, cadence=cadence, cadence_note=cadence_note)
     if args.profile:  # a look at one controller: printed, the committed report left alone
         print(text)
         print(profile_steps(args.profile, samples, path))
@@ -376,7 +394,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(as_json(timings, overhead, recording, command, load_start,
-                                                load_end, not_built, c_rows, c_note, speed_ms),
+                                                load_end, not_built, c_rows, c_note, speed_ms, cadence,
+                                                cadence_note),
                                         indent=2) + "\n")
         written.append(args.json)
     print(text)

@@ -17,11 +17,15 @@ from studies import bench, step_timing
 STEPS = 6
 
 
-def _rows(markdown: str) -> dict[str, list[str]]:
-    """First cell -> the other cells, for every body row of the table."""
-    rows = {}
+def _rows(markdown: str, table: int = 0) -> dict[str, list[str]]:
+    """First cell -> the other cells, for every body row of the file's ``table``-th table."""
+    rows: dict[str, list[str]] = {}
+    seen, inside = -1, False
     for line in markdown.splitlines():
-        if line.startswith("| ") and not line.startswith("| controller"):
+        if line.startswith("|") != inside:
+            inside = not inside
+            seen += inside
+        if inside and seen == table and line.startswith("| ") and not line.startswith("| controller"):
             cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
             rows[cells[0]] = cells[1:]
     return rows
@@ -74,6 +78,16 @@ def test_bench_times_every_registered_controller_on_the_same_samples(tmp_path: P
     if bench.GOAL_CONTROLLER in rows:
         assert f"{bench.GOAL_CONTROLLER} step within {bench.GOAL_RATIO:g}x" in text
     assert bench.goal_line({}) is None
+    # the headline controller at the control cadence, Python and (built) C, STEPS - 1 steps a pass
+    cadence = _rows(text, table=1)
+    headline = {bench.GOAL_CONTROLLER} | ({f"{bench.GOAL_CONTROLLER} (C)"} if built else set())
+    assert set(cadence) == headline
+    assert [row["name"] for row in document["cadence"]["rows"]] == sorted(headline, key=len)
+    for row in document["cadence"]["rows"]:
+        assert row["steps"] == STEPS - 1
+        assert 0 < row["back_to_back_p50_ms"] <= row["back_to_back_p99_ms"], row
+        assert 0 < row["at_cadence_p50_ms"] <= row["at_cadence_p99_ms"], row
+        assert row["p50_ratio"] == pytest.approx(row["at_cadence_p50_ms"] / row["back_to_back_p50_ms"])
 
 
 def test_bench_reads_the_registry_at_run_time(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -101,6 +115,13 @@ def test_bench_says_when_the_c_core_is_not_built(tmp_path: Path, monkeypatch: py
     assert set(_rows(text)) == {"lmpc"} and "C core: not timed, libecu.so is not built (make firmware)." in text
     assert bench.main(["--steps", "3", "--no-ecu", "--no-c", "--controllers", "lmpc", "--out", str(out)]) == 0
     assert "C core" not in out.read_text()
+    # the cadence's C row says the same, and --no-c leaves it out without a word
+    assert bench.main(["--steps", "3", "--no-ecu", "--controllers", "eso-dkmpc", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert set(_rows(text, table=1)) == {"eso-dkmpc"}
+    assert "C core: not timed at the cadence, libecu.so is not built (make firmware)." in text
+    assert bench.main(["--steps", "3", "--no-ecu", "--no-c", "--controllers", "eso-dkmpc", "--out", str(out)]) == 0
+    assert "C core" not in out.read_text() and set(_rows(out.read_text(), table=1)) == {"eso-dkmpc"}
 
 
 def test_bench_refuses_unknown_controllers_and_too_few_steps(tmp_path: Path,
