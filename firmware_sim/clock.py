@@ -252,24 +252,24 @@ class SampleRelease:
         self.last_release_ns = arrival_ns
         return True
 
-    def _phase_step_ns(self) -> int:
-        """g = gcd(period, sample period): the samples' phase step against the grid (5 ms
-        for a 10 ms plant)."""
-        return math.gcd(self.period_ns, self.sample_period_ns)
+    def _signed_phase_ns(self, offset_ns: int) -> int:
+        """((offset + g/2) mod g) - g/2, g = gcd(period, sample period) the samples' phase
+        step against the grid (5 ms for a 10 ms plant): the offset's signed phase."""
+        step = math.gcd(self.period_ns, self.sample_period_ns)
+        return (offset_ns + step // 2) % step - step // 2
 
     def _phase_follow(self, arrival_ns: int) -> int:
         """The move of the pending instant N for a 10 ms plant's sample that released it at
         ``arrival_ns``: its phase error e = ((arrival - N + g/2) mod g) - g/2 divided by
         ``PHASE_FOLLOW_DIVISOR``, truncated toward zero as C's integer division.
 
-        The first sample in real time can come apart from the phase of the next ones (-0.8
-        to +1.5 ms in ``make timing``), and the plant's clock can drift against the ECU's:
-        either puts the samples near a window's edge, where jitter gives an instant to the
+        The first sample in real time can come apart from the phase of the next ones (2 ms
+        in a case of ``tests/test_ecu_rev3.py``), and the plant's clock can drift against
+        the ECU's: either puts the samples near a window's edge, where jitter gives an instant to the
         watchdog. A fraction of the error per release averages the jitter (1/8: a time
         constant of 8 periods, 0.2 s). In lockstep every sample and instant lie on the 5 ms
         ticks, so e = 0 and nothing moves."""
-        step = self._phase_step_ns()
-        error = (arrival_ns - self.instant_ns + step // 2) % step - step // 2
+        error = self._signed_phase_ns(arrival_ns - self.instant_ns)
         move = abs(error) // PHASE_FOLLOW_DIVISOR
         return move if error >= 0 else -move
 
@@ -281,5 +281,4 @@ class SampleRelease:
         their window. Anchored at the release itself (until 2026-12-05), they could sit at
         the window's early edge, where jitter of a few tenths of a millisecond moved every
         other one to the watchdog, 10 ms older."""
-        step = self._phase_step_ns()
-        return release_ns + (arrival_ns - release_ns + step // 2) % step - step // 2
+        return release_ns + self._signed_phase_ns(arrival_ns - release_ns)

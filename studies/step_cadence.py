@@ -114,7 +114,8 @@ def cadence_rows(name: str, samples: Sequence[VehicleSample], path: ReferencePat
 
 def cadence_table(rows: Sequence[CadenceRow], period_s: float = CONTROL_PERIOD_S) -> list[str]:
     """Markdown lines: the table and how to read it."""
-    lines = [f"At the control cadence ({len(rows) and rows[0].back_to_back.n} steps of the same samples, "
+    steps = rows[0].back_to_back.n if rows else 0
+    lines = [f"At the control cadence ({steps} steps of the same samples, "
              f"each pass on a freshly built controller: back to back, then one step every {period_s * 1e3:g} ms "
              "with a sleep in between, as the ECU's task waits for its release; `studies/step_cadence.py`):", "",
              "| controller | timed by | back to back p50 / p99 (ms) | every period p50 / p99 (ms) | ratio p50 / p99 |",

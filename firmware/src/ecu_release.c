@@ -52,15 +52,21 @@ static int64_t gcd(int64_t a, int64_t b) {
   return a;
 }
 
+/* ((offset_ns + g/2) mod g) - g/2 with the mod taken non-negative as Python's, g the phase
+ * step gcd(period, sample period): offset_ns's signed phase against the samples' grid. */
+static int64_t signed_phase(const ecu_release_t *release, int64_t offset_ns) {
+  int64_t step = gcd(period, release->sample_period_ns);
+  int64_t rest = (offset_ns + step / 2) % step;
+  if (rest < 0) rest += step;
+  return rest - step / 2;
+}
+
 /* The move of the pending instant for a 10 ms plant's sample that released it at arrival_ns:
  * its phase error e = ((arrival - N + g/2) mod g) - g/2 over PHASE_FOLLOW_DIVISOR, truncated
  * toward zero, so that the grid follows the samples' phase (a first sample apart from the
  * next ones' phase, a drifting clock) and jitter is averaged. 0 in lockstep. */
 static int64_t phase_follow(const ecu_release_t *release, int64_t arrival_ns) {
-  int64_t step = gcd(period, release->sample_period_ns);
-  int64_t rest = (arrival_ns - release->instant_ns + step / 2) % step;
-  if (rest < 0) rest += step;
-  int64_t error = rest - step / 2;
+  int64_t error = signed_phase(release, arrival_ns - release->instant_ns);
   int64_t move = (error >= 0 ? error : -error) / PHASE_FOLLOW_DIVISOR;
   return error >= 0 ? move : -move;
 }
@@ -70,10 +76,7 @@ static int64_t phase_follow(const ecu_release_t *release, int64_t arrival_ns) {
  * plant): release + ((arrival - release + g/2) mod g) - g/2, the mod taken non-negative as
  * Python's. The samples then sit 2.5 ms inside both edges of their windows. */
 static int64_t in_phase(const ecu_release_t *release, int64_t release_ns, int64_t arrival_ns) {
-  int64_t step = gcd(period, release->sample_period_ns);
-  int64_t rest = (arrival_ns - release_ns + step / 2) % step;
-  if (rest < 0) rest += step;
-  return release_ns + rest - step / 2;
+  return release_ns + signed_phase(release, arrival_ns - release_ns);
 }
 
 /* Anchor the grid on the sample that arrived at arrival_ns: 1 when it runs the task. Not
