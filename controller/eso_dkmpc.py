@@ -28,6 +28,9 @@ if TYPE_CHECKING:
 
 #: Rows of vy and the yaw rate in the lifted state z = [x; Phi(x)] (the innovation bound's).
 LATERAL_ROWS = (VEHICLE_STATES.index("vy"), VEHICLE_STATES.index("yaw_rate"))
+#: The rows of the measured speed and yaw rate: their product is the lateral acceleration
+#: that gates the innovation bound's widening.
+SPEED_ROW, YAW_RATE_ROW = VEHICLE_STATES.index("vx"), VEHICLE_STATES.index("yaw_rate")
 
 
 class EsoDkmpc(ObservedMpc, LiftedMpc):
@@ -89,4 +92,6 @@ class EsoDkmpc(ObservedMpc, LiftedMpc):
         return self._disturbance_estimate
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
-        self.observe(self.lifted_state, np.array([command.drive_torque, command.steer_angle]))
+        lifted = self.lifted_state
+        self.observe(lifted, np.array([command.drive_torque, command.steer_angle]),
+                     float(lifted[SPEED_ROW] * lifted[YAW_RATE_ROW]))

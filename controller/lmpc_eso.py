@@ -90,4 +90,4 @@ class LmpcEso(ObservedMpc, Lmpc):
         return free, gain
 
     def _after_command(self, sample: VehicleSample, command: Command) -> None:
-        self.observe(self.lateral_state, np.array([command.steer_angle]))
+        self.observe(self.lateral_state, np.array([command.steer_angle]), sample.vx * float(self.lateral_state[1]))

@@ -42,18 +42,20 @@ class ObservedMpc(SteeringMpc):
 
     observer: ExtendedStateObserver
     _eso_tuning: EsoQpMpcTuning
+    #: Built by the first ``innovation_bound`` call (the subclass's constructor).
+    _innovation_bound: PersistentInnovationBound | None = None
 
     def innovation_bound(self, lateral_rows: tuple[int, int]) -> PersistentInnovationBound:
         """The observer's g2 (eq. 13): the tuning's bound on the innovation's vy and yaw-rate
         entries, at ``lateral_rows`` of the observer's state. One object per controller,
         shared by the observer's parameters at every speed: its widening is the observer's
         state (``models.eso.PersistentInnovationBound``)."""
-        bound = getattr(self, "_innovation_bound", None)
-        if bound is None:
+        if self._innovation_bound is None:
             tuning = self._eso_tuning
-            bound = self._innovation_bound = PersistentInnovationBound(
-                lateral_rows, tuning.eso_innovation_limit, tuning.eso_innovation_persistence)
-        return bound
+            self._innovation_bound = PersistentInnovationBound(
+                lateral_rows, tuning.eso_innovation_limit, tuning.eso_innovation_persistence,
+                tuning.eso_widening_lateral_accel)
+        return self._innovation_bound
 
     def reset(self) -> None:
         """Forget plans, progress, the observer state and the yaw-rate bias estimate."""
@@ -85,22 +87,24 @@ class ObservedMpc(SteeringMpc):
             return self.observer.disturbance_estimate
         return innovated_disturbance(self.observer.state, observed_state, self.observer.params)
 
-    def observe(self, observed_state: np.ndarray, model_input: np.ndarray) -> None:
+    def observe(self, observed_state: np.ndarray, model_input: np.ndarray, lateral_accel: float) -> None:
         """Advance the observer with the step's state (n,) and the input applied (n_u,); a
         non-finite value makes it restart on the next step instead. The innovation bound
-        then counts the step's innovation (after the update that used it)."""
-        innovation = np.asarray(observed_state, dtype=float) - self.observer.lifted_state_estimate
+        then counts the step's innovation (after the update that used it), when it widens,
+        at the step's measured lateral acceleration ``lateral_accel`` (m/s^2, vx r)."""
+        bound = self._innovation_bound
+        # the innovation before the update moves the estimate; only a widening bound needs it
+        innovation = (np.asarray(observed_state, dtype=float) - self.observer.lifted_state_estimate
+                      if bound is not None and bound.widens else None)
         if not self.observer.update(observed_state, model_input):
             self._observer_running = False
             return
-        bound = getattr(self, "_innovation_bound", None)
-        if bound is not None:
-            bound.advance(innovation)
+        if bound is not None and innovation is not None:
+            bound.advance(innovation, lateral_accel)
 
     def _innovation_bound_restart(self) -> None:
-        bound = getattr(self, "_innovation_bound", None)
-        if bound is not None:
-            bound.restart()
+        if self._innovation_bound is not None:
+            self._innovation_bound.restart()
 
     def _fallback(self, status: SolverStatus, torque: float | None, plan: Plan | None = None,
                   sample: VehicleSample | None = None) -> tuple[Command, StepDebug]:

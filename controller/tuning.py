@@ -150,7 +150,9 @@ class EsoDkmpcTuning(QpMpcTuning):
     step (``models.eso.InnovationSaturation`` on the vy and yaw-rate entries, m/s and
     rad/s; 0: no bound). ``eso_innovation_persistence`` widens that bound while the
     innovation stays beyond it with one sign (``models.eso.PersistentInnovationBound``: by
-    the limit once per that many steps, up to 4 times the limit; 0: a fixed bound).
+    the limit once per that many steps, up to 4 times the limit; 0: a fixed bound), on
+    steps whose measured lateral acceleration |vx r| is below ``eso_widening_lateral_accel``
+    (m/s^2; 0: on every step).
     ``yaw_rate_bias_pole`` is the pole of the yaw-rate sensor bias estimate from the heading
     (``models.yaw_rate_bias``; 1: no estimate).
     """
@@ -160,6 +162,7 @@ class EsoDkmpcTuning(QpMpcTuning):
     disturbance_decay: float
     eso_innovation_limit: float
     eso_innovation_persistence: float
+    eso_widening_lateral_accel: float
     yaw_rate_bias_pole: float
 
 
@@ -272,6 +275,7 @@ _RULES: dict[str, _Rule] = {
     "disturbance_decay": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1]"),
     "eso_innovation_limit": (lambda v: 0.0 <= v <= 10.0, "must be in [0, 10] (0: no bound)"),
     "eso_innovation_persistence": (lambda v: 0.0 <= v <= 1000.0, "must be in [0, 1000] steps (0: a fixed bound)"),
+    "eso_widening_lateral_accel": (lambda v: 0.0 <= v <= 20.0, "must be in [0, 20] m/s^2 (0: no gate)"),
     "yaw_rate_bias_pole": (lambda v: 0.0 <= v <= 1.0, "must be in [0, 1] (1: no estimate)"),
     "slip_target_limit": (lambda v: 0.0 <= v <= 0.2, "must be in [0, 0.2] rad (0: off)"),
     "slip_target_gate": (lambda v: 0.0 < v <= 1.0, "must be in (0, 1] rad"),

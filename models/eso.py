@@ -129,18 +129,35 @@ class PersistentInnovationBound:
     grows beyond ``PERSISTENCE_MAX_FACTOR`` times the limit, so a saturated actuator (whose
     innovation also keeps its sign) still moves w_hat at a bounded rate.
 
+    ``lateral_accel_gate`` (m/s^2; 0: none) keeps the widening to steady driving: a step
+    whose measured lateral acceleration |vx r| is not below it restarts the count instead of
+    advancing it. In a manoeuvre near the tyres' limit the innovation keeps one sign for
+    long stretches too, and widening there made the tuning set's low-friction and crosswind
+    drives worse (docs/eso.md); a steering offset or a crosswind on a straight shows at
+    almost no lateral acceleration.
+
     The bound is the state of the observer of one controller: the controller's observer
-    calls ``advance`` once per step with the step's innovation, after the update that used
-    the bound, and ``restart`` when the observer restarts.
+    calls ``advance`` once per step with the step's innovation and lateral acceleration,
+    after the update that used the bound, and ``restart`` when the observer restarts.
     """
 
-    def __init__(self, rows: tuple[int, ...], limit: float, persistence_steps: float) -> None:
+    def __init__(self, rows: tuple[int, ...], limit: float, persistence_steps: float,
+                 lateral_accel_gate: float = 0.0) -> None:
         self.saturation = InnovationSaturation(rows, limit)
         if not (math.isfinite(persistence_steps) and persistence_steps >= 0.0):
             raise EsoShapeError(f"innovation persistence must be finite and >= 0 steps, got {persistence_steps!r}")
+        if not (math.isfinite(lateral_accel_gate) and lateral_accel_gate >= 0.0):
+            raise EsoShapeError(f"widening's lateral acceleration gate must be finite and >= 0 m/s^2, "
+                                f"got {lateral_accel_gate!r}")
         self.persistence_steps = float(persistence_steps)
+        self.lateral_accel_gate = float(lateral_accel_gate)
         self.saturated_steps = 0
         self.sign = 0.0
+
+    @property
+    def widens(self) -> bool:
+        """Whether ``advance`` can widen the bound (a widening and a bound are set)."""
+        return self.persistence_steps > 0.0 and self.saturation.limit > 0.0
 
     @property
     def limit(self) -> float:
@@ -154,9 +171,14 @@ class PersistentInnovationBound:
         """(n_z,) -> (n_z,), with this step's bound."""
         return self.saturation.bounded(z_tilde, self.limit)
 
-    def advance(self, z_tilde: np.ndarray) -> None:
-        """Count the step whose innovation (n_z,) the bound just limited."""
-        if self.persistence_steps == 0.0 or self.saturation.limit == 0.0:
+    def advance(self, z_tilde: np.ndarray, lateral_accel: float = 0.0) -> None:
+        """Count the step whose innovation (n_z,) the bound just limited, at the measured
+        lateral acceleration ``lateral_accel`` (m/s^2, vx times the yaw rate)."""
+        if not self.widens:
+            return
+        # not below the gate (NaN included): a manoeuvre, not a steady disturbance
+        if self.lateral_accel_gate > 0.0 and not abs(lateral_accel) < self.lateral_accel_gate:
+            self.restart()
             return
         rows = self.saturation.rows
         peak_row = rows[0]

@@ -76,9 +76,13 @@ OBSERVER_GRID = SweepGrid((
     ("yaw_rate_bias_pole", (1.0, 0.99)),
 ))
 #: The refinement after the observer grid: the innovation bound's widening (steps per limit;
-#: 0: a fixed bound) and the yaw-rate bias pole on a finer grid (1: no estimate).
+#: 0: a fixed bound), the lateral acceleration (m/s^2) below which it widens (0: at any; a
+#: steady drive's |vx r| stays well below 0.5 m/s^2 on its straights) and the yaw-rate bias
+#: pole on a finer grid (1: no estimate). Without a widening the gate does nothing, so
+#: :func:`distinct_settings` keeps only its 0 there.
 REFINE_GRID = SweepGrid((
-    ("eso_innovation_persistence", (0.0, 10.0, 20.0, 40.0)),
+    ("eso_innovation_persistence", (0.0, 10.0, 20.0)),
+    ("eso_widening_lateral_accel", (0.0, 0.5, 1.0)),
     ("yaw_rate_bias_pole", (1.0, 0.99, 0.97, 0.95)),
 ))
 #: The second stage: the heading target's measured side slip, bounded (0: off) and faded
@@ -143,12 +147,26 @@ def disturbed_tuning_set() -> list[Scenario]:
 
 
 def observer_settings(tuning: Any, name: str, grid: SweepGrid = OBSERVER_GRID) -> list[Setting]:
-    """The grid's settings for controller ``name`` (its table must have every grid field)."""
+    """The grid's distinct settings for controller ``name`` (its table must have every grid
+    field)."""
     table = getattr(tuning, tuning_table_attribute(tuning, name))
     missing = [field for field, _ in grid.levels if not hasattr(table, field)]
     if missing:
         raise HilError(f"[{name}] has no observer field(s) {missing}")
-    return grid.settings()
+    return distinct_settings(grid.settings())
+
+
+def distinct_settings(settings: Sequence[Setting]) -> list[Setting]:
+    """``settings`` without those that build the same controller as an earlier one: a
+    widening gate (``eso_widening_lateral_accel`` > 0) where the bound does not widen
+    (``eso_innovation_persistence`` 0)."""
+    kept = []
+    for setting in settings:
+        fields = dict(setting)
+        if fields.get("eso_innovation_persistence") == 0.0 and fields.get("eso_widening_lateral_accel", 0.0) != 0.0:
+            continue
+        kept.append(setting)
+    return kept
 
 
 def tune(controllers: Sequence[str], scenarios: Sequence[Scenario], tuning: Any, *, workers: int,

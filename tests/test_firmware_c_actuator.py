@@ -158,9 +158,9 @@ def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, fie
     records = collect(TUNING, ROOT / "models" / "artifacts" / "dk_d5")
     record = records["tuning.dkmpc"]
     # The field's value: every field after the state bounds and the schedule speeds is a
-    # scalar (32 values for 25 + 2 fields), so it sits as far from the record's end as the
+    # scalar (33 values for 26 + 2 fields), so it sits as far from the record's end as the
     # field from TUNING_FIELDS' end.
-    assert record.size == 32 and len(TUNING_FIELDS) == 27
+    assert record.size == 33 and len(TUNING_FIELDS) == 28
     index = record.size - len(TUNING_FIELDS) + TUNING_FIELDS.index(field)
     record[index] = value
     bad = tmp_path / "ecu_data.bin"

@@ -70,6 +70,27 @@ def test_persistent_bound_with_zero_persistence_is_the_fixed_bound() -> None:
         PersistentInnovationBound((1, 2), 0.003, -1.0)
 
 
+def test_persistent_bound_widens_only_below_the_lateral_acceleration_gate() -> None:
+    """With a gate, a step at or beyond it (a manoeuvre, or a non-finite value) restarts the
+    count; below it the bound widens as without a gate. Gate 0: every step counts."""
+    beyond = np.array([0.5, 0.012, -0.003, 0.3])
+    gated, ungated = PersistentInnovationBound((1, 2), 0.003, 10.0, 0.5), PersistentInnovationBound((1, 2), 0.003, 10.0)
+    for n in range(1, 4):
+        gated.advance(beyond, 0.49)
+        ungated.advance(beyond, 5.0)
+        assert gated.saturated_steps == ungated.saturated_steps == n
+    assert gated.limit == ungated.limit > 0.003
+    gated.advance(beyond, -0.5)  # |a_y| at the gate: a manoeuvre
+    assert gated.saturated_steps == 0 and gated.limit == 0.003
+    gated.advance(beyond, 0.1)
+    gated.advance(beyond, math.nan)
+    assert gated.saturated_steps == 0
+    with pytest.raises(EsoShapeError, match="lateral acceleration gate"):
+        PersistentInnovationBound((1, 2), 0.003, 10.0, -0.1)
+    with pytest.raises(EsoShapeError, match="lateral acceleration gate"):
+        PersistentInnovationBound((1, 2), 0.003, 10.0, math.inf)
+
+
 def _turning_samples(bias: float, n: int, yaw_rate: float = 0.2) -> list[tuple[float, float]]:
     """(heading, measured yaw rate) of a car turning at ``yaw_rate`` (rad/s), sampled at 20
     and 30 ms alternately (the ECU's sample ages), the rate reading ``bias`` high and the
@@ -151,6 +172,7 @@ target_speed_kmh = [50.0]
 @pytest.mark.parametrize("disturbance, observer", [
     ("steer_offset_rad = 0.02", {}),  # the shipped tuning
     ("steer_offset_rad = 0.02", {"eso_innovation_persistence": 10.0}),  # the bound widening
+    ("steer_offset_rad = 0.02", {"eso_innovation_persistence": 10.0, "eso_widening_lateral_accel": 0.5}),  # gated
     ("yaw_rate_bias_rad_s = 0.01", {}),  # the shipped tuning: the bias estimate on
     ("yaw_rate_bias_rad_s = 0.01", {"yaw_rate_bias_pole": 0.99}),  # a slower estimate
     # the car must crab: with the heading target moved by the steady side slip
@@ -190,36 +212,43 @@ def _c_core_with(native, folder: Path, controller: str = "eso-dkmpc", **observer
     return native.NativeController(controller, path)
 
 
-@pytest.mark.parametrize("persistence", [0.0, 10.0])
+@pytest.mark.parametrize("persistence, gate", [(0.0, 0.0), (10.0, 0.0), (10.0, 0.2)])
 def test_c_core_observer_equals_python_under_a_yaw_rate_bias_and_a_steering_offset(native, tmp_path: Path,
-                                                                                    persistence: float) -> None:
+                                                                                    persistence: float,
+                                                                                    gate: float) -> None:
     """The yaw-rate bias estimate and the innovation bound in the C core: under a sensor bias
     and a steering offset on a straight (both act, the bound is reached in the first steps),
     the same commands, status and iterations as the Python ESO-DKMPC step for step, with
-    the fixed bound and with the bound widening (eso_innovation_persistence)."""
+    the fixed bound, with the bound widening (eso_innovation_persistence) and with the
+    widening gated on the lateral acceleration (eso_widening_lateral_accel, crossed in the
+    first second)."""
     from studies.closed_loop import run_closed_loop
 
     scenario = dataclasses.replace(_straight_scenario(tmp_path, "steer_offset_rad = 0.02\nyaw_rate_bias_rad_s = 0.01"),
                                    duration_s=6.0)
     # The bias estimate on in both (as the shipped tuning has it) and the bound reached.
-    fields = {"yaw_rate_bias_pole": 0.99, "eso_innovation_persistence": persistence}
+    fields = {"yaw_rate_bias_pole": 0.99, "eso_innovation_persistence": persistence,
+              "eso_widening_lateral_accel": gate}
     python = controller_with("eso-dkmpc", **fields)
     twin = Twin(python, _c_core_with(native, tmp_path, **fields), frozenset({60, 61}))
-    widest = 0
+    widest, gated = 0, 0
     original_advance = python.innovation_bound((1, 2)).advance
 
-    def advance(z_tilde: np.ndarray) -> None:
-        nonlocal widest
-        original_advance(z_tilde)
+    def advance(z_tilde: np.ndarray, lateral_accel: float) -> None:
+        nonlocal widest, gated
+        original_advance(z_tilde, lateral_accel)
         widest = max(widest, python.innovation_bound((1, 2)).saturated_steps)
+        gated += gate > 0.0 and abs(lateral_accel) >= gate
 
     python.innovation_bound((1, 2)).advance = advance
     result = run_closed_loop(scenario, twin)
     assert result.completed, result.failure
     assert_twin_steps_equal("eso-dkmpc", twin)
     assert abs(python.yaw_rate_bias) > 0.005  # the estimate moved: the corrected path ran
-    print(f"persistence {persistence}: the bound widened over at most {widest} steps")
+    print(f"persistence {persistence}, gate {gate}: the bound widened over at most {widest} steps, "
+          f"{gated} steps at or beyond the gate")
     assert (widest >= 10) == (persistence > 0.0)  # the widening ran where it is on
+    assert (gated > 0) == (gate > 0.0)  # and the gate closed where there is one
 
 
 @pytest.mark.parametrize("controller", ["eso-dkmpc", "dkmpc", "lmpc"])
@@ -269,10 +298,14 @@ def test_c_core_refuses_the_slip_target_fields_python_refuses(native, tmp_path: 
     _c_core_with(native, tmp_path, controller, slip_target_limit=0.2, slip_target_gate=1.0)
 
 
-@pytest.mark.parametrize("value", [-1.0, 1000.5, math.nan])
-def test_both_loaders_refuse_an_innovation_persistence_out_of_range(native, tmp_path: Path, value: float) -> None:
-    """eso_innovation_persistence outside [0, 1000] steps: refused by the Python loader and
-    by the C core's, each naming the field; the ends of the range load in both."""
+@pytest.mark.parametrize("field, value, ends", [
+    *(("eso_innovation_persistence", value, (0.0, 1000.0)) for value in (-1.0, 1000.5, math.nan)),
+    *(("eso_widening_lateral_accel", value, (0.0, 20.0)) for value in (-0.1, 20.5, math.nan))])
+def test_both_loaders_refuse_a_widening_field_out_of_range(native, tmp_path: Path, field: str, value: float,
+                                                           ends: tuple[float, float]) -> None:
+    """The bound's widening (eso_innovation_persistence, steps) and its gate
+    (eso_widening_lateral_accel, m/s^2) outside their ranges: refused by the Python loader
+    and by the C core's, each naming the field; the ends of the range load in both."""
     import tomllib
 
     from controller.errors import TuningError
@@ -280,12 +313,13 @@ def test_both_loaders_refuse_an_innovation_persistence_out_of_range(native, tmp_
     from firmware_sim.errors import ConfigError
 
     document = tomllib.loads(Path(DEFAULT_TUNING_PATH).read_text())
-    document["eso-dkmpc"]["eso_innovation_persistence"] = value
-    with pytest.raises(TuningError, match=r"\[eso-dkmpc\] eso_innovation_persistence must be "):
+    document["eso-dkmpc"][field] = value
+    with pytest.raises(TuningError, match=rf"\[eso-dkmpc\] {field} must be "):
         parse_tuning(document)
-    with pytest.raises(ConfigError, match="eso_innovation_persistence in \\[0, 1000\\]"):
-        _c_core_with(native, tmp_path, eso_innovation_persistence=value)
-    for end in (0.0, 1000.0):
-        document["eso-dkmpc"]["eso_innovation_persistence"] = end
-        assert parse_tuning(document).eso_dkmpc.eso_innovation_persistence == end
-        _c_core_with(native, tmp_path, eso_innovation_persistence=end)
+    low, high = ends
+    with pytest.raises(ConfigError, match=rf"{field} in \[{low:g}, {high:g}\]"):
+        _c_core_with(native, tmp_path, **{field: value})
+    for end in ends:
+        document["eso-dkmpc"][field] = end
+        assert getattr(parse_tuning(document).eso_dkmpc, field) == end
+        _c_core_with(native, tmp_path, **{field: end})

@@ -35,6 +35,9 @@ typedef struct {
   /* Steps per widening of the innovation bound while the innovation keeps its sign beyond
    * it (models.eso.PersistentInnovationBound; 0: a fixed bound; NaN where the table has none). */
   double eso_innovation_persistence;
+  /* The widening counts only steps whose measured lateral acceleration |vx r| is below this
+   * (m/s^2; 0: every step; NaN where the table has none). */
+  double eso_widening_lateral_accel;
 } ecu_tuning_t;
 
 typedef struct {

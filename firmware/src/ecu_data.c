@@ -13,7 +13,7 @@
 #include "ecu_contract.h"
 
 #define NAME_BYTES 48
-#define N_TUNING_VALUES 32
+#define N_TUNING_VALUES 33
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
 /* The bit of record koopman.N in ecu_read_data's `seen` (after the encoder's records). */
@@ -84,8 +84,9 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->qp_steer_rate_limit = v[29];
   t->delay_compensation_s = v[30];
   t->eso_innovation_persistence = v[31];
+  t->eso_widening_lateral_accel = v[32];
   for (int i = 2; i < N_TUNING_VALUES; i++) {
-    if ((i >= 17 && i < 20) || i == 25 || i == 26 || i == 31) continue; /* the observer fields: NaN where the table has none */
+    if ((i >= 17 && i < 20) || i == 25 || i == 26 || i == 31 || i == 32) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {
       snprintf(err, err_len, "%s: [%s] value %d is not finite", path, CONTROLLER_NAMES[id], i);
       return -1;

@@ -41,9 +41,16 @@ static void bounded_innovation(const ecu_observer_t *observer, const ecu_tuning_
 }
 
 /* PersistentInnovationBound.advance: count the step whose innovation the bound just limited
- * (the larger lateral entry's sign, vy on a tie); a step within it or a new sign restarts. */
-static void advance_bound(ecu_observer_t *observer, const ecu_tuning_t *tuning, const double z_tilde[NZ]) {
+ * (the larger lateral entry's sign, vy on a tie); a step within it or a new sign restarts,
+ * and so does a step whose lateral acceleration is not below the gate (a manoeuvre). */
+static void advance_bound(ecu_observer_t *observer, const ecu_tuning_t *tuning, const double z_tilde[NZ],
+                          double lateral_accel) {
   if (tuning->eso_innovation_persistence == 0.0 || tuning->eso_innovation_limit == 0.0) return;
+  double gate = tuning->eso_widening_lateral_accel;
+  if (gate > 0.0 && !(fabs(lateral_accel) < gate)) { /* NaN: not below */
+    restart_bound(observer);
+    return;
+  }
   double peak = fabs(z_tilde[2]) > fabs(z_tilde[1]) ? z_tilde[2] : z_tilde[1];
   if (!(fabs(peak) / innovation_limit(observer, tuning) > 1.0)) { /* NaN: not > 1 */
     restart_bound(observer);
@@ -129,5 +136,5 @@ void ecu_observer_update(ecu_observer_t *observer, const ecu_tuning_t *tuning, c
   }
   memcpy(observer->z_hat, next_z, sizeof observer->z_hat);
   memcpy(observer->w_hat, next_w, sizeof observer->w_hat);
-  advance_bound(observer, tuning, z_tilde);
+  advance_bound(observer, tuning, z_tilde, z[0] * z[2]); /* vx r, as EsoDkmpc._after_command */
 }
