@@ -82,7 +82,7 @@ int ecu_core_load(ecu_core_t *core, const char *data_path, const char *name, cha
                                t->eso_widening_lateral_accel >= 0.0 && t->eso_widening_lateral_accel <= 20.0 &&
                                t->yaw_rate_bias_pole >= 0.0 && t->yaw_rate_bias_pole <= 1.0)) {
     snprintf(err, err_len, "%s: [eso-dkmpc] eso_pole, eso_second_pole must be in [0, 1), "
-             "disturbance_decay finite, eso_innovation_limit in [0, 10], eso_innovation_persistence in [0, 1000] "
+             "disturbance_decay finite, eso_innovation_limit in [0, 10], eso_innovation_persistence in [0, 1000], "
              "eso_widening_lateral_accel in [0, 20] and yaw_rate_bias_pole in [0, 1]",
              data_path);
     return -1;
