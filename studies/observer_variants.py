@@ -8,9 +8,11 @@ disturbances. Every variant starts from the tuning file's ``[eso-dkmpc]`` table:
 - ``no innovation bound``: ``eso_innovation_limit`` 0 (g2 of eq. 13 the identity);
 - ``w on vy, yaw rate only``: the estimate used on the two physical lateral rows of the
   lifted state only (nd = 2 instead of n_z), the other rows' estimate dropped;
-- ``bound widening 10 steps``: ``eso_innovation_persistence`` 10 (the bound widens by the
-  limit every 10 steps while the innovation keeps its sign beyond it; the tuning keeps it
-  off, results/observer_tuning_refine.md);
+- ``fixed bound (no widening)``: ``eso_innovation_persistence`` 0 (the bound never widens;
+  the shipped tuning widens it while the innovation keeps its sign beyond it,
+  results/observer_tuning_refine.md);
+- ``widening at any lateral acceleration``: ``eso_widening_lateral_accel`` 0 (the shipped
+  widening without its gate, so it widens in manoeuvres too);
 - ``bias estimate off``: ``yaw_rate_bias_pole`` 1 (the shipped tuning has it on);
 - ``course-angle cost``: the yaw rows of the QP's cost on the course angle (heading plus
   vy / vx, vy predicted, affine in the steering) instead of the heading, on top of the
@@ -109,8 +111,10 @@ def variants() -> dict[str, Callable[[], Any]]:
         "ESO-DKMPC (shipped)": lambda: EsoDkmpc(model, table, longitudinal),
         "no innovation bound": lambda: EsoDkmpc(model, dataclasses.replace(table, eso_innovation_limit=0.0),
                                                 longitudinal),
-        "bound widening 10 steps": lambda: EsoDkmpc(model, dataclasses.replace(table, eso_innovation_persistence=10.0),
-                                                    longitudinal),
+        "fixed bound (no widening)": lambda: EsoDkmpc(
+            model, dataclasses.replace(table, eso_innovation_persistence=0.0), longitudinal),
+        "widening at any lateral acceleration": lambda: EsoDkmpc(
+            model, dataclasses.replace(table, eso_widening_lateral_accel=0.0), longitudinal),
         "w on vy, yaw rate only": lambda: LateralRowsOnly(model, table, longitudinal),
         "bias estimate off": lambda: EsoDkmpc(model, dataclasses.replace(table, yaw_rate_bias_pole=1.0),
                                               longitudinal),

@@ -21,8 +21,11 @@ def test_every_variant_builds_and_steps_within_the_limits() -> None:
         assert abs(command.steer_angle) <= 0.3, name
     assert built["no innovation bound"].tuning.eso_innovation_limit == 0.0
     assert built["bias estimate off"].tuning.yaw_rate_bias_pole == 1.0
-    assert built["bound widening 10 steps"].tuning.eso_innovation_persistence == 10.0
-    assert built["ESO-DKMPC (shipped)"].tuning.eso_innovation_persistence == 0.0
+    shipped = built["ESO-DKMPC (shipped)"].tuning
+    assert built["fixed bound (no widening)"].tuning.eso_innovation_persistence == 0.0
+    assert built["widening at any lateral acceleration"].tuning.eso_widening_lateral_accel == 0.0
+    assert built["widening at any lateral acceleration"].tuning.eso_innovation_persistence == \
+        shipped.eso_innovation_persistence
     assert built["ESO-DKMPC (shipped)"].tuning.eso_innovation_limit > 0.0
     assert built["slip target 0.02 / 0.003"].tuning.slip_target_limit == 0.02
 
