@@ -31,6 +31,12 @@ Variants (``VARIANTS``; the options are ``models.koopman_train.TrainingSettings`
   steady-state gain (the data, never the plant). Its seeds' targets are compared with the
   plant afterwards (``anchor_target_error_pct``), so that a reader sees whether a miss is
   the model's or its target's.
+- the default with the lateral velocity's anchor as well (``gain_anchor_vy`` 10, issue 40):
+  the model's vy after the same steps held to the local fits' vy.
+
+Beside the yaw rate, each seed's lateral velocity 1 s after the +0.02 rad step is compared
+with the plant's (``vy_error``, m/s): issue 40's goal is within 0.01 m/s at 10 m/s and within
+10 % at 15-25 m/s.
 
 Each seed's error is also split into its parts (``error_parts_pct``): the yaw rate the model
 predicts with the steer held at 0 (a symmetric car driving straight does not turn, so this
@@ -63,11 +69,15 @@ from models.errors import ModelError
 from models.koopman import DEFAULT_SPEED_KNOTS, KoopmanError
 from models.local_lateral_fit import single_track_yaw_rate
 from studies.model_fidelity import STEP_SPEEDS, BicyclePredictor, plant_step_steer, step_steer_final
-from studies.table1 import (ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
+from studies.table1 import (DEFAULT_ROW, ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
                             train_missing)
 
 #: Within this of the plant's yaw rate (%) counts as a match (issue 14's target).
 TOLERANCE_PCT = 5.0
+#: Issue 40's step-steer vy goal: within this (m/s) of the plant's at the lowest speed of
+#: ``STEP_SPEEDS`` (10 m/s), and within ``VY_TOLERANCE_PCT`` % at the others.
+VY_TOLERANCE_LOW_SPEED = 0.01
+VY_TOLERANCE_PCT = 10.0
 SMALL_SIGNAL_ACCEL = 3.0  # m/s^2, a0 of the weighting
 #: Speeds (m/s) of the gain sweep: every 2 m/s over the training data's range, so that the
 #: gain between the knots of the scheduled form (``DEFAULT_SPEED_KNOTS``) shows as well.
@@ -81,8 +91,9 @@ VARIANTS = (
     Row("mirror-symmetric, d=8 (2 even), servo lag, lateral rows per step",
         {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True,
          "lateral_per_step": True}),
-    ROWS[-2],  # Table I's row of the mirror form with its steer-bilinear term
-    ROWS[-1],  # the same with the gain anchor: the default since issue 14's item 4
+    ROWS[4],  # Table I's row of the mirror form with its steer-bilinear term
+    DEFAULT_ROW,  # the same with the gain anchor: the default since issue 14's item 4
+    ROWS[6],  # the default with the lateral velocity's anchor as well (issue 40)
 )
 
 
@@ -119,6 +130,19 @@ def error_parts_pct(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]
     return parts
 
 
+def vy_error(model: Any, plant: dict[float, tuple[np.ndarray, np.ndarray]]) -> list[float]:
+    """Per speed of ``plant``: the model's vy 1 s after the +step minus the plant's (m/s)."""
+    return [float(step_steer_final(model, states, commands)[1] - states[-1, 1])
+            for states, commands in plant.values()]
+
+
+def vy_within_goal(errors: Sequence[float], plant_vy: Sequence[float]) -> bool:
+    """Issue 40's step-steer vy goal on one model's ``vy_error`` at ``STEP_SPEEDS``."""
+    low, *rest = zip(errors, plant_vy)
+    return abs(low[0]) <= VY_TOLERANCE_LOW_SPEED and all(
+        abs(e) <= VY_TOLERANCE_PCT / 100.0 * abs(v) for e, v in rest)
+
+
 def anchor_target_error_pct(metadata: dict[str, Any], plant: dict[float, tuple[np.ndarray, np.ndarray]]
                             ) -> dict[str, list[float]]:
     """{"anchor_target_error_pct": (n_speeds,)} for a model trained with the gain anchor: its
@@ -150,7 +174,8 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
     out: dict[str, Any] = {"variants": [], "bicycle": [], "seeds": list(seeds), "data_dir": str(data_dir),
                            "data_hash": data_hash, "speeds": list(STEP_SPEEDS), "gain_speeds": list(GAIN_SPEEDS),
                            "speed_knots": list(DEFAULT_SPEED_KNOTS),
-                           "plant_yaw_rate": [float(plant[v][0][-1, 2]) for v in STEP_SPEEDS]}
+                           "plant_yaw_rate": [float(plant[v][0][-1, 2]) for v in STEP_SPEEDS],
+                           "plant_vy": [float(plant[v][0][-1, 1]) for v in STEP_SPEEDS]}
     splits = {seed: split_runs(runs, TrainingSettings(seed=seed))[2] for seed in seeds}
     for seed in seeds:
         figures = evaluate(VehicleStates(BicyclePredictor(), 3), splits[seed])
@@ -167,6 +192,7 @@ def measure(variants: Sequence[Row], seeds: Sequence[int], data_dir: Path, model
             entry["seeds"].append({
                 "seed": seed, "yaw_error_pct": parts.pop("total"), "error_parts_pct": parts,
                 "gain_error_pct": error_parts_pct(model, sweep)["antisymmetric"],
+                "vy_error": vy_error(model, plant),
                 "rmse_1s": {s: figures[s]["1 s"] for s in ("vy", "yaw_rate")},
                 "epochs": f"{model.metadata['best_epoch']}/{model.metadata['epochs_run']}",
                 **anchor_target_error_pct(model.metadata, plant)})
@@ -221,10 +247,29 @@ def markdown(result: dict[str, Any]) -> str:
         lines.append(f"| {entry['label']} | " + " | ".join(_mean_sd(errors[:, j], 1) for j in range(len(speeds)))
                      + f" | {within} of {len(errors)} | {_mean_sd([s['rmse_1s']['vy'] for s in entry['seeds']], 4)}"
                      f" | {_mean_sd([s['rmse_1s']['yaw_rate'] for s in entry['seeds']], 4)} |")
+    lines += _vy_table(result)
     lines += _parts_table(result)
     lines += _anchor_table(result)
     lines += _gain_sweep_table(result)
     return "\n".join(lines) + "\n"
+
+
+def _vy_table(result: dict[str, Any]) -> list[str]:
+    """Markdown lines: each variant's step-steer vy error over the seeds and issue 40's goal."""
+    speeds, plant_vy = result["speeds"], result["plant_vy"]
+    lines = ["", "## Lateral velocity after the step", "",
+             "The model's vy 1 s after the +0.02 rad step minus the plant's (m/s), mean ± standard deviation over "
+             "the seeds. Plant: " + ", ".join(f"{vy:+.4f} m/s at {v:g} m/s" for v, vy in zip(speeds, plant_vy))
+             + f". Goal (issue 40): within {VY_TOLERANCE_LOW_SPEED:g} m/s at {speeds[0]:g} m/s and within "
+             f"{VY_TOLERANCE_PCT:g} % of the plant's at the other speeds.", "",
+             "| variant | " + " | ".join(f"{v:g} m/s" for v in speeds) + " | seeds within the goal |",
+             "|---|" + "---|" * len(speeds) + "---|"]
+    for entry in result["variants"]:
+        errors = np.array([s["vy_error"] for s in entry["seeds"]])
+        within = sum(vy_within_goal(e, plant_vy) for e in errors)
+        lines.append(f"| {entry['label']} | " + " | ".join(_mean_sd(errors[:, j], 4) for j in range(len(speeds)))
+                     + f" | {within} of {len(errors)} |")
+    return lines
 
 
 PART_LABELS = {"drift": "yaw rate with the steer at 0 (drift, % of the plant's r)",

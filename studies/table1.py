@@ -6,7 +6,8 @@ default model (speed-scheduled lift with the measured wheel angle in the state),
 scheduled form on [vx, vy, r] alone (what the wheel angle adds), the bilinear form with the
 dictionary, the paper's linear form (eq. 5), and the mirror-symmetric form with its
 steer-bilinear term, without and with the gain anchor (the latter the default,
-``DEFAULT_ROW``, since issue 14's step steer), each trained (``ROWS``) with ``SEEDS`` (5
+``DEFAULT_ROW``, since issue 14's step steer), and the default with the lateral velocity's
+anchor as well (``--gain-anchor-vy``, issue 40), each trained (``ROWS``) with ``SEEDS`` (5
 seeds: the seed draws the weights AND the train / validation / test split by run) on the
 same data set (default ``data/wide``, the default artefact's). Beside them, fitted or built
 on each seed's split (``CLOSED_FORM_ROWS``): DMDc, EDMDc (monomials), the trainer's
@@ -79,8 +80,9 @@ CLOSED_FORM_ROWS = tuple(row for row in _GRID.rows.values() if row.fit != TRAIN_
 LEAST_SQUARES_ROWS = {row.label: row.fit for row in CLOSED_FORM_ROWS if row.fit.startswith("edmdc-")}
 #: The rows fitted by least squares (the others without training are physics models).
 FITTED_ROWS = tuple(row.label for row in CLOSED_FORM_ROWS if row.fit not in ("bicycle", "single_track"))
-#: The row of the committed default artefact (models/artifacts/dk_d5): its seed 0.
-DEFAULT_ROW = ROWS[-1]
+#: The row of the committed default artefact (models/artifacts/dk_d5): its seed 0. The grid
+#: marks it by its label's "(default)".
+DEFAULT_ROW = next(row for row in ROWS if row.label.endswith("(default)"))
 
 
 def _mean_sd(values: Sequence[float]) -> str:

@@ -71,16 +71,21 @@ def test_error_splits_into_drift_and_antisymmetric_gain(plant) -> None:
     assert symmetric["antisymmetric"] == pytest.approx([0.0] * 4, abs=1e-9)
 
 
-def _result(errors: dict[str, list[list[float]]]) -> dict:
+PLANT_VY = [0.0722, 0.0382, -0.0641, -0.2425]
+
+
+def _result(errors: dict[str, list[list[float]]], vy_errors: dict[str, list[list[float]]] | None = None) -> dict:
     seeds = list(range(len(next(iter(errors.values())))))
+    vy_errors = vy_errors or {label: [[0.0] * 4] * len(rows) for label, rows in errors.items()}
     rmse = {"vy": 0.15, "yaw_rate": 0.05}
     return {"speeds": [10.0, 15.0, 20.0, 25.0], "plant_yaw_rate": [0.067, 0.094, 0.114, 0.128],
-            "seeds": seeds, "data_dir": "data/wide",
+            "plant_vy": PLANT_VY, "seeds": seeds, "data_dir": "data/wide",
             "bicycle": [{"seed": s, "rmse_1s": {"vy": 0.23, "yaw_rate": 0.08}} for s in seeds],
             "variants": [{"label": label, "seeds": [{"seed": s, "yaw_error_pct": e, "rmse_1s": rmse, "epochs": "9/12",
                                                      "error_parts_pct": {"drift": [s, 0.0, 0.0, 0.0],
                                                                          "antisymmetric": list(e),
-                                                                         "wheel_angle": [float("nan")] * 4}}
+                                                                         "wheel_angle": [float("nan")] * 4},
+                                                     "vy_error": vy_errors[label][s]}
                                                     for s, e in enumerate(rows)]}
                          for label, rows in errors.items()]}
 
@@ -89,7 +94,8 @@ def test_tables_count_the_seeds_within_tolerance_at_every_speed(tmp_path: Path) 
     result = _result({"a": [[1.0, -2.0, 4.9, 0.0], [-12.4, -2.7, -1.7, 1.2], [6.0, 0.0, 0.0, 0.0]],
                       "b": [[0.0, 0.0, 0.0, 0.0]] * 3})
     text = study.markdown(result)
-    summary = {line.split(" | ")[0].strip("| "): line for line in text.splitlines() if " of 3 |" in line}
+    per_variant = text.split("## Lateral velocity")[0]
+    summary = {line.split(" | ")[0].strip("| "): line for line in per_variant.splitlines() if " of 3 |" in line}
     assert "| 1 of 3 |" in summary["a"] and "| 3 of 3 |" in summary["b"]
     assert "| a | 1 | -12.4 | -2.7 | -1.7 | +1.2 | 12.4 |" in text
     assert "-1.8 ± 9.5" in summary["a"]  # mean and sample sd over the seeds at 10 m/s
@@ -159,3 +165,18 @@ def test_cli_refuses_a_missing_data_set_and_no_seeds(tmp_path: Path, capsys) -> 
     assert "--seeds must name at least one seed" in capsys.readouterr().err
     assert study.main(["--data", str(tmp_path), "--variants", f"0,{len(study.VARIANTS)}", "--out", str(tmp_path)]) == 2
     assert f"--variants must name variants among 0-{len(study.VARIANTS) - 1}" in capsys.readouterr().err
+
+
+def test_step_steer_vy_is_measured_against_the_plant_and_its_goal_counted(plant) -> None:
+    errors = study.vy_error(Scaled(plant, 0.9), plant)  # Scaled changes the yaw rate only
+    assert errors == pytest.approx([0.0] * 4, abs=1e-12)
+    # 10 m/s: absolute 0.01 m/s; 15-25 m/s: 10 % of the plant's vy.
+    assert study.vy_within_goal([0.0099, 0.0038, -0.0064, 0.0242], PLANT_VY)
+    assert not study.vy_within_goal([0.0101, 0.0, 0.0, 0.0], PLANT_VY)
+    assert not study.vy_within_goal([0.0, 0.0039, 0.0, 0.0], PLANT_VY)
+    assert not study.vy_within_goal([0.0, 0.0, 0.0, -0.0245], PLANT_VY)
+    result = _result({"a": [[0.0] * 4] * 3}, {"a": [[0.0, 0.0, 0.0, 0.0], [0.02, 0.0, 0.0, 0.0], [0.0, 0.0, 0.01, 0.0]]})
+    vy_lines = [line for line in study.markdown(result).split("## Lateral velocity")[1].split("## Where")[0].splitlines()
+                if line.startswith("| a |")]
+    assert len(vy_lines) == 1 and vy_lines[0].endswith("| 1 of 3 |")
+    assert "0.0067 ± 0.0115" in vy_lines[0]  # 10 m/s: mean and sample sd of 0, 0.02, 0

@@ -36,7 +36,8 @@ ROOT = Path(__file__).resolve().parent.parent
 VEHICLE = ("vx", "vy", "yaw_rate")
 SYMMETRIC = {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True, "steer_bilinear": True}
 #: Table I's rows as studies/table1.py held them before the grid (labels, overrides, states):
-#: the grid must give the same, or build/table1's trained models would not be found again.
+#: the grid must give the same, or build/table1's trained models would not be found again
+#: (the last row, the vy anchor's, added since).
 ROWS_BEFORE = [
     ("DK scheduled + wheel angle, d=5", {}, WHEEL_STATES),
     ("DK scheduled, d=5", {}, VEHICLE),
@@ -45,6 +46,8 @@ ROWS_BEFORE = [
     ("mirror-symmetric, d=8 (2 even), servo lag, steer-bilinear N(v)", SYMMETRIC, WHEEL_STATES),
     ("mirror-symmetric steer-bilinear + gain anchor (w = 10) (default)", {**SYMMETRIC, "gain_anchor": 10.0},
      WHEEL_STATES),
+    ("mirror-symmetric steer-bilinear + gain anchor (w = 10) + vy anchor (w = 10)",
+     {**SYMMETRIC, "gain_anchor": 10.0, "gain_anchor_vy": 10.0}, WHEEL_STATES),
 ]
 CLOSED_FORM_BEFORE = ["DMDc", "EDMDc", "EDMDc physics dictionary, linear (edmdc-linear)",
                       "EDMDc physics dictionary, bilinear (edmdc-bilinear)", "linear bicycle (LMPC)",
@@ -111,10 +114,10 @@ def test_smoke_grid_cells_equal_the_direct_path_bit_for_bit(data_dir: Path, tmp_
 
 def test_table1_grid_holds_the_rows_and_seeds_table1_had() -> None:
     assert [(row.label, row.overrides, row.states) for row in ROWS] == ROWS_BEFORE
-    assert {row.fit for row in ROWS} == {"train"} and DEFAULT_ROW is ROWS[-1]
+    assert {row.fit for row in ROWS} == {"train"} and DEFAULT_ROW is ROWS[5]
     assert [row.label for row in CLOSED_FORM_ROWS] == CLOSED_FORM_BEFORE
     grid = load_grid("table1")
-    assert len(grid.cells) == 12 * 5 and sorted({c.seed for c in grid.cells}) == [0, 1, 2, 3, 4]
+    assert len(grid.cells) == 13 * 5 and sorted({c.seed for c in grid.cells}) == [0, 1, 2, 3, 4]
 
 
 def test_cell_keys_name_row_seed_and_data(data_dir: Path, tmp_path: Path) -> None:
