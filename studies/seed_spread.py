@@ -5,7 +5,9 @@ on its seed (weights and split). This study runs them on the two evaluation lane
 (``dlc_high_mu``, ``dlc_low_mu``) once per seed of the default model form (the committed
 artefact is seed 0; seeds 1-4 are Table I's models of the default row, ``make table1``),
 with the shipped tuning, and the physics-model controllers (LMPC, NMPC) once (they have no
-seed). It writes ``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
+seed). The learned controllers also run on each seed of Table I's row with the lateral
+velocity's anchor as well (``VY_ANCHOR_ROW``, ``--gain-anchor-vy 10``; issue 40): what the
+anchor would do in closed loop before it could become the default. It writes ``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
 
 No tuning happens here: the settings are those of ``controller/tuning.toml``.
 """
@@ -24,20 +26,24 @@ from controller.tuning import load_tuning
 from hil.scenario import load_scenario
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 from studies.closed_loop import run_closed_loop
-from studies.table1 import DEFAULT_ROW, cached_model_path
+from studies.table1 import DEFAULT_ROW, ROWS, Row, cached_model_path
 
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 LEARNED = ("eso-dkmpc", "dkmpc")
 PHYSICS = ("lmpc", "nmpc")
+#: Table I's row of the default with the lateral velocity's anchor, and its label's suffix here.
+VY_ANCHOR_ROW = next(row for row in ROWS if row.overrides.get("gain_anchor_vy"))
+VY_ANCHOR = " + vy anchor"
 
 
-def seed_artifacts(models_dir: Path, seeds: Sequence[int]) -> dict[int, Path]:
-    """Seed -> artefact of the default row (seed 0: the committed default artefact)."""
+def seed_artifacts(models_dir: Path, seeds: Sequence[int], row: Row = DEFAULT_ROW) -> dict[int, Path]:
+    """Seed -> artefact of Table I's ``row`` (the default row's seed 0: the committed default
+    artefact)."""
     paths = {}
     for seed in seeds:
-        path = DEFAULT_ARTIFACT if seed == 0 else cached_model_path(DEFAULT_ROW, seed, models_dir)
+        path = DEFAULT_ARTIFACT if seed == 0 and row is DEFAULT_ROW else cached_model_path(row, seed, models_dir)
         if not path.is_file():
-            raise SystemExit(f"error: {path} missing: run `make table1` (it trains the default row's seeds)")
+            raise SystemExit(f"error: {path} missing: run `make table1` (it trains the seeds of {row.label!r})")
         paths[seed] = path
     return paths
 
@@ -64,10 +70,14 @@ def markdown(doc: dict) -> str:
     lines = ["# Tables II / III over the seeds of the learned model", "",
              "Written by `make seed-spread` (studies/seed_spread.py). e_Y RMSE (m) on the closed loop "
              "without CAN (as `make tables`); the learned controllers once per seed of the default model "
-             "(seed 0 = the committed artefact), the physics-model ones once. `*`: did not complete.", "",
+             "(seed 0 = the committed artefact) and of Table I's row with the lateral velocity's anchor as well "
+             f"(`{VY_ANCHOR.strip()}`, every seed trained by `make table1`), the physics-model ones once. "
+             "`*`: did not complete.", "",
              "| controller | scenario | " + " | ".join(f"seed {s}" for s in doc["seeds"]) + " | mean ± sd |",
              "|---|---|" + "---|" * (len(doc["seeds"]) + 1)]
-    for name in (*LEARNED, *PHYSICS):
+    for name in (*LEARNED, *(n + VY_ANCHOR for n in LEARNED), *PHYSICS):
+        if name not in doc["runs"]:
+            continue
         for scenario in SCENARIOS:
             runs = doc["runs"][name][scenario]
             cells = [f"{r['e_y_rmse']:.3f}{'' if r['completed'] else '*'}" for r in runs]
@@ -86,18 +96,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results"))
     args = parser.parse_args(argv)
     artifacts = seed_artifacts(args.models_dir, args.seeds)
+    anchored = seed_artifacts(args.models_dir, args.seeds, VY_ANCHOR_ROW)
     runs: dict[str, dict[str, list[dict]]] = {}
-    for name in LEARNED:
-        runs[name] = {s: [] for s in SCENARIOS}
-        for seed, path in artifacts.items():
-            model = KoopmanModel.load(path)
-            for scenario in SCENARIOS:
-                runs[name][scenario].append(run_one(scenario, learned_controller(name, model)))
-                print(f"{name} seed {seed} {scenario}: e_Y RMSE {runs[name][scenario][-1]['e_y_rmse']:.3f} m",
-                      flush=True)
+    for suffix, paths in (("", artifacts), (VY_ANCHOR, anchored)):
+        for name in LEARNED:
+            label = name + suffix
+            runs[label] = {s: [] for s in SCENARIOS}
+            for seed, path in paths.items():
+                model = KoopmanModel.load(path)
+                for scenario in SCENARIOS:
+                    runs[label][scenario].append(run_one(scenario, learned_controller(name, model)))
+                    print(f"{label} seed {seed} {scenario}: e_Y RMSE {runs[label][scenario][-1]['e_y_rmse']:.3f} m",
+                          flush=True)
     for name in PHYSICS:
         runs[name] = {s: [run_one(s, create_controller(name))] for s in SCENARIOS}
-    doc = {"seeds": list(args.seeds), "artifacts": {str(k): str(v) for k, v in artifacts.items()}, "runs": runs}
+    doc = {"seeds": list(args.seeds), "artifacts": {str(k): str(v) for k, v in artifacts.items()},
+           "vy_anchor_artifacts": {str(k): str(v) for k, v in anchored.items()}, "runs": runs}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "seed_spread.md").write_text(markdown(doc))
     (args.out / "seed_spread.json").write_text(json.dumps(doc, indent=1) + "\n")

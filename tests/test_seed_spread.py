@@ -18,8 +18,14 @@ def test_table_has_a_row_per_controller_and_scenario_with_mean_and_spread() -> N
     assert len(rows) == 4
     assert "0.200 ± 0.100" in text  # mean and sample sd of 0.1, 0.2, 0.3
     assert "0.100*" in text  # a run that did not complete is marked
+    runs["dkmpc" + seed_spread.VY_ANCHOR] = runs["dkmpc"]
+    anchored = seed_spread.markdown({"seeds": [0, 1, 2], "runs": runs})
+    assert len([line for line in anchored.splitlines() if line.startswith("| dkmpc + vy anchor |")]) == 2
 
 
 def test_missing_seed_models_name_the_command(tmp_path: Path) -> None:
     with pytest.raises(SystemExit, match="make table1"):
         seed_spread.seed_artifacts(tmp_path, (0, 1))
+    # The anchored row has no committed artefact: its seed 0 comes from Table I's cache too.
+    with pytest.raises(SystemExit, match="vy anchor"):
+        seed_spread.seed_artifacts(tmp_path, (0,), seed_spread.VY_ANCHOR_ROW)
