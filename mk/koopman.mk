@@ -24,11 +24,12 @@ train: setup
 	$(PY) -m models.koopman_train --data $(TRAIN_DATA) --out $(KOOPMAN_ARTIFACT) --replace $(KOOPMAN_FORM) \
 		$$( [ -f build/dk_d5.previous.json ] && echo --compare-with build/dk_d5.previous.json ) $(TRAIN_ARGS)
 
-# Table I (6 learned forms x 5 seeds + DMDc, EDMDc, bicycle, single track on the wide data):
+# Table I (7 learned forms x 5 seeds + DMDc, EDMDc, edmdc-linear / -bilinear, bicycle, single track on the wide data):
 # results/table1.md, results/table1.json, results/fig6_prediction_errors.png,
 # results/prediction_horizon_rmse.png. Rows and seeds: the grid studies/campaign/grids/table1.toml,
 # each row x seed a cell of the campaign engine; trained models and measured cells are cached in
-# build/table1/ (the default row's seed 0 reuses the committed artefact when it matches). About 1.5 h.
+# build/table1/ (the default row's seed 0 reuses the committed artefact when it matches). About 1.5 h on the
+# first hosts; 39 min on the Intel Xeon one of 2026-12-06 (35 trainings on 2 Ray workers).
 ## Table I: learned forms over 5 seeds and the physics models -> results/table1.*
 table1: setup
 	@test -f $(TRAIN_DATA)/READY || $(PY) -m models.data generate --out $(TRAIN_DATA) --profile wide --hours 2 --seed 0
