@@ -7,7 +7,8 @@ artefact is seed 0; seeds 1-4 are Table I's models of the default row, ``make ta
 with the shipped tuning, and the physics-model controllers (LMPC, NMPC) once (they have no
 seed). The learned controllers also run on each seed of Table I's row with the lateral
 velocity's anchor as well (``VY_ANCHOR_ROW``, ``--gain-anchor-vy 10``; issue 40): what the
-anchor would do in closed loop before it could become the default. It writes ``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
+anchor would do in closed loop before it could become the default. It writes
+``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
 
 No tuning happens here: the settings are those of ``controller/tuning.toml``.
 """

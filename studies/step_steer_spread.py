@@ -69,8 +69,8 @@ from models.errors import ModelError
 from models.koopman import DEFAULT_SPEED_KNOTS, KoopmanError
 from models.local_lateral_fit import single_track_yaw_rate
 from studies.model_fidelity import STEP_SPEEDS, BicyclePredictor, plant_step_steer, step_steer_final
-from studies.table1 import (DEFAULT_ROW, ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
-                            train_missing)
+from studies.table1 import (DEFAULT_ROW, ROWS, SEEDS, Row, VehicleStates, WHEEL_STATES, _indices, cached_model,
+                            evaluate, train_missing)
 
 #: Within this of the plant's yaw rate (%) counts as a match (issue 14's target).
 TOLERANCE_PCT = 5.0

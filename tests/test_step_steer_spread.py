@@ -175,8 +175,9 @@ def test_step_steer_vy_is_measured_against_the_plant_and_its_goal_counted(plant)
     assert not study.vy_within_goal([0.0101, 0.0, 0.0, 0.0], PLANT_VY)
     assert not study.vy_within_goal([0.0, 0.0039, 0.0, 0.0], PLANT_VY)
     assert not study.vy_within_goal([0.0, 0.0, 0.0, -0.0245], PLANT_VY)
-    result = _result({"a": [[0.0] * 4] * 3}, {"a": [[0.0, 0.0, 0.0, 0.0], [0.02, 0.0, 0.0, 0.0], [0.0, 0.0, 0.01, 0.0]]})
-    vy_lines = [line for line in study.markdown(result).split("## Lateral velocity")[1].split("## Where")[0].splitlines()
-                if line.startswith("| a |")]
+    vy_errors = [[0.0, 0.0, 0.0, 0.0], [0.02, 0.0, 0.0, 0.0], [0.0, 0.0, 0.01, 0.0]]
+    text = study.markdown(_result({"a": [[0.0] * 4] * 3}, {"a": vy_errors}))
+    section = text.split("## Lateral velocity")[1].split("## Where")[0]
+    vy_lines = [line for line in section.splitlines() if line.startswith("| a |")]
     assert len(vy_lines) == 1 and vy_lines[0].endswith("| 1 of 3 |")
     assert "0.0067 ± 0.0115" in vy_lines[0]  # 10 m/s: mean and sample sd of 0, 0.02, 0
