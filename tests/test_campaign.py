@@ -297,6 +297,24 @@ def test_a_rerun_resumes_and_computes_only_what_is_missing(tmp_path):
     assert [r["key"] for r in again.rows] == [r["key"] for r in first.rows]
 
 
+def test_cells_csv_tells_a_tuning_axis_settings_apart(tmp_path):
+    grid = load_grid(_grid(tmp_path, """
+name = "t"
+[axes]
+controller = ["lmpc"]
+scenario = ["dlc_smoke"]
+runner = "closed_loop"
+tuning = ["file", "stiff"]
+[tunings.stiff]
+q_yaw = 200.0
+"""))
+    result = run_campaign(grid, tmp_path / "out", SerialExecutor(_fake_row), progress=False)
+    with write_cells_csv(tmp_path / "cells.csv", result.rows).open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(r["controller"], r["runner"], r["tuning"]) for r in rows] == [
+        ("lmpc", "closed_loop", "file"), ("lmpc", "closed_loop", "stiff")]
+
+
 def test_a_failing_cell_is_recorded_and_the_campaign_goes_on(tmp_path):
     broken = run_cell(CellJob(key="k", controller="lmpc", scenario_toml='name = "x"\n'))
     assert broken["error"].startswith("ScenarioError") and broken["completed"] == 0

@@ -15,9 +15,11 @@ from typing import Any
 
 from studies.campaign.grid import AXES, DEFAULT_ECU, DEFAULT_TUNING, HIL_RUNNER, NO_CASE, Grid
 
-#: Columns of cells.csv, in order (the axes as the issue names them, then the results).
+#: Columns of cells.csv, in order (the axes as the issue names them, then the results). The
+#: runner and the tuning override are axes too: without them two rows of a grid that differ
+#: only there (a tuning axis' settings of one controller) could not be told apart.
 CSV_FIELDS = ("controller", "ecu", "scenario", "mu", "speed", "mass", "lag", "fault", "disturbance",
-              "model", "seed",
+              "model", "seed", "runner", "tuning",
               "e_y_rmse", "e_y_max", "heading_rmse", "completed", "end_reason",
               "step_p50_us", "step_p99_us", "overruns", "wall_s", "error", "key")
 #: cells.csv column -> Cell field.
