@@ -38,6 +38,20 @@ observer-variants: setup
 	$(PROVENANCE_STAMP) results/observer_variants.md --command "make observer-variants" \
 		--inputs $(PROVENANCE_CLOSED_LOOP) --modules studies.observer_variants
 
+# The observer's slow pole against the robustness grid's mismatch cells and the tuning set's
+# objective (studies/observer_speed.py, docs/eso.md): the campaign grid observer_speed (480
+# closed-loop runs, cached in build/observer_speed/) and the observer stage's 22 runs at each
+# pole. About 6 min on 2 cores when nothing is cached.
+.PHONY: observer-speed
+OBSERVER_SPEED_CAMPAIGN := build/observer_speed
+## ESO-DKMPC at four slow observer poles: mismatch cells against DKMPC, tuning set objective -> results/observer_speed.* (~6 min)
+observer-speed: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.campaign observer_speed --out $(OBSERVER_SPEED_CAMPAIGN) --workers 2 --no-progress
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_speed --campaign $(OBSERVER_SPEED_CAMPAIGN) --out results --no-progress
+	$(PROVENANCE_STAMP) $(addprefix results/observer_speed.,md json png) --command "make observer-speed" \
+		--inputs $(PROVENANCE_CLOSED_LOOP) $(PROVENANCE_TUNING_SET) studies/campaign/grids/observer_speed.toml \
+		--modules studies.campaign.__main__ studies.observer_speed models.disturbance
+
 # The second observer stage (studies/observer_tuning.py --stage slip-target): the bound and
 # the fade of the heading target's steady side slip (controller/steady_slip.py) for every
 # MPC on the observer stage's 22 runs, every other field at the tuning file's value (so

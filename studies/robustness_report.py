@@ -8,6 +8,7 @@ import csv
 import math
 import subprocess
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -59,11 +60,28 @@ def goal_line(records: Sequence[RunRecord]) -> str | None:
             f"{len(cells) // 2}; a run that did not complete counts as an infinite RMSE).")
 
 
-def observer_line(records: Sequence[RunRecord]) -> str | None:
-    """What the observer adds on the grid (issue 35): ESO-DKMPC against DKMPC, the same
-    controller without it, head to head on the cells either completed, and on those with a
-    model mismatch (mass +300 kg or steering lag x3); a run that did not complete counts as
-    an infinite RMSE, a tie as neither winning. None without both controllers."""
+@dataclass(frozen=True)
+class HeadToHead:
+    """ESO-DKMPC against DKMPC over ``cells`` cells that either completed: on ``wins`` its
+    e_Y RMSE is lower, on ``losses`` DKMPC's (a run that did not complete counts as an
+    infinite RMSE, a tie as neither)."""
+
+    wins: int
+    losses: int
+    cells: int
+
+    def text(self) -> str:
+        return f"{self.wins} of {self.cells} (DKMPC lower on {self.losses})"
+
+
+def is_mismatch(run: RunRecord) -> bool:
+    """A model-mismatch cell: mass +300 kg or steering lag x3 (the learned model saw neither)."""
+    return run.mass_offset_kg > 0.0 or run.lag_factor > 1.0
+
+
+def observer_head_to_head(records: Sequence[RunRecord]) -> tuple[HeadToHead, HeadToHead] | None:
+    """ESO-DKMPC against DKMPC on every cell either completed, and on its model-mismatch
+    cells (:func:`is_mismatch`); None without both controllers."""
     grouped = by_cell(records)
     pairs = [(runs["eso-dkmpc"], runs["dkmpc"]) for runs in grouped.values()
              if "eso-dkmpc" in runs and "dkmpc" in runs and (runs["eso-dkmpc"].completed or runs["dkmpc"].completed)]
@@ -73,15 +91,23 @@ def observer_line(records: Sequence[RunRecord]) -> str | None:
     def rmse(run: RunRecord) -> float:
         return run.e_y_rmse if run.completed else math.inf
 
-    def count(selected: list[tuple[RunRecord, RunRecord]]) -> str:
-        wins = sum(rmse(eso) < rmse(dk) for eso, dk in selected)
-        losses = sum(rmse(eso) > rmse(dk) for eso, dk in selected)
-        return f"{wins} of {len(selected)} (DKMPC lower on {losses})"
+    def count(selected: list[tuple[RunRecord, RunRecord]]) -> HeadToHead:
+        return HeadToHead(sum(rmse(eso) < rmse(dk) for eso, dk in selected),
+                          sum(rmse(eso) > rmse(dk) for eso, dk in selected), len(selected))
 
-    mismatch = [(eso, dk) for eso, dk in pairs if eso.mass_offset_kg > 0.0 or eso.lag_factor > 1.0]
-    return (f"The observer, head to head: ESO-DKMPC's e_Y RMSE below DKMPC's on {count(pairs)} of the "
+    return count(pairs), count([(eso, dk) for eso, dk in pairs if is_mismatch(eso)])
+
+
+def observer_line(records: Sequence[RunRecord]) -> str | None:
+    """What the observer adds on the grid (issue 35): :func:`observer_head_to_head` as a
+    sentence; None without both controllers."""
+    counts = observer_head_to_head(records)
+    if counts is None:
+        return None
+    every, mismatch = counts
+    return (f"The observer, head to head: ESO-DKMPC's e_Y RMSE below DKMPC's on {every.text()} of the "
             f"cells either completed; on the model-mismatch cells (mass +300 kg or steering lag x3) on "
-            f"{count(mismatch)}.")
+            f"{mismatch.text()}.")
 
 
 # ---------------------------------------------------------------------------- outputs
