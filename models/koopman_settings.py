@@ -52,7 +52,7 @@ class TrainingSettings:
     response to a steer change depends on the state at a given speed. Recorded only when
     ``mirror_symmetric`` is on (``steer_bilinear`` only when on).
 
-    ``gain_anchor`` w > 0 (scheduled form without dictionary; recorded only when on) adds
+    ``gain_anchor`` w > 0 (scheduled form; recorded only when on) adds
     w times the gain anchor's loss (``models/koopman_train_anchor.py``): the model's
     small-signal steer response held to local fits of the training runs' gentle samples.
     ``gain_anchor_vy`` w > 0 (with ``gain_anchor``; recorded only when on) adds w times the
@@ -119,8 +119,7 @@ class TrainingSettings:
             "servo_lag": self.mirror_symmetric or not self.servo_lag,
             "lateral_per_step": self.mirror_symmetric or not self.lateral_per_step,
             "steer_bilinear": self.mirror_symmetric or not self.steer_bilinear,
-            "gain_anchor": self.gain_anchor >= 0 and (self.gain_anchor == 0 or (self.form == "scheduled"
-                                                                                and not self.dictionary)),
+            "gain_anchor": self.gain_anchor >= 0 and (self.gain_anchor == 0 or self.form == "scheduled"),
             # The vy targets are the yaw targets times vy / r: they need the yaw anchor's.
             "gain_anchor_vy": self.gain_anchor_vy >= 0 and (self.gain_anchor_vy == 0 or self.gain_anchor > 0),
             "val_fraction": 0 < self.val_fraction < 0.5,

@@ -193,7 +193,7 @@ def train(
     vy_targets = lateral_velocity_targets(anchor_targets_) if settings.gain_anchor_vy > 0 else None
     anchor = (None if anchor_targets_ is None
               else GainAnchor(anchor_targets_, state_scaling, input_scaling, knots, device, state_names, input_names,
-                              vy_targets))
+                              vy_targets, dictionary, dictionary_scaling))
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=settings.lr_decay)
     sampler = torch.Generator(device="cpu").manual_seed(settings.seed)

@@ -58,6 +58,7 @@ import numpy as np
 import torch
 
 from models.koopman import KoopmanError, MinMaxScaling, knot_weights
+from models.koopman_dictionary import dictionary_features
 from models.koopman_metrics import Trajectory
 from models.local_lateral_fit import (INPUTS, MIN_SAMPLES, STATES, LocalLateralModel, antisymmetric_final,
                                       band_segments, local_fit, signals, single_track_yaw_rate)
@@ -231,20 +232,22 @@ class GainAnchor:
 
     def __init__(self, targets: AnchorTargets, state_scaling: MinMaxScaling, input_scaling: MinMaxScaling,
                  speed_knots: Sequence[float], device: torch.device, state_names: Sequence[str],
-                 input_names: Sequence[str], lateral_velocities: LateralVelocityTargets | None = None) -> None:
+                 input_names: Sequence[str], lateral_velocities: LateralVelocityTargets | None = None,
+                 dictionary: Sequence[str] = (), dictionary_scaling: MinMaxScaling | None = None) -> None:
         # The starts, vy and the yaw rate below are by position: the states must lead with these.
         if tuple(state_names[:3]) != ("vx", "vy", "yaw_rate") or tuple(input_names) != INPUTS:
             raise KoopmanError(f"gain anchor: needs states starting (vx, vy, yaw_rate) and inputs {INPUTS}, "
                                f"got {tuple(state_names)} and {tuple(input_names)}")
         self.device = device
-        self.steps = _SteerSteps(targets.speeds, targets.torques, state_scaling, input_scaling, speed_knots, device)
+        self.steps = _SteerSteps(targets.speeds, targets.torques, state_scaling, input_scaling, speed_knots, device,
+                                 dictionary, dictionary_scaling)
         self.targets = self._tensor(targets.yaw_rates)
         self.yaw_span = float(state_scaling.high[2] - state_scaling.low[2])  # rad/s per normalised unit
         self.vy_span = float(state_scaling.high[1] - state_scaling.low[1])  # m/s per normalised unit
         self.vy_steps = None
         if lateral_velocities is not None:
             self.vy_steps = _SteerSteps(lateral_velocities.speeds, lateral_velocities.torques, state_scaling,
-                                        input_scaling, speed_knots, device)
+                                        input_scaling, speed_knots, device, dictionary, dictionary_scaling)
             self.lateral_velocities = self._tensor(lateral_velocities.lateral_velocities)
             # m/s: r_target x 1 m, never 0 (r_target > 0, single_track_gain_fit)
             self.vy_scale = self._tensor(lateral_velocities.yaw_rates * VY_LENGTH)
@@ -273,9 +276,13 @@ class _SteerSteps:
     with ``torques`` (each (n,)), in the normalised units of training."""
 
     def __init__(self, speeds: np.ndarray, torques: np.ndarray, state_scaling: MinMaxScaling,
-                 input_scaling: MinMaxScaling, speed_knots: Sequence[float], device: torch.device) -> None:
+                 input_scaling: MinMaxScaling, speed_knots: Sequence[float], device: torch.device,
+                 dictionary: Sequence[str] = (), dictionary_scaling: MinMaxScaling | None = None) -> None:
         n = speeds.size
         starts = np.c_[speeds, np.zeros((n, state_scaling.low.size - 1))]  # straight driving
+        # the lift's fixed dictionary of the starts (n, n_dict), normalised as in training
+        features = (dictionary_scaling.normalise(dictionary_features(dictionary, starts)) if dictionary
+                    else np.zeros((n, 0)))
         commands = np.zeros((2 * n, ANCHOR_STEPS, input_scaling.low.size))
         commands[..., 0] = np.tile(torques, 2)[:, None]
         commands[:n, :, 1], commands[n:, :, 1] = ANCHOR_STEP, -ANCHOR_STEP
@@ -284,6 +291,7 @@ class _SteerSteps:
             return torch.as_tensor(a, dtype=torch.float32, device=device)
 
         self.starts_n = tensor(np.tile(state_scaling.normalise(starts), (2, 1)))  # (2n, n_x): +step, then -step
+        self.dictionary_n = tensor(np.tile(features, (2, 1)))  # (2n, n_dict)
         self.commands_n = tensor(input_scaling.normalise(commands))  # (2n, steps, n_u)
         self.knot_weights = tensor(np.tile(knot_weights(np.asarray(speed_knots), speeds), (2, 1)))
         self.n = n
@@ -291,7 +299,6 @@ class _SteerSteps:
     def antisymmetric_final(self, net: torch.nn.Module) -> torch.Tensor:
         """Half the difference of the net's lifted states after the +step and the -step,
         (n, n_z), normalised units (the states lead)."""
-        no_dictionary = torch.zeros(2 * self.n, 0, device=self.starts_n.device)
-        z0 = net.lift(self.starts_n, no_dictionary)
+        z0 = net.lift(self.starts_n, self.dictionary_n)
         final = net.rollout(z0, self.commands_n, self.knot_weights)[:, -1]  # (2n, n_z)
         return (final[: self.n] - final[self.n:]) / 2.0
