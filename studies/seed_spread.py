@@ -27,13 +27,12 @@ from controller.tuning import load_tuning
 from hil.scenario import load_scenario
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 from studies.closed_loop import run_closed_loop
-from studies.table1 import DEFAULT_ROW, ROWS, Row, cached_model_path
+from studies.table1 import DEFAULT_ROW, VY_ANCHOR_ROW, Row, cached_model_path
 
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 LEARNED = ("eso-dkmpc", "dkmpc")
 PHYSICS = ("lmpc", "nmpc")
-#: Table I's row of the default with the lateral velocity's anchor, and its label's suffix here.
-VY_ANCHOR_ROW = next(row for row in ROWS if row.overrides.get("gain_anchor_vy"))
+#: The label's suffix here of Table I's row with the lateral velocity's anchor.
 VY_ANCHOR = " + vy anchor"
 
 

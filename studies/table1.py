@@ -83,6 +83,11 @@ FITTED_ROWS = tuple(row.label for row in CLOSED_FORM_ROWS if row.fit not in ("bi
 #: The row of the committed default artefact (models/artifacts/dk_d5): its seed 0. The grid
 #: marks it by its label's "(default)".
 DEFAULT_ROW = next(row for row in ROWS if row.label.endswith("(default)"))
+#: The default with the lateral velocity's anchor as well (issue 40): the row whose
+#: training sets ``gain_anchor_vy``.
+VY_ANCHOR_ROW = next(row for row in ROWS if row.overrides.get("gain_anchor_vy"))
+#: The mirror form with the physics dictionary as a fixed part of its lift (issue 40).
+DICTIONARY_ROW = next(row for row in ROWS if row.overrides.get("mirror_symmetric") and row.overrides.get("dictionary"))
 
 
 def _mean_sd(values: Sequence[float]) -> str:
