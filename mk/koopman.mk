@@ -24,7 +24,7 @@ train: setup
 	$(PY) -m models.koopman_train --data $(TRAIN_DATA) --out $(KOOPMAN_ARTIFACT) --replace $(KOOPMAN_FORM) \
 		$$( [ -f build/dk_d5.previous.json ] && echo --compare-with build/dk_d5.previous.json ) $(TRAIN_ARGS)
 
-# Table I (8 learned forms x 5 seeds + DMDc, EDMDc, edmdc-linear / -bilinear, bicycle, single track on the wide data):
+# Table I (9 learned forms x 5 seeds + DMDc, EDMDc, edmdc-linear / -bilinear, bicycle, single track on the wide data):
 # results/table1.md, results/table1.json, results/fig6_prediction_errors.png,
 # results/prediction_horizon_rmse.png. Rows and seeds: the grid studies/campaign/grids/table1.toml,
 # each row x seed a cell of the campaign engine; trained models and measured cells are cached in

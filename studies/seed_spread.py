@@ -5,10 +5,11 @@ on its seed (weights and split). This study runs them on the two evaluation lane
 (``dlc_high_mu``, ``dlc_low_mu``) once per seed of the default model form (the committed
 artefact is seed 0; seeds 1-4 are Table I's models of the default row, ``make table1``),
 with the shipped tuning, and the physics-model controllers (LMPC, NMPC) once (they have no
-seed). The learned controllers also run on each seed of Table I's row with the lateral
-velocity's anchor as well (``VY_ANCHOR_ROW``, ``--gain-anchor-vy 10``; issue 40): what the
-anchor would do in closed loop before it could become the default. It writes
-``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
+seed). The learned controllers also run on each seed of two other rows of Table I (issue 40),
+what each form would do in closed loop before it could become the default: the default with
+the lateral velocity's anchor as well (``VY_ANCHOR_ROW``, ``--gain-anchor-vy 10``) and the
+wider mirror form on the physics dictionary with the gain anchor (``DICTIONARY_ANCHOR_ROW``).
+It writes ``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
 
 No tuning happens here: the settings are those of ``controller/tuning.toml``.
 """
@@ -27,13 +28,17 @@ from controller.tuning import load_tuning
 from hil.scenario import load_scenario
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 from studies.closed_loop import run_closed_loop
-from studies.table1 import DEFAULT_ROW, VY_ANCHOR_ROW, Row, cached_model_path
+from studies.table1 import DEFAULT_ROW, DICTIONARY_ANCHOR_ROW, VY_ANCHOR_ROW, Row, cached_model_path
 
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
 LEARNED = ("eso-dkmpc", "dkmpc")
 PHYSICS = ("lmpc", "nmpc")
-#: The label's suffix here of Table I's row with the lateral velocity's anchor.
+#: The labels' suffixes here of Table I's other rows the learned controllers run on.
 VY_ANCHOR = " + vy anchor"
+DICTIONARY = " + dictionary, d=12"
+#: (suffix, Table I's row, the JSON key of its artefacts), the default first.
+FORMS = (("", DEFAULT_ROW, "artifacts"), (VY_ANCHOR, VY_ANCHOR_ROW, "vy_anchor_artifacts"),
+         (DICTIONARY, DICTIONARY_ANCHOR_ROW, "dictionary_artifacts"))
 
 
 def seed_artifacts(models_dir: Path, seeds: Sequence[int], row: Row = DEFAULT_ROW) -> dict[int, Path]:
@@ -70,12 +75,14 @@ def markdown(doc: dict) -> str:
     lines = ["# Tables II / III over the seeds of the learned model", "",
              "Written by `make seed-spread` (studies/seed_spread.py). e_Y RMSE (m) on the closed loop "
              "without CAN (as `make tables`); the learned controllers once per seed of the default model "
-             "(seed 0 = the committed artefact) and of Table I's row with the lateral velocity's anchor as well "
-             f"(`{VY_ANCHOR.strip()}`, every seed trained by `make table1`), the physics-model ones once. "
+             "(seed 0 = the committed artefact), of Table I's row with the lateral velocity's anchor as well "
+             f"(`{VY_ANCHOR.strip()}`) and of its row of the d = 12 mirror form on the physics dictionary with the "
+             f"gain anchor (`{DICTIONARY.strip()}`; every seed of both trained by `make table1`), the physics-model "
+             "ones once. "
              "`*`: did not complete.", "",
              "| controller | scenario | " + " | ".join(f"seed {s}" for s in doc["seeds"]) + " | mean ± sd |",
              "|---|---|" + "---|" * (len(doc["seeds"]) + 1)]
-    for name in (*LEARNED, *(n + VY_ANCHOR for n in LEARNED), *PHYSICS):
+    for name in (*(n + suffix for suffix, _, _ in FORMS for n in LEARNED), *PHYSICS):
         if name not in doc["runs"]:
             continue
         for scenario in SCENARIOS:
@@ -95,10 +102,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
     parser.add_argument("--out", type=Path, default=Path("results"))
     args = parser.parse_args(argv)
-    artifacts = seed_artifacts(args.models_dir, args.seeds)
-    anchored = seed_artifacts(args.models_dir, args.seeds, VY_ANCHOR_ROW)
+    forms = [(suffix, key, seed_artifacts(args.models_dir, args.seeds, row)) for suffix, row, key in FORMS]
     runs: dict[str, dict[str, list[dict]]] = {}
-    for suffix, paths in (("", artifacts), (VY_ANCHOR, anchored)):
+    for suffix, _, paths in forms:
         for name in LEARNED:
             label = name + suffix
             runs[label] = {s: [] for s in SCENARIOS}
@@ -110,8 +116,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                           flush=True)
     for name in PHYSICS:
         runs[name] = {s: [run_one(s, create_controller(name))] for s in SCENARIOS}
-    doc = {"seeds": list(args.seeds), "artifacts": {str(k): str(v) for k, v in artifacts.items()},
-           "vy_anchor_artifacts": {str(k): str(v) for k, v in anchored.items()}, "runs": runs}
+    doc = {"seeds": list(args.seeds), **{key: {str(k): str(v) for k, v in paths.items()} for _, key, paths in forms},
+           "runs": runs}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "seed_spread.md").write_text(markdown(doc))
     (args.out / "seed_spread.json").write_text(json.dumps(doc, indent=1) + "\n")

@@ -86,8 +86,12 @@ DEFAULT_ROW = next(row for row in ROWS if row.label.endswith("(default)"))
 #: The default with the lateral velocity's anchor as well (issue 40): the row whose
 #: training sets ``gain_anchor_vy``.
 VY_ANCHOR_ROW = next(row for row in ROWS if row.overrides.get("gain_anchor_vy"))
-#: The mirror form with the physics dictionary as a fixed part of its lift (issue 40).
-DICTIONARY_ROW = next(row for row in ROWS if row.overrides.get("mirror_symmetric") and row.overrides.get("dictionary"))
+#: The mirror form with the physics dictionary as a fixed part of its lift (issue 40),
+#: without and with the gain anchor.
+DICTIONARY_ROW = next(row for row in ROWS if row.overrides.get("mirror_symmetric") and row.overrides.get("dictionary")
+                      and not row.overrides.get("gain_anchor"))
+DICTIONARY_ANCHOR_ROW = next(row for row in ROWS
+                             if row.overrides.get("dictionary") and row.overrides.get("gain_anchor"))
 
 
 def _mean_sd(values: Sequence[float]) -> str:

@@ -37,7 +37,7 @@ VEHICLE = ("vx", "vy", "yaw_rate")
 SYMMETRIC = {"mirror_symmetric": True, "n_features": 8, "even_features": 2, "servo_lag": True, "steer_bilinear": True}
 #: Table I's rows as studies/table1.py held them before the grid (labels, overrides, states):
 #: the grid must give the same, or build/table1's trained models would not be found again
-#: (the last two rows, the vy anchor's and the physics dictionary's, added since).
+#: (the last three rows, the vy anchor's and the physics dictionary's, added since).
 ROWS_BEFORE = [
     ("DK scheduled + wheel angle, d=5", {}, WHEEL_STATES),
     ("DK scheduled, d=5", {}, VEHICLE),
@@ -51,6 +51,9 @@ ROWS_BEFORE = [
     ("mirror-symmetric, d=12 (3 even), physics dictionary, servo lag, steer-bilinear N(v)",
      {**SYMMETRIC, "n_features": 12, "even_features": 3, "dictionary": ("vy/vx", "r/vx", "vx*r", "vx^2/100")},
      WHEEL_STATES),
+    ("mirror-symmetric, d=12 (3 even), physics dictionary + gain anchor (w = 10)",
+     {**SYMMETRIC, "n_features": 12, "even_features": 3, "gain_anchor": 10.0,
+      "dictionary": ("vy/vx", "r/vx", "vx*r", "vx^2/100")}, WHEEL_STATES),
 ]
 CLOSED_FORM_BEFORE = ["DMDc", "EDMDc", "EDMDc physics dictionary, linear (edmdc-linear)",
                       "EDMDc physics dictionary, bilinear (edmdc-bilinear)", "linear bicycle (LMPC)",
@@ -120,7 +123,7 @@ def test_table1_grid_holds_the_rows_and_seeds_table1_had() -> None:
     assert {row.fit for row in ROWS} == {"train"} and DEFAULT_ROW is ROWS[5]
     assert [row.label for row in CLOSED_FORM_ROWS] == CLOSED_FORM_BEFORE
     grid = load_grid("table1")
-    assert len(grid.cells) == 14 * 5 and sorted({c.seed for c in grid.cells}) == [0, 1, 2, 3, 4]
+    assert len(grid.cells) == 15 * 5 and sorted({c.seed for c in grid.cells}) == [0, 1, 2, 3, 4]
 
 
 def test_cell_keys_name_row_seed_and_data(data_dir: Path, tmp_path: Path) -> None:
