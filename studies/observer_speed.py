@@ -3,8 +3,9 @@
 ESO-DKMPC's slow error pole (``eso_second_pole``: the disturbance estimate's time constant,
 about Ts / (1 - pole)) decides how fast the estimate follows a model error. The robustness
 grid's mismatch cells (mass +300 kg, steering lag x3) and the tuning set weigh that speed
-differently; this study measures both at each pole of :data:`POLES`, every other field at
-the tuning file's value:
+differently; this study measures both at each pole of the grid's ``tuning`` axis (the
+tuning file's own, and the ``[tunings.*]`` tables of ``observer_speed.toml``), every other
+field at the tuning file's value:
 
 1. **The robustness grid** (``make robustness``'s cells: double lane change and slalom over
    mu x speed x mass x steering lag), as the campaign grid ``studies/campaign/grids/
@@ -41,15 +42,15 @@ from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError
+from studies.campaign.axes import DEFAULT_TUNING
 from studies.robustness_records import RunRecord, records_from_rows
 from studies.robustness_report import HeadToHead, is_mismatch, observer_head_to_head
 from studies.robustness_summary import by_cell
 
 #: The campaign grid of the robustness part.
 GRID = "observer_speed"
-#: The swept field and its values (the grid's ``[tunings.*]`` tables and ``file``).
+#: The swept field (its values: the grid's ``[tunings.*]`` tables and the tuning file's).
 POLE_FIELD = "eso_second_pole"
-POLES = (0.85, 0.9, 0.95, 0.98)
 CONTROLLER = "eso-dkmpc"
 BASELINE = "dkmpc"
 
@@ -71,13 +72,13 @@ class PoleRow:
 
 
 def grid_poles(tunings: Mapping[str, Sequence[tuple[str, float]]], file_pole: float) -> dict[str, float]:
-    """The grid's tuning axis value -> its pole: ``file`` the tuning file's, every other the
+    """The grid's tuning axis value -> its pole: ``DEFAULT_TUNING`` the tuning file's, every other the
     value its override gives :data:`POLE_FIELD`. Raises HilError for an override that sets
     anything else."""
     poles = {}
     for name, override in tunings.items():
         fields = dict(override)
-        if name != "file" and set(fields) != {POLE_FIELD}:
+        if name != DEFAULT_TUNING and set(fields) != {POLE_FIELD}:
             raise HilError(f"grid {GRID}: tuning {name!r} must set {POLE_FIELD} only, got {sorted(fields)}")
         poles[name] = fields.get(POLE_FIELD, file_pole)
     return poles
@@ -102,7 +103,7 @@ def pole_rows(rows: Sequence[Mapping[str, Any]], poles: Mapping[str, float],
     baseline = [row for row in rows if row["controller"] == BASELINE]
     out = []
     for name, pole in sorted(poles.items(), key=lambda item: item[1]):
-        observed = [row for row in rows if row["controller"] == CONTROLLER and row.get("tuning", "file") == name]
+        observed = [row for row in rows if row["controller"] == CONTROLLER and row.get("tuning", DEFAULT_TUNING) == name]
         records = records_from_rows([*observed, *baseline], (CONTROLLER, BASELINE))
         counts = observer_head_to_head(records)
         if counts is None:
@@ -125,10 +126,6 @@ def tuning_objectives(poles: Sequence[float], *, workers: int, progress: bool) -
     evaluations = tune([CONTROLLER], disturbed_tuning_set(), load_tuning(), workers=workers,
                        progress=progress, grid=grid)[CONTROLLER]
     return {dict(e.setting)[POLE_FIELD]: e.objective_m for e in evaluations}
-
-
-def _cm(value: float) -> str:
-    return "-" if not math.isfinite(value) else f"{100 * value:.2f}"
 
 
 def report_markdown(rows: Sequence[PoleRow], file_pole: float, *, command: str, seconds: float) -> str:
@@ -156,7 +153,7 @@ def report_markdown(rows: Sequence[PoleRow], file_pole: float, *, command: str, 
         "|---|---|---|---|---|",
     ]
     for row in rows:
-        mark = " (tuning file)" if row.tuning == "file" else ""
+        mark = " (tuning file)" if row.tuning == DEFAULT_TUNING else ""
         lines.append(f"| {row.pole:g}{mark} | {row.mismatch.text()} | {row.every.text()} | "
                      f"{row.nominal_ratio_max:.3f} / {row.nominal_ratio_mean:.3f} ({row.nominal_cells} cells) | "
                      f"{1000 * row.tuning_objective_m:.2f} |")
