@@ -1,20 +1,27 @@
-"""Issue 40, item 3 on the identification log: the deep model of ``make identify`` beside the
-trainer's least-squares lifts, over seeds.
+"""Issue 40, item 3 on the identification log: the deep models beside the trainer's
+least-squares lifts, over seeds.
 
 On the one log of the identification drive (``build/identification/drive_changed.log``,
-``make identify``) the deep model is trained as ``make identify`` trains it
-(``python -m models.koopman_train --logs LOG --out DIR --replace --vehicle FILE``: the default
-form, the default settings) for each seed, one training at a time, each cached in
-``build/identification_lsq/`` under a key of the log's and vehicle file's contents, the
-seed and the options, so a rerun reuses it. Seed 0 draws the split by run exactly as
-``make identify`` does; the other seeds and the closed-form lifts (``--form edmdc-linear``,
-``--form edmdc-bilinear``, seconds) are given that split (``--val-runs`` / ``--test-runs``),
-so every model is measured on the same held-out test pieces (checked on each artefact's
-metadata: a model naming other test pieces is refused).
+``make identify``) each deep form of ``DEEP_FORMS`` is trained for each seed, one training
+at a time, each cached in ``build/identification_lsq/`` under a key of the log's and
+vehicle file's contents, the seed and the options, so a rerun reuses it:
+
+- the model as ``make identify`` trains it (``python -m models.koopman_train --logs LOG --out
+  DIR --replace --vehicle FILE``: the default form, the default settings);
+- Table I's candidate for the next default (issue 40): the mirror form with d = 12 learned
+  features (3 even) on the physics dictionary, the servo lag, the steer-bilinear term and the
+  gain anchor at weight 1 (``CANDIDATE_OPTIONS``, the trainer's options of Table I's row
+  ``studies.table1.DICTIONARY_LIGHT_ANCHOR_ROW``).
+
+Seed 0 of the first form draws the split by run exactly as ``make identify`` does; every
+other model, the closed-form lifts (``--form edmdc-linear``, ``--form edmdc-bilinear``,
+seconds) included, is given that split (``--val-runs`` / ``--test-runs``), so every model is
+measured on the same held-out test pieces (checked on each artefact's metadata: a model
+naming other test pieces is refused).
 
 The figures are Table I's (``studies.campaign.prediction_rows.evaluate``): open-loop RMSE
 over 1 s (40 steps) and 2 s (80 steps) of vx, vy and yaw rate with the recorded inputs on the
-test pieces; the deep model as mean and min/max over the seeds, and for vy and yaw rate the
+test pieces; each deep form as mean and min/max over the seeds, and for vy and yaw rate the
 ratio deep mean / best least-squares lift against the issue's goal (at most 0.9).
 
 Writes ``least_squares.md`` and ``.json`` into ``--out``. CLI: ``python -m
@@ -52,6 +59,14 @@ STEM = "least_squares"
 #: The trainer's default sample time (its --ts), the one make identify trains at.
 TS = 0.025
 DEEP_LABEL = "deep (make identify's default form)"
+#: The trainer's options of Table I's candidate row (issue 40): the d = 12 mirror form on the
+#: physics dictionary with the gain anchor at weight 1 (studies/campaign/grids/table1.toml).
+CANDIDATE_OPTIONS = ("--mirror-symmetric", "--features", "12", "--even-features", "3", "--servo-lag",
+                     "--steer-bilinear", "--dictionary", "vy/vx,r/vx,vx*r,vx^2/100", "--gain-anchor", "1")
+CANDIDATE_LABEL = "deep, d=12 mirror form on the physics dictionary + gain anchor (w = 1)"
+#: (label, cache prefix, the trainer's options besides seed, threads and split), make
+#: identify's own form first (its seed 0 draws the split every other model is given).
+DEEP_FORMS = ((DEEP_LABEL, "deep", ()), (CANDIDATE_LABEL, "dictionary", CANDIDATE_OPTIONS))
 
 
 def cache_key(log_sha256: str, vehicle_sha256: str, options: Sequence[str]) -> str:
@@ -130,47 +145,51 @@ def measure(folder: Path, test_runs: Sequence[Any]) -> dict[str, dict[str, float
     return evaluate(VehicleStates(model, len(model.state_names)), test_runs)
 
 
-def summarise(deep: Sequence[dict], least_squares: dict[str, dict]) -> dict[str, Any]:
+def summarise(deep: dict[str, Sequence[dict]], least_squares: dict[str, dict]) -> dict[str, Any]:
     """The table's cells and the goal's ratios.
 
-    ``deep``: per seed {state: {horizon: rmse}}; ``least_squares``: form -> the same.
-    Returns {rows: [{label, per state and horizon: {mean, min, max}}], goals: [{state, horizon,
-    deep_mean, deep_min, deep_max, best_least_squares, least_squares, ratio, goal, met}]}.
+    ``deep``: deep form's label -> per seed {state: {horizon: rmse}}; ``least_squares``:
+    form -> {state: {horizon: rmse}}. Returns {rows: [{label, seeds, figures: per state and
+    horizon {mean, min, max}}], goals: [{model, state, horizon, deep_mean, deep_min, deep_max,
+    best_least_squares, least_squares, ratio, goal, met}]}, the deep forms in ``deep``'s order.
     """
-    if not deep:
+    if not deep or not all(deep.values()):
         raise KoopmanError("no deep model to summarise")
-    rows = [{"label": DEEP_LABEL, "seeds": len(deep), "figures": {
-        state: {horizon: {"mean": float(np.mean([f[state][horizon] for f in deep])),
-                          "min": float(np.min([f[state][horizon] for f in deep])),
-                          "max": float(np.max([f[state][horizon] for f in deep]))}
-                for horizon in HORIZONS} for state in REPORTED_STATES}}]
+    rows = [{"label": label, "seeds": len(seeds), "figures": {
+        state: {horizon: {"mean": float(np.mean([f[state][horizon] for f in seeds])),
+                          "min": float(np.min([f[state][horizon] for f in seeds])),
+                          "max": float(np.max([f[state][horizon] for f in seeds]))}
+                for horizon in HORIZONS} for state in REPORTED_STATES}} for label, seeds in deep.items()]
+    goals = []
+    for row in rows:
+        for state in COMPARED_STATES:
+            for horizon in HORIZONS:
+                best = min(least_squares, key=lambda form: least_squares[form][state][horizon])
+                cell = row["figures"][state][horizon]
+                ratio = cell["mean"] / least_squares[best][state][horizon]
+                goals.append({"model": row["label"], "state": state, "horizon": horizon, "deep_mean": cell["mean"],
+                              "deep_min": cell["min"], "deep_max": cell["max"], "best_least_squares": best,
+                              "least_squares": least_squares[best][state][horizon], "ratio": ratio,
+                              "goal": GOAL_RATIO, "met": bool(ratio <= GOAL_RATIO)})
     for form, figures in least_squares.items():
         rows.append({"label": form, "seeds": None, "figures": {
             state: {horizon: {"mean": float(figures[state][horizon])} for horizon in HORIZONS}
             for state in REPORTED_STATES}})
-    goals = []
-    for state in COMPARED_STATES:
-        for horizon in HORIZONS:
-            best = min(least_squares, key=lambda form: least_squares[form][state][horizon])
-            cell = rows[0]["figures"][state][horizon]
-            ratio = cell["mean"] / least_squares[best][state][horizon]
-            goals.append({"state": state, "horizon": horizon, "deep_mean": cell["mean"], "deep_min": cell["min"],
-                          "deep_max": cell["max"], "best_least_squares": best,
-                          "least_squares": least_squares[best][state][horizon], "ratio": ratio,
-                          "goal": GOAL_RATIO, "met": bool(ratio <= GOAL_RATIO)})
     return {"rows": rows, "goals": goals}
 
 
 def markdown(summary: dict[str, Any], log: Path, seeds: Sequence[int], test_pieces: Sequence[str]) -> str:
     """The report: the table, then a sentence per goal."""
-    deep = summary["rows"][0]
-    lines = ["# The deep model beside the least-squares lifts, on the identification log", "",
+    n_seeds = summary["rows"][0]["seeds"]
+    lines = ["# The deep models beside the least-squares lifts, on the identification log", "",
              "Generated by `make identify-lsq` (`python -m studies.identification_least_squares`). "
-             f"Log `{log}`; deep model trained as `make identify` trains it, seeds {', '.join(map(str, seeds))} "
+             f"Log `{log}`; the deep model trained as `make identify` trains it and Table I's candidate "
+             "for the next default (trainer options "
+             f"`{' '.join(CANDIDATE_OPTIONS)}`), seeds {', '.join(map(str, seeds))} "
              f"({len(seeds)} seed{'s' if len(seeds) != 1 else ''}); the lifts `--form edmdc-linear` / "
              "`edmdc-bilinear` fitted in closed form from the same log. Every model on the same held-out test "
              f"pieces: {', '.join(test_pieces)}.", "",
-             "Open-loop RMSE with the recorded inputs (1 s = 40 steps, 2 s = 80 steps); the deep model's mean "
+             "Open-loop RMSE with the recorded inputs (1 s = 40 steps, 2 s = 80 steps); each deep model's mean "
              "over the seeds, with [min, max].", ""]
     head = [f"{h} {s}" for h in HORIZONS for s in REPORTED_STATES]
     lines += ["| model | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
@@ -186,11 +205,15 @@ def markdown(summary: dict[str, Any], log: Path, seeds: Sequence[int], test_piec
         label = row["label"] + (f", {row['seeds']} seeds" if row["seeds"] else "")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines += ["", f"Issue 40's goal: deep mean / best least-squares lift at most {GOAL_RATIO} "
-                  f"(over {deep['seeds']} seed{'s' if deep['seeds'] != 1 else ''}).", ""]
-    for goal in summary["goals"]:
-        verdict = "met" if goal["met"] else "NOT met"
-        lines.append(f"- {goal['state']}, {goal['horizon']}: deep {goal['deep_mean']:.4f} / "
-                     f"{goal['best_least_squares']} {goal['least_squares']:.4f} = {goal['ratio']:.2f}: {verdict}.")
+                  f"(over {n_seeds} seed{'s' if n_seeds != 1 else ''}).", ""]
+    for model in dict.fromkeys(goal["model"] for goal in summary["goals"]):
+        lines.append(f"{model}:")
+        lines.append("")
+        for goal in (g for g in summary["goals"] if g["model"] == model):
+            verdict = "met" if goal["met"] else "NOT met"
+            lines.append(f"- {goal['state']}, {goal['horizon']}: deep {goal['deep_mean']:.4f} / "
+                         f"{goal['best_least_squares']} {goal['least_squares']:.4f} = {goal['ratio']:.2f}: {verdict}.")
+        lines.append("")
     return "\n".join([*lines, ""])
 
 
@@ -218,16 +241,18 @@ def run_study(log: Path, vehicle: Path, out: Path, seeds: Sequence[int], work: P
     digests = (file_digest(log), file_digest(vehicle))  # both checked to exist above
     threads = ["--threads", "1"]
     folders: dict[str, Path] = {}
-    # seed 0 draws the split as make identify does; every other model is given that split
+    # make identify's form, seed 0, draws the split as make identify does; every other model is given it
     ordered = sorted(seeds, key=lambda seed: seed != 0)
     split = None
-    for done, seed in enumerate(ordered):
-        given = None if seed == 0 else split
-        print(f"[{done + 1}/{len(ordered)}] deep model, seed {seed}", flush=True)
-        folder = train_cached(log, vehicle, work, f"deep-seed{seed}",
-                              ["--seed", str(seed), *threads, *split_options(given)], digests, replace)
-        folders[f"deep seed {seed}"] = folder
-        split = split or read_split(folder)
+    total = len(ordered) * len(DEEP_FORMS)
+    for form_index, (label, prefix, options) in enumerate(DEEP_FORMS):
+        for done, seed in enumerate(ordered):
+            given = None if (form_index == 0 and seed == 0) else split
+            print(f"[{form_index * len(ordered) + done + 1}/{total}] {label}, seed {seed}", flush=True)
+            folder = train_cached(log, vehicle, work, f"{prefix}-seed{seed}",
+                                  [*options, "--seed", str(seed), *threads, *split_options(given)], digests, replace)
+            folders[f"{prefix} seed {seed}"] = folder
+            split = split or read_split(folder)
     for form in LEAST_SQUARES_FORMS:
         folders[form] = train_cached(log, vehicle, work, form, ["--form", form, *split_options(split)],
                                      digests, replace)
@@ -236,7 +261,7 @@ def run_study(log: Path, vehicle: Path, out: Path, seeds: Sequence[int], work: P
     by_name = {run.name: run for run in runs}
     test_runs = [by_name[name] for name in read_split(folders[next(iter(folders))])["test"]]
     figures = {label: measure(folder, test_runs) for label, folder in folders.items()}
-    deep = [figures[f"deep seed {seed}"] for seed in ordered]
+    deep = {label: [figures[f"{prefix} seed {seed}"] for seed in ordered] for label, prefix, _ in DEEP_FORMS}
     summary = summarise(deep, {form: figures[form] for form in LEAST_SQUARES_FORMS})
     out.mkdir(exist_ok=True)
     written = [out / f"{STEM}.md", out / f"{STEM}.json"]
@@ -255,7 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--log", type=Path, required=True, help="the identification drive's CAN log")
     parser.add_argument("--vehicle", type=Path, required=True, help="its vehicle file (as make identify gives it)")
     parser.add_argument("--out", type=Path, required=True, help="folder for least_squares.md/.json")
-    parser.add_argument("--seeds", type=_seeds, default=DEFAULT_SEEDS, help="deep model seeds (default 0,1,2,3,4)")
+    parser.add_argument("--seeds", type=_seeds, default=DEFAULT_SEEDS, help="seeds of each deep form (default 0,1,2,3,4)")
     parser.add_argument("--work", type=Path, default=Path("build/identification_lsq"),
                         help="cache of the trained models, keyed by seed and settings")
     parser.add_argument("--replace", action="store_true", help="train and fit again, ignoring the cache")

@@ -6,8 +6,11 @@ default model (speed-scheduled lift with the measured wheel angle in the state),
 scheduled form on [vx, vy, r] alone (what the wheel angle adds), the bilinear form with the
 dictionary, the paper's linear form (eq. 5), and the mirror-symmetric form with its
 steer-bilinear term, without and with the gain anchor (the latter the default,
-``DEFAULT_ROW``, since issue 14's step steer), and the default with the lateral velocity's
-anchor as well (``--gain-anchor-vy``, issue 40), each trained (``ROWS``) with ``SEEDS`` (5
+``DEFAULT_ROW``, since issue 14's step steer), the default with the lateral velocity's
+anchor as well (``--gain-anchor-vy``, issue 40, ``VY_ANCHOR_ROW``), and the mirror form with
+d = 12 learned features on the physics dictionary (issue 40) without the gain anchor
+(``DICTIONARY_ROW``), with it at weight 10 (``DICTIONARY_ANCHOR_ROW``) and at weight 1
+(``DICTIONARY_LIGHT_ANCHOR_ROW``), each trained (``ROWS``) with ``SEEDS`` (5
 seeds: the seed draws the weights AND the train / validation / test split by run) on the
 same data set (default ``data/wide``, the default artefact's). Beside them, fitted or built
 on each seed's split (``CLOSED_FORM_ROWS``): DMDc, EDMDc (monomials), the trainer's
@@ -87,11 +90,13 @@ DEFAULT_ROW = next(row for row in ROWS if row.label.endswith("(default)"))
 #: training sets ``gain_anchor_vy``.
 VY_ANCHOR_ROW = next(row for row in ROWS if row.overrides.get("gain_anchor_vy"))
 #: The mirror form with the physics dictionary as a fixed part of its lift (issue 40),
-#: without and with the gain anchor.
+#: without the gain anchor, with it at the default's weight 10 and at weight 1.
 DICTIONARY_ROW = next(row for row in ROWS if row.overrides.get("mirror_symmetric") and row.overrides.get("dictionary")
                       and not row.overrides.get("gain_anchor"))
 DICTIONARY_ANCHOR_ROW = next(row for row in ROWS
-                             if row.overrides.get("dictionary") and row.overrides.get("gain_anchor"))
+                             if row.overrides.get("dictionary") and row.overrides.get("gain_anchor") == 10.0)
+DICTIONARY_LIGHT_ANCHOR_ROW = next(row for row in ROWS
+                                   if row.overrides.get("dictionary") and row.overrides.get("gain_anchor") == 1.0)
 
 
 def _mean_sd(values: Sequence[float]) -> str:

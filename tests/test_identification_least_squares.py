@@ -9,7 +9,8 @@ import pytest
 
 from models.errors import KoopmanError
 from studies.identification_least_squares import (
-    DEEP_LABEL, GOAL_RATIO, cache_key, check_same_test_pieces, main, markdown, split_options, summarise)
+    CANDIDATE_LABEL, DEEP_LABEL, GOAL_RATIO, cache_key, check_same_test_pieces, main, markdown, split_options,
+    summarise)
 
 
 def _figures(vx: float, vy: float, yaw_rate: float) -> dict[str, dict[str, float]]:
@@ -40,13 +41,14 @@ def test_no_model_is_refused() -> None:
 
 
 def test_summary_mean_min_max_and_ratio_to_the_best_lift() -> None:
-    deep = [_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)]
+    deep = {DEEP_LABEL: [_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)]}
     lifts = {"edmdc-linear": _figures(0.05, 0.030, 0.010), "edmdc-bilinear": _figures(0.05, 0.015, 0.020)}
     summary = summarise(deep, lifts)
     cell = summary["rows"][0]["figures"]["vy"]["1 s"]
     assert cell == pytest.approx({"mean": 0.015, "min": 0.010, "max": 0.020})
     goals = {(g["state"], g["horizon"]): g for g in summary["goals"]}
     assert set(goals) == {(s, h) for s in ("vy", "yaw_rate") for h in ("1 s", "2 s")}
+    assert {g["model"] for g in summary["goals"]} == {DEEP_LABEL}
     vy = goals[("vy", "1 s")]
     assert vy["best_least_squares"] == "edmdc-bilinear"
     assert vy["ratio"] == pytest.approx(0.015 / 0.015)
@@ -57,8 +59,28 @@ def test_summary_mean_min_max_and_ratio_to_the_best_lift() -> None:
     assert yaw["met"] is True and yaw["goal"] == GOAL_RATIO
 
 
+def test_each_deep_form_has_its_row_and_its_own_goals_before_the_lifts() -> None:
+    deep = {DEEP_LABEL: [_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)],
+            CANDIDATE_LABEL: [_figures(0.05, 0.012, 0.006), _figures(0.05, 0.012, 0.010)]}
+    lifts = {"edmdc-linear": _figures(0.05, 0.030, 0.010), "edmdc-bilinear": _figures(0.05, 0.015, 0.020)}
+    summary = summarise(deep, lifts)
+    assert [row["label"] for row in summary["rows"]] == [DEEP_LABEL, CANDIDATE_LABEL, "edmdc-linear", "edmdc-bilinear"]
+    candidate = {(g["state"], g["horizon"]): g for g in summary["goals"] if g["model"] == CANDIDATE_LABEL}
+    assert len(summary["goals"]) == 8 and len(candidate) == 4
+    assert candidate[("yaw_rate", "1 s")]["ratio"] == pytest.approx(0.008 / 0.010)
+    assert candidate[("vy", "1 s")]["ratio"] == pytest.approx(0.012 / 0.015)
+    text = markdown(summary, Path("log"), [0, 1], ["log#004"])
+    assert text.index(f"{DEEP_LABEL}:") < text.index(f"{CANDIDATE_LABEL}:")
+    assert "- yaw_rate, 1 s: deep 0.0080 / edmdc-linear 0.0100 = 0.80: met." in text
+
+
+def test_a_form_without_seeds_is_refused() -> None:
+    with pytest.raises(KoopmanError, match="no deep model"):
+        summarise({DEEP_LABEL: []}, {"edmdc-linear": _figures(0.05, 0.030, 0.010)})
+
+
 def test_markdown_names_each_goal_with_its_ratio_and_verdict() -> None:
-    summary = summarise([_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)],
+    summary = summarise({DEEP_LABEL: [_figures(0.04, 0.010, 0.004), _figures(0.06, 0.020, 0.002)]},
                         {"edmdc-linear": _figures(0.05, 0.030, 0.010),
                          "edmdc-bilinear": _figures(0.05, 0.015, 0.020)})
     text = markdown(summary, Path("build/identification/drive_changed.log"), [0, 1], ["log#004", "log#019"])

@@ -24,6 +24,11 @@ def test_table_has_a_row_per_controller_and_scenario_with_mean_and_spread() -> N
     runs["eso-dkmpc" + seed_spread.DICTIONARY] = runs["eso-dkmpc"]
     both = seed_spread.markdown({"seeds": [0, 1, 2], "runs": runs})
     assert len([line for line in both.splitlines() if line.startswith("| eso-dkmpc + dictionary, d=12 |")]) == 2
+    runs["eso-dkmpc" + seed_spread.DICTIONARY_LIGHT_ANCHOR] = runs["eso-dkmpc"]
+    light = seed_spread.markdown({"seeds": [0, 1, 2], "runs": runs})
+    assert len([line for line in light.splitlines()
+                if line.startswith("| eso-dkmpc + dictionary, d=12, anchor w=1 |")]) == 2
+    assert len([line for line in light.splitlines() if line.startswith("| eso-dkmpc + dictionary, d=12 |")]) == 2
 
 
 def test_missing_seed_models_name_the_command(tmp_path: Path) -> None:
