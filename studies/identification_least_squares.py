@@ -44,6 +44,7 @@ import numpy as np
 
 from models.errors import KoopmanError, ModelError
 from studies.provenance import file_digest
+from studies.table1 import DICTIONARY_LIGHT_ANCHOR_ROW
 
 REPO = Path(__file__).resolve().parents[1]
 #: The least-squares lifts of the trainer, fitted in closed form from the same log.
@@ -59,10 +60,40 @@ STEM = "least_squares"
 #: The trainer's default sample time (its --ts), the one make identify trains at.
 TS = 0.025
 DEEP_LABEL = "deep (make identify's default form)"
-#: The trainer's options of Table I's candidate row (issue 40): the d = 12 mirror form on the
-#: physics dictionary with the gain anchor at weight 1 (studies/campaign/grids/table1.toml).
-CANDIDATE_OPTIONS = ("--mirror-symmetric", "--features", "12", "--even-features", "3", "--servo-lag",
-                     "--steer-bilinear", "--dictionary", "vy/vx,r/vx,vx*r,vx^2/100", "--gain-anchor", "1")
+#: Training settings of a Table I row -> the trainer's option (``models/koopman_cli.py``), in
+#: the order the options are written (the models' cache key depends on it).
+TRAINER_FLAGS = {"mirror_symmetric": "--mirror-symmetric", "n_features": "--features",
+                 "even_features": "--even-features", "servo_lag": "--servo-lag",
+                 "steer_bilinear": "--steer-bilinear", "dictionary": "--dictionary", "gain_anchor": "--gain-anchor"}
+
+
+def trainer_options(overrides: dict[str, Any]) -> tuple[str, ...]:
+    """The trainer's command-line options of a Table I row's training settings.
+
+    Raises:
+        KoopmanError: a setting without an option in ``TRAINER_FLAGS``.
+    """
+    unknown = sorted(set(overrides) - set(TRAINER_FLAGS))
+    if unknown:
+        raise KoopmanError(f"no trainer option for the settings {', '.join(unknown)}")
+    options: list[str] = []
+    for name, flag in TRAINER_FLAGS.items():
+        if name not in overrides:
+            continue
+        value = overrides[name]
+        if isinstance(value, bool):
+            options += [flag] if value else []
+        elif isinstance(value, tuple):
+            options += [flag, ",".join(value)]
+        else:
+            options += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
+    return tuple(options)
+
+
+#: The trainer's options of Table I's candidate row (issue 40), taken from the row itself
+#: (``studies.table1.DICTIONARY_LIGHT_ANCHOR_ROW``, studies/campaign/grids/table1.toml): the
+#: d = 12 mirror form on the physics dictionary with the gain anchor at weight 1.
+CANDIDATE_OPTIONS = trainer_options(DICTIONARY_LIGHT_ANCHOR_ROW.overrides)
 CANDIDATE_LABEL = "deep, d=12 mirror form on the physics dictionary + gain anchor (w = 1)"
 #: (label, cache prefix, the trainer's options besides seed, threads and split), make
 #: identify's own form first (its seed 0 draws the split every other model is given).

@@ -128,3 +128,25 @@ def test_cli_bad_seeds_are_refused(tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(["--log", "x.log", "--vehicle", "v.toml", "--out", str(tmp_path), "--seeds", "0,a"])
     assert exit_info.value.code == 2
+
+
+def test_candidate_options_are_the_table1_rows_settings_through_the_trainers_parser() -> None:
+    from models.koopman_cli import build_parser
+    from studies.identification_least_squares import CANDIDATE_OPTIONS
+    from studies.table1 import DICTIONARY_LIGHT_ANCHOR_ROW
+
+    args = build_parser().parse_args(["--logs", "drive.log", "--out", "out", *CANDIDATE_OPTIONS])
+    row = DICTIONARY_LIGHT_ANCHOR_ROW.overrides
+    parsed = {"mirror_symmetric": args.mirror_symmetric, "n_features": args.features,
+              "even_features": args.even_features, "servo_lag": args.servo_lag,
+              "steer_bilinear": args.steer_bilinear, "dictionary": tuple(args.dictionary),
+              "gain_anchor": args.gain_anchor}
+    assert parsed == {name: row[name] for name in parsed} and set(row) == set(parsed)
+
+
+def test_a_setting_without_a_trainer_option_is_refused() -> None:
+    from studies.identification_least_squares import trainer_options
+
+    assert trainer_options({"gain_anchor": 2.5, "servo_lag": False}) == ("--gain-anchor", "2.5")
+    with pytest.raises(KoopmanError, match="lateral_per_step"):
+        trainer_options({"n_features": 8, "lateral_per_step": True})
