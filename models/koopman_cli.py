@@ -26,6 +26,7 @@ from models.koopman_metrics import OPEN_LOOP_STEPS
 from models.koopman_settings import DEFAULT_INPUTS, DEFAULT_STATES, TrainingSettings, settings_for_data
 from models.lifted_least_squares import LEAST_SQUARES_FORMS, fit_least_squares
 from models.local_lateral_fit import friction_of_runs
+from models.range_coverage import coverage_lines, held_out_coverage
 
 #: The description ``--help`` shows (the first line of ``models/koopman_train.py``'s docstring).
 DESCRIPTION = "Training of the deep Koopman model in torch (build time only; the ECU never imports this)."
@@ -211,6 +212,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"note: {note}")
         reference = None if args.compare_with is None else load_reference(args.compare_with, runs, ts)
         result = fit(runs, ts, settings, progress=not args.no_progress, metadata=meta, friction=friction)
+        by_name = {run.name: run for run in runs}
+        if result.test_runs:
+            result.model.metadata["test_coverage"] = held_out_coverage(
+                result.model, [by_name[name] for name in result.train_runs], [by_name[name] for name in result.test_runs])
         if args.logs:
             npz_path, json_path = save_artifact(out_folder / "koopman", result.learned, result.model.metadata)
             for path in write_log_products(out_folder, result.model, runs, result.test_runs, ts,
@@ -233,8 +238,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"  test {name:>10}: one-step max/avg/rmse {figures['one_step_max']:.4f} / "
               f"{figures['one_step_avg']:.4f} / {figures['one_step_rmse']:.4f}, "
               f"{OPEN_LOOP_STEPS}-step rmse {figures['open_loop_rmse']:.4f}")
+    for line in coverage_lines(meta["test_coverage"]) if "test_coverage" in meta else ():
+        print(f"warning: {line}")
     if reference is not None:
-        by_name = {run.name: run for run in runs}
         return compare_with_reference(meta, [by_name[name] for name in result.test_runs], reference)
     return 0
 

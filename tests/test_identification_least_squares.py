@@ -150,3 +150,18 @@ def test_a_setting_without_a_trainer_option_is_refused() -> None:
     assert trainer_options({"gain_anchor": 2.5, "servo_lag": False}) == ("--gain-anchor", "2.5")
     with pytest.raises(KoopmanError, match="lateral_per_step"):
         trainer_options({"n_features": 8, "lateral_per_step": True})
+
+
+def test_markdown_gives_the_stretches_within_the_training_range_their_own_table_and_goals() -> None:
+    lifts = {"edmdc-linear": _figures(0.05, 0.030, 0.010), "edmdc-bilinear": _figures(0.05, 0.015, 0.020)}
+    summary = summarise({DEEP_LABEL: [_figures(0.2, 0.010, 0.004)]}, lifts)
+    within = {"summary": summarise({DEEP_LABEL: [_figures(0.02, 0.020, 0.004)]}, lifts),
+              "outside": [{"run": "log#006", "state": "vx", "samples": 882, "of": 1224, "low": 2.43, "high": 12.34}],
+              "training_min": {"vx": 3.38}, "training_max": {"vx": 30.13}, "samples": 2785, "test_samples": 3672}
+    text = markdown(summary, Path("log"), [0], ["log#004", "log#006"], within)
+    before, after = text.split("## Within the training pieces' states")
+    assert "- log#006: 882 of 1224 samples with vx outside 3.38 .. 30.13 (the piece's 2.43 .. 12.34)" in after
+    assert "(2785 of 3672 samples)" in after
+    assert "- vy, 1 s: deep 0.0100 / edmdc-bilinear 0.0150 = 0.67: met." in before
+    assert "- vy, 1 s: deep 0.0200 / edmdc-bilinear 0.0150 = 1.33: NOT met." in after
+    assert "0.0200" in after and "| 0.2000 |" not in after
