@@ -23,7 +23,6 @@ from models.bicycle import LinearBicycle
 from models.bicycle_fit import BicycleFitError, FittedBicyclePredictor, fit_bicycle, save_bicycle
 from models.koopman import DEFAULT_ARTIFACT, KoopmanError, KoopmanModel
 from models.koopman_metrics import OPEN_LOOP_STEPS, Trajectory, prediction_errors
-from models.range_coverage import coverage_lines
 
 VEHICLE_STATES = ("vx", "vy", "yaw_rate")
 FIGURES = ("one_step_max", "one_step_avg", "one_step_rmse", "open_loop_rmse")
@@ -138,8 +137,7 @@ def write_log_products(out_dir: Path, model: KoopmanModel, runs: Sequence[Trajec
     report = {"data": data_metadata, "warnings": list(warnings), "test_pieces": list(test_names),
               "test_seconds": round(sum(len(r) for r in test_runs) * ts, 2),
               "open_loop_steps": OPEN_LOOP_STEPS, "prediction_errors": errors,
-              "bicycle": json.loads((out_dir / "bicycle.json").read_text()) if bicycle else fit_note,
-              "test_coverage": model.metadata.get("test_coverage")}
+              "bicycle": json.loads((out_dir / "bicycle.json").read_text()) if bicycle else fit_note}
     json_path = out_dir / "report.json"
     json_path.write_text(json.dumps(report, indent=1) + "\n")
     md_path = out_dir / "report.md"
@@ -172,8 +170,4 @@ def report_markdown(report: dict[str, Any]) -> str:
     for name, per_state in report["prediction_errors"].items():
         for state, figures in per_state.items():
             lines.append(f"| {name} | {state} | " + " | ".join(f"{figures[f]:.4f}" for f in FIGURES) + " |")
-    beyond = coverage_lines(report["test_coverage"]) if report.get("test_coverage") else []
-    if beyond:
-        lines += ["", "The held-out pieces beyond the training pieces' states (models.range_coverage), and the "
-                  "identified Koopman model's figures on their stretches within:", "", *[f"- {line}" for line in beyond]]
     return "\n".join(lines) + "\n"

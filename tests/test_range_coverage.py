@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from models.koopman_cli import main
 from models.koopman_metrics import Trajectory, prediction_errors
@@ -80,7 +79,7 @@ def test_no_stretch_long_enough_gives_no_figures_and_says_so() -> None:
 
 def test_the_trainer_warns_of_a_test_run_beyond_the_training_speeds(tmp_path: Path, capsys) -> None:
     """A test run driven slower than every training run: the trainer prints the warning and
-    keeps the coverage in the artefact's metadata."""
+    the figures within the range, and leaves the artefact's metadata as it was."""
     files = _write_runs(tmp_path / "runs")
     speeds = {path.stem: np.loadtxt(path, delimiter=",", skiprows=1)[:, 1] for path in files}
     slowest = min(speeds, key=lambda name: speeds[name].min())
@@ -91,6 +90,9 @@ def test_the_trainer_warns_of_a_test_run_beyond_the_training_speeds(tmp_path: Pa
                  "--test-runs", slowest, "--val-runs", others[0]]) == 0
     printed = capsys.readouterr().out
     assert f"warning: test run {slowest}: " in printed and "samples have vx outside the training data's" in printed
-    coverage = json.loads((tmp_path / "model.json").read_text())["test_coverage"]
-    assert coverage["outside"][0]["run"] == slowest and coverage["outside"][0]["state"] == "vx"
-    assert coverage["training_min"]["vx"] == pytest.approx(min(speeds[name].min() for name in others[1:]))
+    training_min = min(speeds[name].min() for name in others[1:])
+    assert f"the training data's {training_min:.4g} .. " in printed
+    # this slow run stays within the range for fewer than 40 steps at a time
+    assert printed.rstrip().endswith("warning: no test stretch within the training range is long enough for the "
+                                     "open-loop figures")
+    assert "test_coverage" not in json.loads((tmp_path / "model.json").read_text())
