@@ -9,7 +9,8 @@ seed). The learned controllers also run on each seed of three other rows of Tabl
 40), what each form would do in closed loop before it could become the default: the default
 with the lateral velocity's anchor as well (``VY_ANCHOR_ROW``, ``--gain-anchor-vy 10``) and
 the wider mirror form on the physics dictionary with the gain anchor at weight 10
-(``DICTIONARY_ANCHOR_ROW``) and at weight 1 (``DICTIONARY_LIGHT_ANCHOR_ROW``).
+(``DICTIONARY_ANCHOR_ROW``) and at weight 1 (``DICTIONARY_LIGHT_ANCHOR_ROW``), and the last
+without the dictionary's vx^2/100 (``DICTIONARY_NO_SQUARE_ROW``).
 It writes ``results/seed_spread.md`` / ``.json``: e_Y RMSE per seed, and mean ± sd.
 
 No tuning happens here: the settings are those of ``controller/tuning.toml``.
@@ -29,7 +30,8 @@ from controller.tuning import load_tuning
 from hil.scenario import load_scenario
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 from studies.closed_loop import run_closed_loop
-from studies.table1 import (DEFAULT_ROW, DICTIONARY_ANCHOR_ROW, DICTIONARY_LIGHT_ANCHOR_ROW, VY_ANCHOR_ROW, Row,
+from studies.table1 import (DEFAULT_ROW, DICTIONARY_ANCHOR_ROW, DICTIONARY_LIGHT_ANCHOR_ROW, DICTIONARY_NO_SQUARE_ROW,
+                            VY_ANCHOR_ROW, Row,
                             cached_model_path)
 
 SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
@@ -39,10 +41,12 @@ PHYSICS = ("lmpc", "nmpc")
 VY_ANCHOR = " + vy anchor"
 DICTIONARY = " + dictionary, d=12"
 DICTIONARY_LIGHT_ANCHOR = " + dictionary, d=12, anchor w=1"
+NO_SQUARE = " + dictionary without vx^2, d=12, anchor w=1"
 #: (suffix, Table I's row, the JSON key of its artefacts), the default first.
 FORMS = (("", DEFAULT_ROW, "artifacts"), (VY_ANCHOR, VY_ANCHOR_ROW, "vy_anchor_artifacts"),
          (DICTIONARY, DICTIONARY_ANCHOR_ROW, "dictionary_artifacts"),
-         (DICTIONARY_LIGHT_ANCHOR, DICTIONARY_LIGHT_ANCHOR_ROW, "dictionary_light_anchor_artifacts"))
+         (DICTIONARY_LIGHT_ANCHOR, DICTIONARY_LIGHT_ANCHOR_ROW, "dictionary_light_anchor_artifacts"),
+         (NO_SQUARE, DICTIONARY_NO_SQUARE_ROW, "no_square_artifacts"))
 
 
 def seed_artifacts(models_dir: Path, seeds: Sequence[int], row: Row = DEFAULT_ROW) -> dict[int, Path]:
@@ -81,7 +85,8 @@ def markdown(doc: dict) -> str:
              "without CAN (as `make tables`); the learned controllers once per seed of the default model "
              "(seed 0 = the committed artefact), of Table I's row with the lateral velocity's anchor as well "
              f"(`{VY_ANCHOR.strip()}`) and of its rows of the d = 12 mirror form on the physics dictionary with the "
-             f"gain anchor at weight 10 (`{DICTIONARY.strip()}`) and at weight 1 (`{DICTIONARY_LIGHT_ANCHOR.strip()}`; "
+             f"gain anchor at weight 10 (`{DICTIONARY.strip()}`) and at weight 1 (`{DICTIONARY_LIGHT_ANCHOR.strip()}`), "
+             f"the last without the dictionary's vx^2/100 (`{NO_SQUARE.strip()}`; "
              "every seed of these trained by `make table1`), the physics-model ones once. "
              "`*`: did not complete.", "",
              "| controller | scenario | " + " | ".join(f"seed {s}" for s in doc["seeds"]) + " | mean ± sd |",

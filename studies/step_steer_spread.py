@@ -69,7 +69,8 @@ from models.errors import ModelError
 from models.koopman import DEFAULT_SPEED_KNOTS, KoopmanError
 from models.local_lateral_fit import single_track_yaw_rate
 from studies.model_fidelity import STEP_SPEEDS, BicyclePredictor, plant_step_steer, step_steer_final
-from studies.table1 import (DEFAULT_ROW, DICTIONARY_ANCHOR_ROW, DICTIONARY_LIGHT_ANCHOR_ROW, DICTIONARY_ROW, ROWS, SEEDS,
+from studies.table1 import (DEFAULT_ROW, DICTIONARY_ANCHOR_ROW, DICTIONARY_LIGHT_ANCHOR_ROW, DICTIONARY_NO_SQUARE_ROW,
+                            DICTIONARY_ROW, ROWS, SEEDS,
                             VY_ANCHOR_ROW, Row, VehicleStates, WHEEL_STATES, _indices, cached_model, evaluate,
                             train_missing)
 
@@ -98,6 +99,7 @@ VARIANTS = (
     DICTIONARY_ROW,  # the wider mirror form on the physics dictionary, no anchor (issue 40)
     DICTIONARY_ANCHOR_ROW,  # the same with the gain anchor
     DICTIONARY_LIGHT_ANCHOR_ROW,  # the same with the gain anchor at weight 1
+    DICTIONARY_NO_SQUARE_ROW,  # the same without the dictionary's vx^2/100
 )
 
 

@@ -130,13 +130,16 @@ def test_cli_bad_seeds_are_refused(tmp_path: Path) -> None:
     assert exit_info.value.code == 2
 
 
-def test_candidate_options_are_the_table1_rows_settings_through_the_trainers_parser() -> None:
+@pytest.mark.parametrize("options, row_name", [("CANDIDATE_OPTIONS", "DICTIONARY_LIGHT_ANCHOR_ROW"),
+                                               ("NO_SQUARE_OPTIONS", "DICTIONARY_NO_SQUARE_ROW")])
+def test_candidate_options_are_the_table1_rows_settings_through_the_trainers_parser(options: str,
+                                                                                    row_name: str) -> None:
+    import studies.identification_least_squares as study
+    import studies.table1 as table1
     from models.koopman_cli import build_parser
-    from studies.identification_least_squares import CANDIDATE_OPTIONS
-    from studies.table1 import DICTIONARY_LIGHT_ANCHOR_ROW
 
-    args = build_parser().parse_args(["--logs", "drive.log", "--out", "out", *CANDIDATE_OPTIONS])
-    row = DICTIONARY_LIGHT_ANCHOR_ROW.overrides
+    args = build_parser().parse_args(["--logs", "drive.log", "--out", "out", *getattr(study, options)])
+    row = getattr(table1, row_name).overrides
     parsed = {"mirror_symmetric": args.mirror_symmetric, "n_features": args.features,
               "even_features": args.even_features, "servo_lag": args.servo_lag,
               "steer_bilinear": args.steer_bilinear, "dictionary": tuple(args.dictionary),
@@ -165,3 +168,12 @@ def test_markdown_gives_the_stretches_within_the_training_range_their_own_table_
     assert "- vy, 1 s: deep 0.0100 / edmdc-bilinear 0.0150 = 0.67: met." in before
     assert "- vy, 1 s: deep 0.0200 / edmdc-bilinear 0.0150 = 1.33: NOT met." in after
     assert "0.0200" in after and "| 0.2000 |" not in after
+
+
+def test_the_three_deep_forms_are_identifys_then_the_two_table1_candidates() -> None:
+    from studies.identification_least_squares import CANDIDATE_OPTIONS, DEEP_FORMS, NO_SQUARE_OPTIONS
+
+    assert [(prefix, options) for _, prefix, options in DEEP_FORMS] == [
+        ("deep", ()), ("dictionary", CANDIDATE_OPTIONS), ("no-square", NO_SQUARE_OPTIONS)]
+    dictionary = NO_SQUARE_OPTIONS[NO_SQUARE_OPTIONS.index("--dictionary") + 1]
+    assert dictionary == "vy/vx,r/vx,vx*r"

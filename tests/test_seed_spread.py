@@ -29,6 +29,11 @@ def test_table_has_a_row_per_controller_and_scenario_with_mean_and_spread() -> N
     assert len([line for line in light.splitlines()
                 if line.startswith("| eso-dkmpc + dictionary, d=12, anchor w=1 |")]) == 2
     assert len([line for line in light.splitlines() if line.startswith("| eso-dkmpc + dictionary, d=12 |")]) == 2
+    runs["eso-dkmpc" + seed_spread.NO_SQUARE] = runs["eso-dkmpc"]
+    square = seed_spread.markdown({"seeds": [0, 1, 2], "runs": runs})
+    assert len([line for line in square.splitlines()
+                if line.startswith("| eso-dkmpc + dictionary without vx^2, d=12, anchor w=1 |")]) == 2
+    assert seed_spread.FORMS[-1][1] is seed_spread.DICTIONARY_NO_SQUARE_ROW
 
 
 def test_missing_seed_models_name_the_command(tmp_path: Path) -> None:

@@ -57,6 +57,9 @@ ROWS_BEFORE = [
     ("mirror-symmetric, d=12 (3 even), physics dictionary + gain anchor (w = 1)",
      {**SYMMETRIC, "n_features": 12, "even_features": 3, "gain_anchor": 1.0,
       "dictionary": ("vy/vx", "r/vx", "vx*r", "vx^2/100")}, WHEEL_STATES),
+    ("mirror-symmetric, d=12 (3 even), physics dictionary without vx^2 + gain anchor (w = 1)",
+     {**SYMMETRIC, "n_features": 12, "even_features": 3, "gain_anchor": 1.0,
+      "dictionary": ("vy/vx", "r/vx", "vx*r")}, WHEEL_STATES),
 ]
 CLOSED_FORM_BEFORE = ["DMDc", "EDMDc", "EDMDc physics dictionary, linear (edmdc-linear)",
                       "EDMDc physics dictionary, bilinear (edmdc-bilinear)", "linear bicycle (LMPC)",
@@ -126,7 +129,7 @@ def test_table1_grid_holds_the_rows_and_seeds_table1_had() -> None:
     assert {row.fit for row in ROWS} == {"train"} and DEFAULT_ROW is ROWS[5]
     assert [row.label for row in CLOSED_FORM_ROWS] == CLOSED_FORM_BEFORE
     grid = load_grid("table1")
-    assert len(grid.cells) == 16 * 5 and sorted({c.seed for c in grid.cells}) == [0, 1, 2, 3, 4]
+    assert len(grid.cells) == 17 * 5 and sorted({c.seed for c in grid.cells}) == [0, 1, 2, 3, 4]
 
 
 def test_cell_keys_name_row_seed_and_data(data_dir: Path, tmp_path: Path) -> None:
