@@ -57,29 +57,36 @@ def outside_entries(runs: Sequence[Trajectory], low: np.ndarray, high: np.ndarra
     return entries
 
 
-def held_out_coverage(model: Predictor, train_runs: Sequence[Trajectory], test_runs: Sequence[Trajectory],
-                  open_loop_steps: int = OPEN_LOOP_STEPS) -> dict[str, Any]:
-    """The test runs against the training runs' state range.
+def range_split(train_runs: Sequence[Trajectory],
+                test_runs: Sequence[Trajectory]) -> tuple[dict[str, Any], list[Trajectory]]:
+    """The test runs against the training runs' state range, without a model.
 
-    Returns {"training_min" / "training_max": {state: value}, "test_samples", "within_samples"
-    (test samples with every state in the range), "outside": [{run, state, samples, low, high}
-    for each test run and state with samples beyond the range: their count and the run's
-    extremes of that state], "within_errors": ``prediction_errors`` of ``model`` on the
-    stretches within the range (None when no stretch is longer than ``open_loop_steps``)}.
+    Returns ({"training_min" / "training_max": {state: value}, "test_samples",
+    "within_samples" (test samples with every state in the range), "outside":
+    ``outside_entries`` of the test runs}, the test runs' ``within_stretches``).
     """
     names = train_runs[0].state_names
     low, high = state_range(train_runs)
-    outside = outside_entries(test_runs, low, high)
     stretches = within_stretches(test_runs, low, high)
-    long_enough = [s for s in stretches if len(s) > open_loop_steps]
     return {
         "training_min": {name: float(v) for name, v in zip(names, low)},
         "training_max": {name: float(v) for name, v in zip(names, high)},
         "test_samples": int(sum(len(run) for run in test_runs)),
         "within_samples": int(sum(len(s) for s in stretches)),
-        "outside": outside,
-        "within_errors": prediction_errors(model, long_enough, open_loop_steps=open_loop_steps) if long_enough else None,
-    }
+        "outside": outside_entries(test_runs, low, high),
+    }, stretches
+
+
+def held_out_coverage(model: Predictor, train_runs: Sequence[Trajectory], test_runs: Sequence[Trajectory],
+                      open_loop_steps: int = OPEN_LOOP_STEPS) -> dict[str, Any]:
+    """:func:`range_split`'s figures plus "within_errors": ``prediction_errors`` of ``model``
+    on the stretches within the range (None when no stretch is longer than
+    ``open_loop_steps``)."""
+    coverage, stretches = range_split(train_runs, test_runs)
+    long_enough = [s for s in stretches if len(s) > open_loop_steps]
+    coverage["within_errors"] = (prediction_errors(model, long_enough, open_loop_steps=open_loop_steps)
+                                 if long_enough else None)
+    return coverage
 
 
 def coverage_lines(coverage: dict[str, Any]) -> list[str]:

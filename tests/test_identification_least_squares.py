@@ -160,7 +160,7 @@ def test_markdown_gives_the_stretches_within_the_training_range_their_own_table_
     summary = summarise({DEEP_LABEL: [_figures(0.2, 0.010, 0.004)]}, lifts)
     within = {"summary": summarise({DEEP_LABEL: [_figures(0.02, 0.020, 0.004)]}, lifts),
               "outside": [{"run": "log#006", "state": "vx", "samples": 882, "of": 1224, "low": 2.43, "high": 12.34}],
-              "training_min": {"vx": 3.38}, "training_max": {"vx": 30.13}, "samples": 2785, "test_samples": 3672}
+              "training_min": {"vx": 3.38}, "training_max": {"vx": 30.13}, "within_samples": 2785, "test_samples": 3672}
     text = markdown(summary, Path("log"), [0], ["log#004", "log#006"], within)
     before, after = text.split("## Within the training pieces' states")
     assert "- log#006: 882 of 1224 samples with vx outside 3.38 .. 30.13 (the piece's 2.43 .. 12.34)" in after

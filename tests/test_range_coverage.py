@@ -9,7 +9,7 @@ import numpy as np
 
 from models.koopman_cli import main
 from models.koopman_metrics import Trajectory, prediction_errors
-from models.range_coverage import coverage_lines, held_out_coverage, state_range, within_stretches
+from models.range_coverage import coverage_lines, held_out_coverage, range_split, state_range, within_stretches
 from test_trainer_own_data import FOREIGN_INPUTS, _write_runs
 
 STATES = ("vx", "vy")
@@ -55,6 +55,9 @@ def test_coverage_names_the_runs_beyond_and_measures_only_the_stretches_within()
     # the model is exact within the range and wrong below it: all figures within are zero
     assert coverage["within_errors"]["vx"]["open_loop_rmse"] == 0.0
     assert prediction_errors(_HoldsWithinTen(), test, open_loop_steps=10)["vx"]["open_loop_rmse"] > 1.0
+    split, stretches = range_split(train, test)  # the same without a model
+    assert split == {k: v for k, v in coverage.items() if k != "within_errors"}
+    assert [s.name for s in stretches] == ["inside[0:120]", "slow[0:50]", "slow[150:200]"]
     lines = coverage_lines(coverage)
     assert lines[0].startswith("test run slow: 100 of 200 samples have vx outside the training data's 10 .. 20")
     assert lines[-1].startswith("within the training range (69 % of the test samples): vx one-step rmse 0.0000")
