@@ -73,14 +73,17 @@ def forward_state(step: Callable[[np.ndarray, float], np.ndarray], start: np.nda
     return state + window.fraction * (following - state)
 
 
-def pose_after(pose0: np.ndarray, states: np.ndarray, ts: float, window: DelayWindow) -> np.ndarray:
-    """The pose [X, Y, yaw] (3,) at the end of ``window``: eq. 20 integrated (explicit Euler,
-    as ``controller.pose_kinematics.rollout_pose``) from ``pose0`` (3,) with ``states``
+def pose_after(pose0: np.ndarray, states: np.ndarray, ts: float, window: DelayWindow,
+               heading_advance: float = 0.0) -> np.ndarray:
+    """The pose [X, Y, yaw] (3,) at the end of ``window``: eq. 20 integrated as
+    ``controller.pose_kinematics.rollout_pose`` does (each step along its yaw plus
+    ``heading_advance`` of its own turn) from ``pose0`` (3,) with ``states``
     (whole_steps + 1, 3), [vx, vy, yaw_rate] at the grid steps 0..whole_steps, the last
     step for the fraction only."""
     pose = np.array(pose0, dtype=float)
     durations = [ts] * window.whole_steps + [window.fraction * ts]
     for (vx, vy, yaw_rate), dt in zip(states, durations):
-        cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
+        heading = pose[2] + heading_advance * dt * yaw_rate
+        cos_yaw, sin_yaw = math.cos(heading), math.sin(heading)
         pose = pose + dt * np.array([vx * cos_yaw - vy * sin_yaw, vx * sin_yaw + vy * cos_yaw, yaw_rate])
     return pose

@@ -65,7 +65,7 @@ class QpSteeringMpc(SteeringMpc):
         n_ctrl, last = self.tuning.control_horizon, window.whole_steps
         in_flight = window.inputs[np.minimum(np.arange(n_ctrl), last)]  # U of the window's grid steps
         states = free[:last + 2] + gain[:last + 2] @ in_flight  # (whole + 2, 3), steps 0..whole + 1
-        pose = pose_after(sample.pose(), states[:last + 1], self.ts, window)
+        pose = pose_after(sample.pose(), states[:last + 1], self.ts, window, self.tuning.pose_heading_advance)
         moved = states[last] + window.fraction * (states[last + 1] - states[last])
         self._prepared = (self.shift_start(free, window), gain)
         return replace(sample, vx=float(moved[0]), vy=float(moved[1]), yaw_rate=float(moved[2]),
@@ -82,7 +82,8 @@ class QpSteeringMpc(SteeringMpc):
         if not (math.isfinite(free.sum()) and math.isfinite(gain.sum())):
             return Plan(SolverStatus.NUMERICAL_ERROR, nominal, 0, 0.0, float("nan"), empty, empty)
         nominal_states = free + gain @ nominal  # (Np + 1, 3)
-        pose_nominal, jacobian = linearise_pose(sample.pose(), nominal_states[:n_pred], gain[:n_pred], self.ts)
+        pose_nominal, jacobian = linearise_pose(sample.pose(), nominal_states[:n_pred], gain[:n_pred], self.ts,
+                                                 self.tuning.pose_heading_advance)
         pose_offset = pose_nominal - jacobian @ nominal - reference
         solution = self.qp.solve(jacobian, pose_offset, self.previous_steer(sample), gain[1:], free[1:], nominal,
                                  weights=self.tuning.weights_at(sample.vx))

@@ -75,6 +75,11 @@ class MpcTuning:
     QP MPCs predict the measured state forward over it plus the sample's age
     (``VehicleSample.sample_age_s``) through their own model with the commands already sent
     (``controller.delay_compensation``). Not tuned: turning either on is the tuning's job.
+
+    ``pose_heading_advance`` (steps, optional in the TOML): the heading along which each
+    step of the horizon's pose moves, yaw_i + advance * Ts * r_i
+    (``controller.pose_kinematics``). 0, the default, is eq. 20's explicit Euler; 0.5 the
+    step's midpoint, exact for a constant yaw rate (docs/controllers.md, "The pose step").
     """
 
     prediction_horizon: int
@@ -97,6 +102,7 @@ class MpcTuning:
     # and stay optional in the TOML (0: off, every committed table).
     qp_steer_rate_limit: float = field(default=0.0, kw_only=True)
     delay_compensation_s: float = field(default=0.0, kw_only=True)
+    pose_heading_advance: float = field(default=0.0, kw_only=True)
 
     def __post_init__(self) -> None:
         low, high = self.weight_schedule_speeds
@@ -181,7 +187,7 @@ class NmpcTuning(MpcTuning):
     def __post_init__(self) -> None:
         super().__post_init__()
         # NMPC has no QP and no delay compensation (yet): refuse rather than ignore.
-        for name in ("qp_steer_rate_limit", "delay_compensation_s"):
+        for name in ("qp_steer_rate_limit", "delay_compensation_s", "pose_heading_advance"):
             if getattr(self, name) != 0.0:
                 raise TuningError(f"{name} must be 0 for NMPC (not implemented there), got {getattr(self, name)!r}")
 
@@ -287,6 +293,7 @@ _RULES: dict[str, _Rule] = {
     # The C core's reader (firmware/src/ecu_data.c, read_tuning) applies the same two ranges.
     "qp_steer_rate_limit": (lambda v: 0.0 <= v <= 100.0, "must be in [0, 100] rad/s (0: off)"),
     "delay_compensation_s": (lambda v: 0.0 <= v <= 0.1, "must be in [0, 0.1] s (0: off)"),
+    "pose_heading_advance": (lambda v: v in (0.0, 0.5), "must be 0 (eq. 20, explicit Euler) or 0.5 (the step's midpoint)"),
 }
 
 

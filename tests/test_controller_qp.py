@@ -260,7 +260,9 @@ def test_heading_west_across_the_yaw_wrap(name: str) -> None:
     assert abs(errors[-1]) < 1e-3 and len(wrapped_yaws) > 0
 
 
-def test_pose_jacobian_matches_finite_differences() -> None:
+@pytest.mark.parametrize("advance", [0.0, 0.5])
+def test_pose_jacobian_matches_finite_differences(advance: float) -> None:
+    """With eq. 20's step (advance 0) and the midpoint heading (0.5)."""
     from controller.pose_kinematics import linearise_pose
 
     rng = np.random.default_rng(1)
@@ -268,13 +270,35 @@ def test_pose_jacobian_matches_finite_differences() -> None:
     states = np.column_stack((10 + 0.1 * rng.normal(size=n), 0.2 * rng.normal(size=n), 0.3 * rng.normal(size=n)))
     gain = 0.01 * rng.normal(size=(n, 3, n_u))
     pose0 = np.array([1.0, 2.0, 3.0])
-    poses, jacobian = linearise_pose(pose0, states, gain, TS)
+    poses, jacobian = linearise_pose(pose0, states, gain, TS, advance)
     step = 1e-6
-    finite = np.stack([(rollout_pose(pose0, states + gain @ d, TS) - rollout_pose(pose0, states - gain @ d, TS))
-                       / (2 * step) for d in np.eye(n_u) * step], axis=2)
+    finite = np.stack([(rollout_pose(pose0, states + gain @ d, TS, advance)
+                        - rollout_pose(pose0, states - gain @ d, TS, advance)) / (2 * step)
+                       for d in np.eye(n_u) * step], axis=2)
     error = np.max(np.abs(jacobian - finite))
     print(f"max |Jacobian - central differences| = {error:.1e} (entries up to {np.max(np.abs(jacobian)):.3f})")
-    assert np.array_equal(poses, rollout_pose(pose0, states, TS)) and error < 1e-7
+    assert np.array_equal(poses, rollout_pose(pose0, states, TS, advance)) and error < 1e-7
+    if advance == 0.0:  # eq. 20 itself: the same bits as without the argument
+        assert np.array_equal(jacobian, linearise_pose(pose0, states, gain, TS)[1])
+
+
+def test_horizon_pose_midpoint_stays_on_an_arc() -> None:
+    """Constant speed and yaw rate (the straight-curve path's arc: R 50 m at 50 km/h): with
+    the midpoint heading the predicted positions lie on the circle to a few micrometres
+    after 1 s; eq. 20's explicit Euler (advance 0) runs outside it by about r ts / 2 times
+    the distance (3.5 mrad: centimetres), which is why the option exists."""
+    speed, yaw_rate, n = 13.9, 0.278, 40
+    t = TS * np.arange(1, n + 1)
+    exact = np.column_stack((np.sin(yaw_rate * t), 1.0 - np.cos(yaw_rate * t))) * speed / yaw_rate
+    states = np.tile([speed, 0.0, yaw_rate], (n, 1))
+    errors = {}
+    for advance in (0.0, 0.5):
+        poses = rollout_pose(np.zeros(3), states, TS, advance)
+        errors[advance] = float(np.max(np.hypot(*(poses[:, :2] - exact).T)))
+        assert np.allclose(poses[:, 2], yaw_rate * t)
+    print(f"largest distance from the arc over {n} steps: Euler {errors[0.0] * 1e3:.2f} mm, "
+          f"midpoint {errors[0.5] * 1e3:.4f} mm")
+    assert errors[0.5] < 1e-4 and errors[0.0] > 0.01
 
 
 @pytest.mark.parametrize("name", ["dkmpc", "eso-dkmpc"])

@@ -55,6 +55,22 @@ def test_pose_after_follows_the_velocities() -> None:
     window = DelayWindow(0, 0.4, np.array([0.0]))
     pose = pose_after(np.array([1.0, 2.0, 0.0]), np.array([[10.0, 0.5, 0.2]]), TS, window)
     np.testing.assert_allclose(pose, [1.0 + 0.01 * 10.0, 2.0 + 0.01 * 0.5, 0.01 * 0.2])
+    midpoint = pose_after(np.array([1.0, 2.0, 0.0]), np.array([[10.0, 0.5, 0.2]]), TS, window, 0.5)
+    heading = 0.005 * 0.2  # half of the 0.01 s step's turn
+    np.testing.assert_allclose(midpoint, [1.0 + 0.01 * (10.0 * np.cos(heading) - 0.5 * np.sin(heading)),
+                                          2.0 + 0.01 * (10.0 * np.sin(heading) + 0.5 * np.cos(heading)), 0.01 * 0.2])
+
+
+def test_pose_after_agrees_with_the_horizon_rollout() -> None:
+    """Whole steps: the same poses as the horizon's rollout with either heading advance."""
+    from controller.pose_kinematics import rollout_pose
+
+    states = np.column_stack((np.linspace(12.0, 14.0, 5), np.linspace(-0.2, 0.3, 5), np.linspace(0.1, 0.4, 5)))
+    pose0 = np.array([3.0, -1.0, 0.7])
+    for advance in (0.0, 0.5):
+        rollout = rollout_pose(pose0, states[:4], TS, advance)
+        window = DelayWindow(4, 0.0, np.zeros(5))
+        np.testing.assert_allclose(pose_after(pose0, states, TS, window, advance), rollout[-1], rtol=0, atol=1e-12)
 
 
 def _controllers() -> dict[str, object]:

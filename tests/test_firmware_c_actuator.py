@@ -1,6 +1,8 @@
 """The actuator terms of the steering QP (issue 37): the steer-rate rows, in Python and in
 the C core, and both loaders' verdicts on the new tuning fields.
 
+The pose step's heading advance rides along (a twin case of its own below).
+
 With ``qp_steer_rate_limit`` on, the QP's pattern changes (Nc more rows), so the C core is
 generated for a tuning file with it on: ``make firmware FW_DIR=build/firmware-actuator
 FW_TUNING=build/firmware-actuator/tuning.toml`` (a no-op when up to date; ``build/firmware``
@@ -73,6 +75,8 @@ def test_the_actuator_terms_default_off() -> None:
     ({"qp_steer_rate_limit": "1.0"}, "qp_steer_rate_limit must be a finite number"),
     ({"delay_compensation_s": 0.5}, "delay_compensation_s must be in [0, 0.1]"),
     ({"delay_compensation_s": -0.01}, "delay_compensation_s must be in [0, 0.1]"),
+    ({"pose_heading_advance": 0.25}, "pose_heading_advance must be 0 .eq. 20, explicit Euler. or 0.5"),
+    ({"pose_heading_advance": -0.5}, "pose_heading_advance must be 0 .eq. 20, explicit Euler. or 0.5"),
 ])
 def test_python_loader_refuses_bad_actuator_terms(fields: dict, message: str) -> None:
     with pytest.raises(TuningError, match=message.replace("[", r"\[")):
@@ -82,6 +86,8 @@ def test_python_loader_refuses_bad_actuator_terms(fields: dict, message: str) ->
 def test_nmpc_refuses_the_actuator_terms() -> None:
     with pytest.raises(TuningError, match="must be 0 for NMPC"):
         parse_tuning(_document({"qp_steer_rate_limit": 1.0}, "nmpc"))
+    with pytest.raises(TuningError, match="pose_heading_advance must be 0 for NMPC"):
+        parse_tuning(_document({"pose_heading_advance": 0.5}, "nmpc"))
 
 
 # ------------------------------------------------------------------ the rate rows in Python
@@ -147,6 +153,7 @@ def test_rate_rows_c_step_equals_python_in_closed_loop(actuator_core, name: str)
 @pytest.mark.parametrize("field, value, message", [
     ("qp_steer_rate_limit", -0.5, "qp_steer_rate_limit must be in [0, 100] rad/s"),
     ("delay_compensation_s", 0.5, "delay_compensation_s must be in [0, 0.1] s"),
+    ("pose_heading_advance", 0.25, "pose_heading_advance must be 0 .eq. 20, explicit Euler. or 0.5"),
 ])
 def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, field: str, value: float,
                                               message: str) -> None:
@@ -158,9 +165,9 @@ def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, fie
     records = collect(TUNING, ROOT / "models" / "artifacts" / "dk_d5")
     record = records["tuning.dkmpc"]
     # The field's value: every field after the state bounds and the schedule speeds is a
-    # scalar (33 values for 26 + 2 fields), so it sits as far from the record's end as the
+    # scalar (34 values for 27 + 2 fields), so it sits as far from the record's end as the
     # field from TUNING_FIELDS' end.
-    assert record.size == 33 and len(TUNING_FIELDS) == 28
+    assert record.size == 34 and len(TUNING_FIELDS) == 29
     index = record.size - len(TUNING_FIELDS) + TUNING_FIELDS.index(field)
     record[index] = value
     bad = tmp_path / "ecu_data.bin"
@@ -214,12 +221,23 @@ class AgedNativeController:
         return self.inner.step(sample)
 
 
+#: The twins stepped with the sample's age, each on the rate rows' tuning plus its fields,
+#: and the fields of a run that must command differently (the fields acted).
+AGED_TWINS = {
+    # delay compensation: 30 ms plus the sample's age of 0 or 5 ms
+    "delay": ({"delay_compensation_s": DELAY}, {}),
+    # the pose's midpoint heading, over the horizon and over the delay window
+    "midpoint": ({"delay_compensation_s": DELAY, "pose_heading_advance": 0.5}, {"delay_compensation_s": DELAY}),
+}
+
+
 @requires_c_toolchain
+@pytest.mark.parametrize("case", sorted(AGED_TWINS))
 @pytest.mark.parametrize("name", QP_CONTROLLERS)
-def test_delay_compensation_c_step_equals_python_in_closed_loop(actuator_core, name: str) -> None:
-    """With the rate rows and delay compensation on (30 ms plus the sample's age of 0 or
-    5 ms): the C core equals the Python controller step for step on dlc_smoke (commands to
-    1e-9 rad, status, iterations, predictions and cost), NaN samples included."""
+def test_aged_c_step_equals_python_in_closed_loop(actuator_core, name: str, case: str) -> None:
+    """With the rate rows and each case's fields on: the C core equals the Python controller
+    step for step on dlc_smoke (commands to 1e-9 rad, status, iterations, predictions and
+    cost), NaN samples included; and the fields acted (without them the commands differ)."""
     sys.path.insert(0, str(ROOT / "firmware" / "tools"))
     from ecu_data import collect, write_data  # noqa: E402 (the build tool)
     from hil.scenario import load_scenario
@@ -228,15 +246,16 @@ def test_delay_compensation_c_step_equals_python_in_closed_loop(actuator_core, n
     from c_twin import INVALID_STEPS
     from test_firmware_c_core import Twin, assert_twin_steps_equal
 
-    tuning = BUILD / "tuning_delay.toml"
-    write_if_changed(tuning, tuning_text({"qp_steer_rate_limit": RATE_LIMIT, "delay_compensation_s": DELAY}))
-    data = BUILD / "ecu_data_delay.bin"
+    fields, without = AGED_TWINS[case]
+    tuning, baseline = BUILD / f"tuning_{case}.toml", BUILD / f"tuning_{case}_without.toml"
+    write_if_changed(tuning, tuning_text({"qp_steer_rate_limit": RATE_LIMIT, **fields}))
+    write_if_changed(baseline, tuning_text({"qp_steer_rate_limit": RATE_LIMIT, **without}))
+    data = BUILD / f"ecu_data_{case}.bin"
     write_data(collect(tuning, ROOT / "models" / "artifacts" / "dk_d5"), data)
     twin = Twin(create_controller(name, tuning_path=tuning), AgedNativeController(actuator_core, name, data),
                 INVALID_STEPS)
     result = run_closed_loop(load_scenario("dlc_smoke"), AgedSamples(twin))
     assert result.completed, result.failure
     assert_twin_steps_equal(name, twin)
-    # The compensation acted: the same run without it commands differently.
-    plain = run_closed_loop(load_scenario("dlc_smoke"), AgedSamples(create_controller(name, tuning_path=TUNING)))
+    plain = run_closed_loop(load_scenario("dlc_smoke"), AgedSamples(create_controller(name, tuning_path=baseline)))
     assert np.max(np.abs(plain.trace.steer_cmd - result.trace.steer_cmd)) > 1e-4

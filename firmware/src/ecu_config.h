@@ -38,6 +38,9 @@ typedef struct {
   /* The widening counts only steps whose measured lateral acceleration |vx r| is below this
    * (m/s^2; 0: every step; NaN where the table has none). */
   double eso_widening_lateral_accel;
+  /* Each step of the horizon's pose moves along yaw_i + advance * ts * r_i (MpcTuning,
+   * controller/pose_kinematics.py): 0 is eq. 20's explicit Euler, 0.5 the step's midpoint. */
+  double pose_heading_advance;
 } ecu_tuning_t;
 
 typedef struct {

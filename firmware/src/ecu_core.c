@@ -272,7 +272,7 @@ static void prepare(ecu_core_t *core, const ecu_sample_t *sample, double torque,
   for (int j = 0; j <= last + 1; j++)
     for (int x = 0; x < 3; x++) states[j][x] = free[j][x] + ecu_dot(gain[j][x], in_flight, n_ctrl);
   const double pose0[3] = {sample->x, sample->y, sample->yaw};
-  ecu_pose_after(pose0, states, core->cfg.ts, &window, pose);
+  ecu_pose_after(pose0, states, core->cfg.ts, &window, core->tun->pose_heading_advance, pose);
   double moved[3];
   for (int x = 0; x < 3; x++) moved[x] = states[last][x] + window.fraction * (states[last + 1][x] - states[last][x]);
   if (core->controller == ECU_LMPC) ecu_shift_bicycle(&core->basis, &window, n_pred, free);

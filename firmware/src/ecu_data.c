@@ -13,7 +13,7 @@
 #include "ecu_contract.h"
 
 #define NAME_BYTES 48
-#define N_TUNING_VALUES 33
+#define N_TUNING_VALUES 34
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
 /* The bit of record koopman.N in ecu_read_data's `seen` (after the encoder's records). */
@@ -85,6 +85,7 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->delay_compensation_s = v[30];
   t->eso_innovation_persistence = v[31];
   t->eso_widening_lateral_accel = v[32];
+  t->pose_heading_advance = v[33];
   for (int i = 2; i < N_TUNING_VALUES; i++) {
     if ((i >= 17 && i < 20) || i == 25 || i == 26 || i == 31 || i == 32) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {
@@ -101,6 +102,12 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   if (!(t->delay_compensation_s >= 0.0 && t->delay_compensation_s <= 0.1)) {
     snprintf(err, err_len, "%s: [%s] delay_compensation_s must be in [0, 0.1] s (0: off), got %g", path,
              CONTROLLER_NAMES[id], t->delay_compensation_s);
+    return -1;
+  }
+  if (!(t->pose_heading_advance == 0.0 || t->pose_heading_advance == 0.5)) {
+    snprintf(err, err_len,
+             "%s: [%s] pose_heading_advance must be 0 (eq. 20, explicit Euler) or 0.5 (the step's midpoint), got %g",
+             path, CONTROLLER_NAMES[id], t->pose_heading_advance);
     return -1;
   }
   if (!(t->schedule_low >= 0.0 && t->schedule_low < t->schedule_high)) {

@@ -24,12 +24,13 @@ void ecu_delay_window(double delay_s, double ts, const double *history, int n, e
 }
 
 void ecu_pose_after(const double pose0[3], const double states[][3], double ts, const ecu_delay_window_t *window,
-                    double pose[3]) {
+                    double heading_advance, double pose[3]) {
   double x = pose0[0], y = pose0[1], yaw = pose0[2];
   for (int j = 0; j <= window->whole_steps; j++) {
     double dt = j < window->whole_steps ? ts : window->fraction * ts;
     double vx = states[j][0], vy = states[j][1], yaw_rate = states[j][2];
-    double cos_yaw = cos(yaw), sin_yaw = sin(yaw);
+    double heading = yaw + heading_advance * dt * yaw_rate; /* as controller.delay_compensation */
+    double cos_yaw = cos(heading), sin_yaw = sin(heading);
     double nx = x + dt * (vx * cos_yaw - vy * sin_yaw);
     double ny = y + dt * (vx * sin_yaw + vy * cos_yaw);
     yaw = yaw + dt * yaw_rate;

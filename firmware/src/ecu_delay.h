@@ -22,8 +22,9 @@ double ecu_total_delay(double fixed_s, double age_s);
 /* delay_window: history[0..n-1] the commands sent, oldest first (n >= 1). */
 void ecu_delay_window(double delay_s, double ts, const double *history, int n, ecu_delay_window_t *window);
 
-/* pose_after: pose0 (3,) moved by explicit Euler with states (whole_steps + 1, 3) into pose. */
+/* pose_after: pose0 (3,) moved with states (whole_steps + 1, 3) into pose, each step along its
+ * yaw plus heading_advance of its own turn (0: explicit Euler, eq. 20; 0.5: the midpoint). */
 void ecu_pose_after(const double pose0[3], const double states[][3], double ts, const ecu_delay_window_t *window,
-                    double pose[3]);
+                    double heading_advance, double pose[3]);
 
 #endif

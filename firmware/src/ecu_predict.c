@@ -150,9 +150,11 @@ void ecu_linearise_pose(double ts, const ecu_tuning_t *tuning, const ecu_sample_
   const int n_pred = tuning->n_pred, n_ctrl = tuning->n_ctrl;
   double yaw_sum = 0.0, x_sum = 0.0, y_sum = 0.0;
   double gain_yaw_sum[NC] = {0.0}, jx[NC] = {0.0}, jy[NC] = {0.0};
+  const double advance = tuning->pose_heading_advance * ts; /* (heading_advance * ts), as numpy */
   for (int i = 0; i < n_pred; i++) {
     double yaw = yaw_sum * ts + sample->yaw; /* the yaw at step i */
-    double cos_yaw = cos(yaw), sin_yaw = sin(yaw);
+    double heading = yaw + advance * states[i][2]; /* the step's heading (pose_kinematics) */
+    double cos_yaw = cos(heading), sin_yaw = sin(heading);
     double vx = states[i][0], vy = states[i][1];
     double x_rate = vx * cos_yaw - vy * sin_yaw, y_rate = vx * sin_yaw + vy * cos_yaw;
     yaw_sum += states[i][2];
@@ -163,9 +165,10 @@ void ecu_linearise_pose(double ts, const ecu_tuning_t *tuning, const ecu_sample_
     poses[i][2] = yaw_sum * ts + sample->yaw;
     for (int c = 0; c < n_ctrl; c++) {
       double d_yaw = gain_yaw_sum[c] * ts; /* d yaw_i / d U_c */
-      /* d(x_rate) = cos dvx - sin dvy - y_rate dyaw; d(y_rate) = sin dvx + cos dvy + x_rate dyaw */
-      jx[c] += cos_yaw * gain[i][0][c] - sin_yaw * gain[i][1][c] - y_rate * d_yaw;
-      jy[c] += sin_yaw * gain[i][0][c] + cos_yaw * gain[i][1][c] + x_rate * d_yaw;
+      double d_heading = d_yaw + advance * gain[i][2][c];
+      /* d(x_rate) = cos dvx - sin dvy - y_rate dheading; d(y_rate) = sin dvx + cos dvy + x_rate dheading */
+      jx[c] += cos_yaw * gain[i][0][c] - sin_yaw * gain[i][1][c] - y_rate * d_heading;
+      jy[c] += sin_yaw * gain[i][0][c] + cos_yaw * gain[i][1][c] + x_rate * d_heading;
       gain_yaw_sum[c] += gain[i][2][c];
       jac[i][0][c] = jx[c] * ts;
       jac[i][1][c] = jy[c] * ts;

@@ -61,7 +61,7 @@ TUNING_FIELDS = ("prediction_horizon", "control_horizon", "q_position", "q_yaw",
                  "disturbance_decay", "low_speed_q_position", "low_speed_q_yaw", "low_speed_r_steer",
                  "weight_schedule_speeds", "eso_innovation_limit", "yaw_rate_bias_pole",
                  "slip_target_limit", "slip_target_gate", "qp_steer_rate_limit", "delay_compensation_s",
-                 "eso_innovation_persistence", "eso_widening_lateral_accel")
+                 "eso_innovation_persistence", "eso_widening_lateral_accel", "pose_heading_advance")
 
 
 class EcuDataError(Exception):
@@ -69,7 +69,7 @@ class EcuDataError(Exception):
 
 
 def tuning_vector(tuning: ControllerTuning, name: str) -> np.ndarray:
-    """The 33 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
+    """The 34 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
     table = tuning.for_controller(name)
     values: list[float] = []
     for field in TUNING_FIELDS:
