@@ -185,6 +185,11 @@ def main(argv: Sequence[str] | None = None, stop_event: threading.Event | None =
         ecu = Ecu(bus, args.controller, paths, lockstep=args.lockstep, config=config,
                   reopen_bus=lambda: open_ecu_bus(args.interface, args.channel, args.bitrate),
                   controller_factory=controller_factory, excitation=excitation)
+        if args.realtime:
+            # after start-up, before the loop: keeps full collections out of the task's time
+            from firmware_sim.timing import freeze_start_up_objects
+            logging.getLogger("firmware_sim").info(
+                "garbage collector: %d start-up objects frozen", freeze_start_up_objects())
         logging.getLogger("firmware_sim").info(
             "ready: controller %s, PATH_IDs %s, %s, mode %s", args.controller,
             sorted(paths), "lockstep" if args.lockstep else "real time", ecu.mode.name)

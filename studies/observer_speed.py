@@ -19,8 +19,16 @@ field at the tuning file's value:
    and the steady drives, each also with a disturbance), the number the procedure chooses
    the observer fields by.
 
-The two are disjoint run sets: the tuning set never drives a lane change or a slalom, and
-never a heavier vehicle or a slower steering. Nothing here changes the tuning file.
+3. **The tuning manoeuvres on changed plants**: would the procedure choose a faster pole if
+   its set held model mismatch? The observer stage's 11 runs without a disturbance (the
+   tuning set and the steady drives) again on a heavier vehicle and on a slower steering
+   (:data:`CHANGED_PLANTS`: +150 kg, lag x2, values the grid never uses), ESO-DKMPC at each
+   pole and DKMPC once: the mean e_Y RMSE per plant, over both, and over both together with
+   part 2's 22 runs (the objective of a tuning set with the changed plants added).
+
+The grid and the tuning runs are disjoint run sets: the tuning set never drives a lane
+change or a slalom, and never the grid's +300 kg or lag x3. Nothing here changes the tuning
+file.
 
 Writes ``observer_speed.md``, ``.json`` and ``.png`` to ``--out``. The campaign runs first:
 ``python -m studies.campaign observer_speed --out DIR`` (``make observer-speed`` does both).
@@ -36,16 +44,19 @@ import json
 import math
 import sys
 import time
+import types
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from hil.errors import HilError
+from hil.scenario import Scenario
 from studies.campaign.axes import DEFAULT_TUNING
 from studies.robustness_records import RunRecord, records_from_rows
 from studies.robustness_report import HeadToHead, is_mismatch, observer_head_to_head
 from studies.robustness_summary import by_cell
+from studies.tuning_sweep_executor import Evaluation, objective
 
 #: The campaign grid of the robustness part.
 GRID = "observer_speed"
@@ -53,6 +64,9 @@ GRID = "observer_speed"
 POLE_FIELD = "eso_second_pole"
 CONTROLLER = "eso-dkmpc"
 BASELINE = "dkmpc"
+#: Part 3's changed plants: name -> (mass offset in kg, steering time constant factor). The
+#: grid's mismatch cells use +300 kg and x3; these are milder and disjoint from them.
+CHANGED_PLANTS: dict[str, tuple[float, float]] = {"mass+150kg": (150.0, 1.0), "lag_x2": (0.0, 2.0)}
 
 
 @dataclass(frozen=True)
@@ -115,9 +129,9 @@ def pole_rows(rows: Sequence[Mapping[str, Any]], poles: Mapping[str, float],
     return out
 
 
-def tuning_objectives(poles: Sequence[float], *, workers: int, progress: bool) -> dict[float, float]:
-    """Pole -> the tuning procedure's objective (m) of ESO-DKMPC on the observer stage's 22
-    runs, every other field at the tuning file's value."""
+def tuning_evaluations(poles: Sequence[float], *, workers: int, progress: bool) -> dict[float, Evaluation]:
+    """Pole -> ESO-DKMPC's evaluation on the observer stage's 22 runs (its ``objective_m``:
+    the tuning procedure's objective, m), every other field at the tuning file's value."""
     from controller.tuning import load_tuning
     from studies.observer_tuning import disturbed_tuning_set, tune
     from studies.tuning_sweep_grids import SweepGrid
@@ -125,11 +139,105 @@ def tuning_objectives(poles: Sequence[float], *, workers: int, progress: bool) -
     grid = SweepGrid(((POLE_FIELD, tuple(sorted(poles))),))
     evaluations = tune([CONTROLLER], disturbed_tuning_set(), load_tuning(), workers=workers,
                        progress=progress, grid=grid)[CONTROLLER]
-    return {dict(e.setting)[POLE_FIELD]: e.objective_m for e in evaluations}
+    return {dict(e.setting)[POLE_FIELD]: e for e in evaluations}
 
 
-def report_markdown(rows: Sequence[PoleRow], file_pole: float, *, command: str, seconds: float) -> str:
-    """observer_speed.md: the table and what it says."""
+# ---------------------------------------------------------------------------- changed plants
+
+@dataclass(frozen=True)
+class ChangedPlantRow:
+    """Part 3's figures of one setting (ESO-DKMPC at ``pole``, or DKMPC with ``pole`` None):
+    the mean e_Y RMSE (m) per changed plant, the objective over every changed-plant run, and
+    the objective over those and the tuning set's 22 runs (NaN for DKMPC, which the observer
+    stage does not tune)."""
+
+    controller: str
+    pole: float | None
+    per_plant_m: dict[str, float]
+    objective_m: float
+    with_tuning_set_m: float
+
+
+def changed_plant_set() -> list[Scenario]:
+    """The observer stage's runs without a disturbance (the tuning set and the steady
+    drives), each on every plant of :data:`CHANGED_PLANTS` (named ``<manoeuvre>+<plant>``):
+    the mass as a scenario's ``mass_offset_kg``, the slower steering as the campaign's lag
+    axis gives it (``[faults] vehicle.steer_extra_lag_s``, (factor - 1) x the plant's time
+    constant), so that :func:`run_on_changed_plant` builds the plant a grid cell would."""
+    from models.vehicle_params import load_vehicle_params
+    from studies.steady_drives import steady_scenarios
+    from studies.tuning_set import tuning_scenarios
+
+    time_constant = load_vehicle_params().steer_time_constant
+    out = []
+    for plant, (mass_offset_kg, lag_factor) in CHANGED_PLANTS.items():
+        for scenario in tuning_scenarios() + steady_scenarios():
+            faults = ({"vehicle": {"steer_extra_lag_s": (lag_factor - 1.0) * time_constant}}
+                      if lag_factor != 1.0 else {})
+            out.append(replace(
+                scenario, name=f"{scenario.name}+{plant}", mass_offset_kg=scenario.mass_offset_kg + mass_offset_kg,
+                faults=types.MappingProxyType({**scenario.faults, **faults})))
+    return out
+
+
+def run_on_changed_plant(scenario: Scenario, controller: Any) -> Any:
+    """``studies.closed_loop.run_closed_loop`` on the plant a closed-loop campaign cell
+    builds for ``scenario`` (its mass, and the steering lag of its ``[faults]`` table)."""
+    from studies.campaign.closed_loop_cell import plant_for
+    from studies.closed_loop import run_closed_loop
+
+    plant, command_type = plant_for(scenario)
+    return run_closed_loop(scenario, controller, plant=plant, command_type=command_type)
+
+
+def plant_means(evaluation: Evaluation) -> dict[str, float]:
+    """Changed plant -> the mean e_Y RMSE (m) of ``evaluation``'s runs on it (the objective's
+    failure penalty for a run that did not complete)."""
+    out = {}
+    for plant in CHANGED_PLANTS:
+        names = [name for name in evaluation.rmse_m if name.endswith(f"+{plant}")]
+        out[plant] = objective({n: evaluation.rmse_m[n] for n in names}, {n: evaluation.completed[n] for n in names})
+    return out
+
+
+def changed_plant_rows(changed: Sequence[Evaluation], tuning: Mapping[float, Evaluation]) -> list[ChangedPlantRow]:
+    """Part 3's rows from the ``changed`` plants' evaluations (ESO-DKMPC's carry the pole in
+    their setting, DKMPC's none) and part 2's ``tuning`` evaluations (pole -> evaluation)."""
+    rows = []
+    for evaluation in changed:
+        pole = dict(evaluation.setting).get(POLE_FIELD)
+        together = math.nan
+        if pole is not None:
+            base = tuning[pole]
+            together = objective({**base.rmse_m, **evaluation.rmse_m}, {**base.completed, **evaluation.completed})
+        rows.append(ChangedPlantRow(evaluation.controller, pole, plant_means(evaluation), evaluation.objective_m,
+                                    together))
+    return rows
+
+
+def evaluate_changed_plants(poles: Sequence[float], *, workers: int, progress: bool) -> list[Evaluation]:
+    """ESO-DKMPC at each pole and DKMPC once on :func:`changed_plant_set`, every other field
+    at the tuning file's value."""
+    from tqdm import tqdm
+
+    from controller.tuning import load_tuning
+    from studies.tuning_sweep_executor import SweepExecutor
+
+    scenarios = changed_plant_set()
+    jobs = [(CONTROLLER, "observer", ((POLE_FIELD, pole),)) for pole in sorted(poles)]
+    jobs.append((BASELINE, "observer", ()))
+    bar = tqdm(total=len(jobs) * len(scenarios), desc="changed plants", unit="run", disable=not progress)
+    executor = SweepExecutor(scenarios, load_tuning(), run_on_changed_plant, workers, bar)
+    try:
+        return executor.evaluate(jobs)
+    finally:
+        executor.close()
+        bar.close()
+
+
+def report_markdown(rows: Sequence[PoleRow], file_pole: float, changed: Sequence[ChangedPlantRow], *,
+                    command: str, seconds: float) -> str:
+    """observer_speed.md: the tables and what they say."""
     best = min(rows, key=lambda r: r.tuning_objective_m)
     most = max(rows, key=lambda r: r.mismatch.wins)
     lines = [
@@ -168,12 +276,52 @@ def report_markdown(rows: Sequence[PoleRow], file_pole: float, *, command: str, 
         "those a table reports): the grid's figures here inform, they do not choose.",
         "",
     ]
-    return "\n".join(lines)
+    return "\n".join(lines + changed_plant_markdown(changed))
 
 
-def write_figure(rows: Sequence[PoleRow], file: Path) -> None:
-    """observer_speed.png: per pole the mismatch cells ESO-DKMPC wins (share) and the tuning
-    set's objective."""
+def changed_plant_markdown(changed: Sequence[ChangedPlantRow]) -> list[str]:
+    """Part 3's section of observer_speed.md (no lines without rows)."""
+    if not changed:
+        return []
+    plants = list(CHANGED_PLANTS)
+    described = ", ".join(f"{name} (mass {mass:+g} kg, steering time constant x{lag:g})"
+                          for name, (mass, lag) in CHANGED_PLANTS.items())
+    lines = [
+        "## The tuning manoeuvres on changed plants",
+        "",
+        "The observer stage's 11 runs without a disturbance (the tuning set and the steady drives), each on "
+        f"{described}: plants the tuning set does not have, milder than the grid's mismatch cells. Mean e_Y "
+        "RMSE (mm); the last column adds these runs to the 22 of the tuning set above, the objective of a "
+        "tuning set with the changed plants in it.",
+        "",
+        "| controller | " + " | ".join(plants) + " | changed plants | with the tuning set |",
+        "|---|" + "---|" * (len(plants) + 2),
+    ]
+    for row in changed:
+        name = "DKMPC" if row.pole is None else f"ESO-DKMPC {row.pole:g}"
+        together = "-" if math.isnan(row.with_tuning_set_m) else f"{1000 * row.with_tuning_set_m:.2f}"
+        lines.append(f"| {name} | " + " | ".join(f"{1000 * row.per_plant_m[p]:.2f}" for p in plants)
+                     + f" | {1000 * row.objective_m:.2f} | {together} |")
+    observed = [row for row in changed if row.pole is not None]
+    chosen = min(observed, key=lambda row: row.with_tuning_set_m)
+    alone = min(observed, key=lambda row: row.objective_m)
+    lines += [
+        "",
+        f"- With the changed plants added, the objective is lowest at {chosen.pole:g} "
+        f"({1000 * chosen.with_tuning_set_m:.2f} mm); on the changed plants alone at {alone.pole:g} "
+        f"({1000 * alone.objective_m:.2f} mm).",
+    ]
+    baseline = [row for row in changed if row.pole is None]
+    if baseline:
+        beaten = [f"{row.pole:g}" for row in observed if row.objective_m < baseline[0].objective_m]
+        lines.append(f"- DKMPC on the changed plants: {1000 * baseline[0].objective_m:.2f} mm; ESO-DKMPC is lower "
+                     f"at {', '.join(beaten) if beaten else 'no pole'}.")
+    return lines + [""]
+
+
+def write_figure(rows: Sequence[PoleRow], changed: Sequence[ChangedPlantRow], file: Path) -> None:
+    """observer_speed.png: per pole the mismatch cells ESO-DKMPC wins (share), the tuning
+    set's objective and that objective with the changed plants' runs added."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -186,8 +334,13 @@ def write_figure(rows: Sequence[PoleRow], file: Path) -> None:
     left.set_ylabel("mismatch cells ESO-DKMPC < DKMPC (share)", color="tab:blue")
     left.axhline(0.5, color="tab:blue", linestyle=":", linewidth=0.8)
     right = left.twinx()
-    right.plot(poles, [1000 * r.tuning_objective_m for r in rows], "s--", color="tab:red")
-    right.set_ylabel("tuning set objective (mm)", color="tab:red")
+    right.plot(poles, [1000 * r.tuning_objective_m for r in rows], "s--", color="tab:red", label="tuning set")
+    together = sorted((r.pole, r.with_tuning_set_m) for r in changed if r.pole is not None)
+    if together:
+        right.plot([p for p, _ in together], [1000 * v for _, v in together], "^:", color="tab:orange",
+                   label="tuning set + changed plants")
+        right.legend(loc="upper center", fontsize="small")
+    right.set_ylabel("objective (mm)", color="tab:red")
     left.set_title("ESO-DKMPC: the observer's speed, grid against tuning set")
     fig.tight_layout()
     fig.savefig(file, dpi=120)
@@ -223,22 +376,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         if len(rows) < len(grid.cells):
             raise HilError(f"--campaign {args.campaign}: {len(grid.cells) - len(rows)} of the {len(grid.cells)} "
                            f"cells of {GRID} are not computed for this code (run the campaign first)")
-        objectives = tuning_objectives(list(poles.values()), workers=args.workers, progress=args.progress)
-        table = pole_rows(rows, poles, objectives)
+        evaluations = tuning_evaluations(list(poles.values()), workers=args.workers, progress=args.progress)
+        table = pole_rows(rows, poles, {pole: e.objective_m for pole, e in evaluations.items()})
+        changed = changed_plant_rows(evaluate_changed_plants(list(poles.values()), workers=args.workers,
+                                                             progress=args.progress), evaluations)
         command = "python -m studies.observer_speed " + " ".join(sys.argv[1:] if argv is None else argv)
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "observer_speed.md").write_text(
-            report_markdown(table, file_pole, command=command, seconds=time.monotonic() - started), encoding="utf-8")
-        (args.out / "observer_speed.json").write_text(json.dumps(
-            {"field": POLE_FIELD, "file_pole": file_pole, "rows": [asdict(r) for r in table]}, indent=1) + "\n",
+            report_markdown(table, file_pole, changed, command=command, seconds=time.monotonic() - started),
             encoding="utf-8")
-        write_figure(table, args.out / "observer_speed.png")
+        (args.out / "observer_speed.json").write_text(json.dumps(
+            {"field": POLE_FIELD, "file_pole": file_pole, "rows": [asdict(r) for r in table],
+             "changed_plants": {name: {"mass_offset_kg": mass, "lag_factor": lag}
+                                for name, (mass, lag) in CHANGED_PLANTS.items()},
+             "changed_plant_rows": [asdict(r) for r in changed]}, indent=1) + "\n",
+            encoding="utf-8")
+        write_figure(table, changed, args.out / "observer_speed.png")
     except (HilError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     for row in table:
         print(f"{POLE_FIELD} {row.pole:g}: mismatch {row.mismatch.text()}, nominal ratio max "
               f"{row.nominal_ratio_max:.3f}, tuning set {1000 * row.tuning_objective_m:.2f} mm")
+    for plant_row in changed:
+        print(f"changed plants, {plant_row.controller} {plant_row.pole}: {1000 * plant_row.objective_m:.2f} mm")
     print(f"wrote {args.out}/observer_speed.md, .json, .png")
     return 0
 

@@ -65,14 +65,15 @@ def setting(advance: float) -> Setting:
 
 
 def label(advance: float) -> str:
+    """The setting's name in tables and legends: "eq. 20 (Euler)" for 0, "midpoint" for 0.5."""
     return "eq. 20 (Euler)" if advance == 0.0 else "midpoint"
 
 
 def arc_mask(scenario: Scenario, progress: np.ndarray) -> np.ndarray:
     """Samples (by the foot point's arc length ``progress`` (n,)) on the path's arc."""
     path = load_reference_path(scenario)
-    poses = path.pose_at(np.linspace(0.0, path.length, 4001))
     s = np.linspace(0.0, path.length, 4001)
+    poses = path.pose_at(s)
     curvature = np.abs(np.gradient(np.unwrap(poses[:, 2]), s))
     on_arc = curvature >= (1.0 - ARC_TOLERANCE) * curvature.max()
     return np.interp(progress, s, on_arc.astype(float)) > 0.5
@@ -191,7 +192,7 @@ def figure(curve: Mapping[str, ClosedLoopResult], out: Path) -> None:
     fig, axes = plt.subplots(len(FIGURE_CONTROLLERS), 1, figsize=(9, 2.4 * len(FIGURE_CONTROLLERS)), sharex=True)
     nmpc = curve.get("nmpc@None")
     for ax, name in zip(np.atleast_1d(axes), FIGURE_CONTROLLERS):
-        for advance, style in zip(ADVANCES, ("-", "-")):
+        for advance, style in zip(ADVANCES, ("-", "-.")):
             trace = curve[f"{name}@{advance}"].trace
             ax.plot(trace.progress, 100.0 * trace.lateral_error, style, label=f"{name}, {label(advance)}")
         if nmpc is not None:

@@ -10,6 +10,7 @@ from controller.tuning import load_tuning
 from hil.errors import HilError
 from studies import observer_speed
 from studies.campaign.grid import load_grid
+from studies.tuning_sweep_executor import Evaluation
 
 
 def test_the_grid_runs_the_study_s_poles_and_dkmpc_once() -> None:
@@ -57,7 +58,7 @@ def test_pole_rows_count_head_to_head_and_the_nominal_ratio_per_pole() -> None:
     assert (fast.mismatch.wins, fast.mismatch.losses, fast.mismatch.cells) == (0, 1, 1)
     assert (fast.every.wins, fast.every.losses, fast.every.cells) == (0, 2, 3)
     assert fast.nominal_ratio_max == pytest.approx(1.4) and fast.tuning_objective_m == 0.027
-    text = observer_speed.report_markdown(table, 0.95, command="test", seconds=1.0)
+    text = observer_speed.report_markdown(table, 0.95, [], command="test", seconds=1.0)
     assert "| 0.95 (tuning file) | 2 of 2 (DKMPC lower on 0) |" in text
     assert "lowest at 0.95" in text
 
@@ -74,3 +75,53 @@ def test_the_command_refuses_a_folder_without_a_campaign(tmp_path: Path, capsys)
     assert status == 1
     assert "no campaign there" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_the_changed_plants_are_the_observer_stage_s_undisturbed_runs_on_a_heavier_car_and_slower_steering() -> None:
+    from models.vehicle_params import load_vehicle_params
+    from studies.campaign.closed_loop_cell import plant_for
+
+    scenarios = observer_speed.changed_plant_set()
+    assert len(scenarios) == 22 and len({s.name for s in scenarios}) == 22
+    heavy = [s for s in scenarios if s.name.endswith("+mass+150kg")]
+    slow = [s for s in scenarios if s.name.endswith("+lag_x2")]
+    assert len(heavy) == len(slow) == 11
+    assert not any(s.disturbances.any for s in scenarios)
+    nominal = load_vehicle_params()
+    heavy_plant, _ = plant_for(heavy[0])
+    slow_plant, _ = plant_for(slow[0])
+    assert heavy_plant.params.mass == pytest.approx(nominal.mass + 150.0)
+    assert heavy_plant.params.steer_time_constant == pytest.approx(nominal.steer_time_constant)
+    assert slow_plant.params.mass == pytest.approx(nominal.mass)
+    assert slow_plant.params.steer_time_constant == pytest.approx(2 * nominal.steer_time_constant)
+
+
+def _evaluation(controller: str, setting: tuple, rmse: dict[str, float | None]) -> Evaluation:
+    from studies.tuning_sweep_executor import objective
+
+    values = {n: (v if v is not None else float("nan")) for n, v in rmse.items()}
+    completed = {n: v is not None for n, v in rmse.items()}
+    return Evaluation(controller, "observer", setting, values, dict(values), completed,
+                      {n: None for n in rmse}, objective(values, completed), 1.0)
+
+
+def test_changed_plant_rows_average_per_plant_and_with_the_tuning_set() -> None:
+    tuning = {0.95: _evaluation("eso-dkmpc", (("eso_second_pole", 0.95),), {"a": 0.010, "a+disturbed": 0.030}),
+              0.9: _evaluation("eso-dkmpc", (("eso_second_pole", 0.9),), {"a": 0.012, "a+disturbed": 0.032})}
+    changed = [
+        _evaluation("eso-dkmpc", (("eso_second_pole", 0.9),), {"a+mass+150kg": 0.010, "a+lag_x2": 0.014}),
+        _evaluation("eso-dkmpc", (("eso_second_pole", 0.95),), {"a+mass+150kg": 0.012, "a+lag_x2": None}),
+        _evaluation("dkmpc", (), {"a+mass+150kg": 0.011, "a+lag_x2": 0.013}),
+    ]
+    fast, slow, baseline = observer_speed.changed_plant_rows(changed, tuning)
+    assert fast.per_plant_m == pytest.approx({"mass+150kg": 0.010, "lag_x2": 0.014})
+    assert fast.objective_m == pytest.approx(0.012)
+    assert fast.with_tuning_set_m == pytest.approx((0.012 + 0.032 + 0.010 + 0.014) / 4)
+    # a run that did not complete counts the objective's penalty, per plant too
+    assert slow.per_plant_m["lag_x2"] > 1.0 and slow.with_tuning_set_m > 0.25
+    assert baseline.pole is None and math.isnan(baseline.with_tuning_set_m)
+    text = "\n".join(observer_speed.changed_plant_markdown([fast, slow, baseline]))
+    assert "| ESO-DKMPC 0.9 | 10.00 | 14.00 | 12.00 | 17.00 |" in text
+    assert "| DKMPC | 11.00 | 13.00 | 12.00 | - |" in text
+    assert "With the changed plants added, the objective is lowest at 0.9" in text
+    assert "ESO-DKMPC is lower at no pole" in text

@@ -154,6 +154,24 @@ def test_realtime_policy_notes_a_cpu_that_does_not_exist():
     assert policy.notes and "not pinned" in policy.notes[0]
 
 
+def test_freezing_the_start_up_objects_leaves_them_out_of_full_collections():
+    """In a child process (freezing is for the life of a process): the objects alive after
+    start-up move to the permanent generation, and a full collection then scans only
+    what came after."""
+    import subprocess
+    import sys
+    code = ("import gc, numpy, can, controller.registry\n"
+            "from firmware_sim.timing import freeze_start_up_objects\n"
+            "frozen = freeze_start_up_objects()\n"
+            "after = sum(len(g) for g in (gc.get_objects(0), gc.get_objects(1), gc.get_objects(2)))\n"
+            "print(frozen, gc.get_freeze_count(), after)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    print(result.stdout, result.stderr)
+    frozen, count, tracked = (int(v) for v in result.stdout.split())
+    assert frozen == count > 10_000          # the modules and libraries of start-up
+    assert tracked < frozen / 10             # what a later full collection still scans
+
+
 # ------------------------------------------------------------------ long path
 def test_repeated_lane_change_is_continuous_and_long_enough(tmp_path):
     from controller.reference import ReferencePath
