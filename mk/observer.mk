@@ -40,11 +40,12 @@ observer-variants: setup
 
 # The observer's slow pole against the robustness grid's mismatch cells and the tuning set's
 # objective (studies/observer_speed.py, docs/eso.md): the campaign grid observer_speed (480
-# closed-loop runs, cached in build/observer_speed/) and the observer stage's 22 runs at each
-# pole. About 6 min on 2 cores when nothing is cached.
+# closed-loop runs, cached in build/observer_speed/), the observer stage's 22 runs at each
+# pole, and its 11 undisturbed runs on two changed plants (+150 kg, steering lag x2) at each
+# pole and for DKMPC. About 9 min on 2 cores when nothing is cached.
 .PHONY: observer-speed
 OBSERVER_SPEED_CAMPAIGN := build/observer_speed
-## ESO-DKMPC at four slow observer poles: mismatch cells against DKMPC, tuning set objective -> results/observer_speed.* (~6 min)
+## ESO-DKMPC at four slow observer poles: mismatch cells against DKMPC, tuning set objective, changed plants -> results/observer_speed.* (~9 min)
 observer-speed: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.campaign observer_speed --out $(OBSERVER_SPEED_CAMPAIGN) --workers 2 --no-progress
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.observer_speed --campaign $(OBSERVER_SPEED_CAMPAIGN) --out results --no-progress
