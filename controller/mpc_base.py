@@ -5,6 +5,10 @@ the plan into a command or, when the plan failed (status not SOLVED / SOLVED_INA
 or a non-finite value), into the defined fallback: the shifted previous solution
 (``steer[age]`` of the last good plan), else the previous command held. Non-finite samples
 give the fallback with status NOT_RUN. The last step always clips to the limits.
+
+With the grip envelope on (``MpcTuning.grip_slip_excess`` > 0), every valid sample first
+advances the grip estimate (``controller.grip_envelope``), and ``yaw_rate_bound`` holds the
+yaw-rate bound the subclass's plan puts on eq. 21's yaw-rate rows.
 """
 from __future__ import annotations
 
@@ -18,6 +22,7 @@ import numpy as np
 from controller.base import (CONTROL_PERIOD_S, STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug,
                              VehicleSample, sample_is_finite)
 from controller.delay_compensation import COMMAND_HISTORY
+from controller.grip_envelope import GripEnvelope, RearAxle
 from controller.longitudinal import SpeedController
 from controller.reference import PathTracker, ReferencePath
 from controller.steady_slip import measured_slip, reference_bend, slip_target
@@ -51,6 +56,9 @@ class SteeringMpc(Controller):
         self._speed = SpeedController(longitudinal)
         self._tracker: PathTracker | None = None
         self._observer_reset = False
+        # The nominal bicycle's rear axle only where the envelope is on: the tables that
+        # leave it off need no vehicle file.
+        self.grip = GripEnvelope(tuning, RearAxle.nominal()) if tuning.grip_slip_excess > 0.0 else None
         self.reset()
 
     # -- interface ---------------------------------------------------------------------
@@ -66,6 +74,9 @@ class SteeringMpc(Controller):
         # The steer commands sent, newest last: the ones in flight over the delay window.
         self._command_history: deque[float] = deque(maxlen=COMMAND_HISTORY)
         self.slip_target = 0.0  # rad: how far the last step moved the heading target
+        self.yaw_rate_bound = math.inf  # rad/s: the grip envelope's bound of the step (inf: none)
+        if self.grip is not None:
+            self.grip.reset()
         if self._tracker is not None:
             self._tracker.reset()
 
@@ -74,6 +85,8 @@ class SteeringMpc(Controller):
         if self._tracker is None or not sample_is_finite(sample):
             return self._fallback(SolverStatus.NOT_RUN, torque=None)
         torque = self._speed.torque(sample.vx, sample.target_speed)
+        # The grip estimate reads the measurement, as the observer does, before any delay shift.
+        self.yaw_rate_bound = self.grip.update(sample) if self.grip is not None else math.inf
         sample = self._prepare(sample, torque)
         projection = self._tracker.update(sample.x, sample.y, sample.yaw)
         reference = self._tracker.horizon_reference(projection.progress, sample.vx,

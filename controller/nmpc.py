@@ -169,6 +169,19 @@ class Nmpc(SteeringMpc):
             raise ValueError(f"NMPC time budget must be a positive number of seconds, got {seconds!r}")
         self._solver = self._solver_with_budget(seconds, compiled)
 
+    def constraint_bounds(self, yaw_rate_bound: float) -> tuple[np.ndarray, np.ndarray]:
+        """The bounds of the NLP's constraints g, each (N_STATE (Np + 1) + 6 Np,): the
+        tables', with the soft yaw-rate rows narrowed to +-``yaw_rate_bound`` (rad/s; the grip
+        envelope's, ``controller.grip_envelope``) where that is tighter; inf: the tables'."""
+        if not yaw_rate_bound < math.inf:
+            return self._lower_g, self._upper_g
+        n_pred, n_equal = self.tuning.prediction_horizon, self._n_states
+        lower, upper = self._lower_g.copy(), self._upper_g.copy()
+        # Row pairs per step: (x - s <= x_max, x + s >= x_min), each over [vx, vy, yaw_rate].
+        upper[n_equal:].reshape(n_pred, 2, 3)[:, 0, 2] = min(self.tuning.state_max[2], yaw_rate_bound)
+        lower[n_equal:].reshape(n_pred, 2, 3)[:, 1, 2] = max(self.tuning.state_min[2], -yaw_rate_bound)
+        return lower, upper
+
     def reset(self) -> None:
         """Forget plans, warm starts and progress."""
         self._warm = None
@@ -193,8 +206,8 @@ class Nmpc(SteeringMpc):
         weights = self.tuning.weights_at(sample.vx)
         parameters = np.concatenate((initial, reference.T.ravel(order="F"),
                                      [drive_torque, previous, weights.q_position, weights.q_yaw, weights.r_steer]))
-        arguments = dict(x0=guess, p=parameters, lbx=self._lower_x, ubx=self._upper_x,
-                         lbg=self._lower_g, ubg=self._upper_g)
+        lower_g, upper_g = self.constraint_bounds(self.yaw_rate_bound)
+        arguments = dict(x0=guess, p=parameters, lbx=self._lower_x, ubx=self._upper_x, lbg=lower_g, ubg=upper_g)
         if lam_x is not None:
             arguments.update(lam_x0=lam_x, lam_g0=lam_g)
         result = self._solver(**arguments)

@@ -4,7 +4,9 @@ A subclass gives the dynamic states over the horizon as an affine function of th
 sequence U (Nc,), the drive torque being fixed by the P controller (eq. 22's torque rows):
 states[i] = free[i] + gain[i] @ U, i = 0..Np (step 0 is the measurement). This base
 linearises the pose of eq. 20 about the shifted previous solution (real-time iteration:
-one QP per step, no re-linearisation within the step) and solves ``SteeringQp``.
+one QP per step, no re-linearisation within the step) and solves ``SteeringQp``, with the
+yaw-rate rows of eq. 21 narrowed by the grip envelope's bound of the step
+(``SteeringMpc.yaw_rate_bound``, ``controller.grip_envelope``).
 """
 from __future__ import annotations
 
@@ -86,7 +88,7 @@ class QpSteeringMpc(SteeringMpc):
                                                  self.tuning.pose_heading_advance)
         pose_offset = pose_nominal - jacobian @ nominal - reference
         solution = self.qp.solve(jacobian, pose_offset, self.previous_steer(sample), gain[1:], free[1:], nominal,
-                                 weights=self.tuning.weights_at(sample.vx))
+                                 weights=self.tuning.weights_at(sample.vx), yaw_rate_bound=self.yaw_rate_bound)
         steer = solution.steer
         return Plan(status=solution.status, steer=steer, iterations=solution.iterations,
                     solve_time_s=solution.solve_time_s, cost=solution.cost,

@@ -49,6 +49,7 @@ from this object (firmware/tools/generate.py), so both implementations change to
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,6 +65,8 @@ N_SOFT_STATES = 3  # vx, vy, yaw_rate: one slack each (the decision vector's las
 #: [0, 40] m/s are never near. The firmware's layout is generated from this
 #: (firmware/tools/generate.py: ECU_SOFT_STATE_MASK).
 SOFT_STATES = (1, 2)
+#: The yaw rate's index in [vx, vy, yaw_rate]: the rows the grip envelope narrows.
+YAW_RATE_STATE = 2
 #: Soft rows at the first SOFT_LEADING_STEPS prediction steps (1-based steps 1 ..
 #: SOFT_LEADING_STEPS), at the steps SOFT_STEP_STRIDE, 2 SOFT_STEP_STRIDE, ... and always at
 #: the last step Np (:func:`soft_steps`). The first predicted states are the ones the next
@@ -213,6 +216,7 @@ class SteeringQp:
         self._lower[n_ctrl:soft_first] = 0.0
         self._state_min = np.tile(tuning.state_min, n_pred)[self._soft_rows]
         self._state_max = np.tile(tuning.state_max, n_pred)[self._soft_rows]
+        self._yaw_rows = self._soft_rows % N_SOFT_STATES == YAW_RATE_STATE  # (n_rows,) bool
         self._soft_upper = self._upper[soft_first:self._rate_first:2]  # views, (n_rows,)
         self._soft_lower = self._lower[soft_first + 1:self._rate_first:2]
         self._soft_upper[:] = self._state_max
@@ -252,7 +256,7 @@ class SteeringQp:
 
     def solve(self, pose_jacobian: np.ndarray, pose_offset: np.ndarray, previous_steer: float,
               state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray,
-              weights: StageWeights | None = None) -> QpSolution:
+              weights: StageWeights | None = None, yaw_rate_bound: float = math.inf) -> QpSolution:
         """Update the data and solve.
 
         pose_jacobian (Np, 3, Nc), pose_offset (Np, 3): linearised pose minus reference is
@@ -261,7 +265,9 @@ class SteeringQp:
         ``state_gain[k, :, c]`` with c > k are zero for every causal prediction and are not
         read (see the module docstring). warm_steer (Nc,). weights: the scheduled weights
         of this step (``tuning.weights_at(vx)``); None: the table's ``q_position``,
-        ``q_yaw``, ``r_steer``.
+        ``q_yaw``, ``r_steer``. yaw_rate_bound (rad/s, > 0): the grip envelope's bound
+        (``controller.grip_envelope``), narrowing eq. 21's yaw-rate rows to within
+        +-yaw_rate_bound for this solve; inf: the table's bounds.
         """
         n_ctrl = self.n_ctrl
         self._use_weights(weights if weights is not None
@@ -276,8 +282,12 @@ class SteeringQp:
 
         self._a_data[self._gain_slot] = state_gain.reshape(-1)[self._gain_source]
         free = state_free.ravel()[self._soft_rows]
-        self._soft_upper[:] = self._state_max - free
-        self._soft_lower[:] = self._state_min - free
+        state_max, state_min = self._state_max, self._state_min
+        if yaw_rate_bound < math.inf:
+            state_max = np.where(self._yaw_rows, np.minimum(state_max, yaw_rate_bound), state_max)
+            state_min = np.where(self._yaw_rows, np.maximum(state_min, -yaw_rate_bound), state_min)
+        self._soft_upper[:] = state_max - free
+        self._soft_lower[:] = state_min - free
         if self._rate_first < self._lower.size:  # U_0 - U_{-1} within the step
             self._lower[self._rate_first] = previous_steer - self._max_steer_step
             self._upper[self._rate_first] = previous_steer + self._max_steer_step

@@ -80,6 +80,13 @@ class MpcTuning:
     step of the horizon's pose moves, yaw_i + advance * Ts * r_i
     (``controller.pose_kinematics``). 0, the default, is eq. 20's explicit Euler; 0.5 the
     step's midpoint, exact for a constant yaw rate (docs/controllers.md, "The pose step").
+
+    Grip envelope (``controller.grip_envelope``, optional in the TOML): with
+    ``grip_slip_excess`` > 0 (rad; 0: off, the default) the MPCs bound the yaw rate by
+    (1 + ``grip_margin``) a_max / vx, a_max the road's grip as estimated from the rear
+    axle's slip beyond the nominal bicycle's linear need (``grip_slip_excess``), the recent
+    peak of the lateral acceleration (memory ``grip_peak_time``, s) and a return to no bound
+    at ``grip_recovery`` (m/s^2 per s) once the rear axle grips again.
     """
 
     prediction_horizon: int
@@ -103,6 +110,10 @@ class MpcTuning:
     qp_steer_rate_limit: float = field(default=0.0, kw_only=True)
     delay_compensation_s: float = field(default=0.0, kw_only=True)
     pose_heading_advance: float = field(default=0.0, kw_only=True)
+    grip_slip_excess: float = field(default=0.0, kw_only=True)
+    grip_margin: float = field(default=0.1, kw_only=True)
+    grip_recovery: float = field(default=10.0, kw_only=True)
+    grip_peak_time: float = field(default=1.0, kw_only=True)
 
     def __post_init__(self) -> None:
         low, high = self.weight_schedule_speeds
@@ -294,6 +305,11 @@ _RULES: dict[str, _Rule] = {
     "qp_steer_rate_limit": (lambda v: 0.0 <= v <= 100.0, "must be in [0, 100] rad/s (0: off)"),
     "delay_compensation_s": (lambda v: 0.0 <= v <= 0.1, "must be in [0, 0.1] s (0: off)"),
     "pose_heading_advance": (lambda v: v in (0.0, 0.5), "must be 0 (eq. 20, explicit Euler) or 0.5 (the step's midpoint)"),
+    # The grip envelope (controller.grip_envelope); the C core's reader applies the same ranges.
+    "grip_slip_excess": (lambda v: 0.0 <= v <= 0.2, "must be in [0, 0.2] rad (0: off)"),
+    "grip_margin": (lambda v: 0.0 <= v <= 2.0, "must be in [0, 2]"),
+    "grip_recovery": (lambda v: 0.0 < v <= 1000.0, "must be in (0, 1000] m/s^2 per s"),
+    "grip_peak_time": (lambda v: 0.0 < v <= 60.0, "must be in (0, 60] s"),
 }
 
 

@@ -1,7 +1,8 @@
 """The actuator terms of the steering QP (issue 37): the steer-rate rows, in Python and in
 the C core, and both loaders' verdicts on the new tuning fields.
 
-The pose step's heading advance rides along (a twin case of its own below).
+The pose step's heading advance rides along (a twin case of its own below), and so do the
+grip envelope's fields in the loaders' verdicts (its twin: tests/test_firmware_c_core.py).
 
 With ``qp_steer_rate_limit`` on, the QP's pattern changes (Nc more rows), so the C core is
 generated for a tuning file with it on: ``make firmware FW_DIR=build/firmware-actuator
@@ -66,6 +67,7 @@ def test_the_actuator_terms_default_off() -> None:
     for name in QP_CONTROLLERS + ("nmpc", "lmpc-eso", "dmdc-eso"):
         table = tuning.for_controller(name)
         assert table.qp_steer_rate_limit == 0.0 and table.delay_compensation_s == 0.0
+        assert table.grip_slip_excess == 0.0  # the grip envelope off
 
 
 @pytest.mark.parametrize("fields, message", [
@@ -77,6 +79,11 @@ def test_the_actuator_terms_default_off() -> None:
     ({"delay_compensation_s": -0.01}, "delay_compensation_s must be in [0, 0.1]"),
     ({"pose_heading_advance": 0.25}, "pose_heading_advance must be 0 .eq. 20, explicit Euler. or 0.5"),
     ({"pose_heading_advance": -0.5}, "pose_heading_advance must be 0 .eq. 20, explicit Euler. or 0.5"),
+    ({"grip_slip_excess": 0.25}, "grip_slip_excess must be in [0, 0.2] rad .0: off., got 0.25"),
+    ({"grip_slip_excess": -0.01}, "grip_slip_excess must be in [0, 0.2] rad .0: off., got -0.01"),
+    ({"grip_margin": 2.5}, "grip_margin must be in [0, 2], got 2.5"),
+    ({"grip_recovery": 0.0}, "grip_recovery must be in .0, 1000] m/s.2 per s, got 0.0"),
+    ({"grip_peak_time": 61.0}, "grip_peak_time must be in .0, 60] s, got 61.0"),
 ])
 def test_python_loader_refuses_bad_actuator_terms(fields: dict, message: str) -> None:
     with pytest.raises(TuningError, match=message.replace("[", r"\[")):
@@ -88,6 +95,8 @@ def test_nmpc_refuses_the_actuator_terms() -> None:
         parse_tuning(_document({"qp_steer_rate_limit": 1.0}, "nmpc"))
     with pytest.raises(TuningError, match="pose_heading_advance must be 0 for NMPC"):
         parse_tuning(_document({"pose_heading_advance": 0.5}, "nmpc"))
+    # The grip envelope is NMPC's too (its yaw-rate rows: tests/test_grip_envelope.py).
+    assert parse_tuning(_document({"grip_slip_excess": 0.05}, "nmpc")).nmpc.grip_slip_excess == 0.05
 
 
 # ------------------------------------------------------------------ the rate rows in Python
@@ -154,28 +163,64 @@ def test_rate_rows_c_step_equals_python_in_closed_loop(actuator_core, name: str)
     ("qp_steer_rate_limit", -0.5, "qp_steer_rate_limit must be in [0, 100] rad/s"),
     ("delay_compensation_s", 0.5, "delay_compensation_s must be in [0, 0.1] s"),
     ("pose_heading_advance", 0.25, "pose_heading_advance must be 0 .eq. 20, explicit Euler. or 0.5"),
+    ("grip_slip_excess", 0.25, "grip_slip_excess must be in [0, 0.2] rad .0: off., got 0.25"),
+    ("grip_margin", -0.5, "grip_margin must be in [0, 2], got -0.5"),
+    ("grip_recovery", 1500.0, "grip_recovery must be in .0, 1000] m/s.2 per s, got 1500.0"),
+    ("grip_peak_time", 0.0, "grip_peak_time must be in .0, 60] s, got 0.0"),
 ])
 def test_c_loader_refuses_what_python_refuses(actuator_core, tmp_path: Path, field: str, value: float,
                                               message: str) -> None:
     """The data file written with a value the Python loader refuses: the C core's reader
-    refuses it too, naming the field and the range."""
+    refuses it too, naming the field and the range (the grip envelope's fields: with the
+    Python loader's message word for word)."""
     sys.path.insert(0, str(ROOT / "firmware" / "tools"))
     from ecu_data import TUNING_FIELDS, collect, write_data  # noqa: E402 (the build tool)
 
     records = collect(TUNING, ROOT / "models" / "artifacts" / "dk_d5")
     record = records["tuning.dkmpc"]
     # The field's value: every field after the state bounds and the schedule speeds is a
-    # scalar (34 values for 27 + 2 fields), so it sits as far from the record's end as the
+    # scalar (38 values for 31 + 2 fields), so it sits as far from the record's end as the
     # field from TUNING_FIELDS' end.
-    assert record.size == 34 and len(TUNING_FIELDS) == 29
+    assert record.size == 38 and len(TUNING_FIELDS) == 33
     index = record.size - len(TUNING_FIELDS) + TUNING_FIELDS.index(field)
     record[index] = value
     bad = tmp_path / "ecu_data.bin"
     write_data(records, bad)
-    with pytest.raises(Exception, match=message.replace("[", r"\[")):
+    with pytest.raises(Exception, match=message.replace("[", r"\[")) as c_error:
         actuator_core.NativeController("dkmpc", bad)
-    with pytest.raises(TuningError, match=message.replace("[", r"\[")):
+    with pytest.raises(TuningError, match=message.replace("[", r"\[")) as python_error:
         parse_tuning(_document({field: value}))
+    if field.startswith("grip_"):
+        assert str(python_error.value) in str(c_error.value)
+
+
+@requires_c_toolchain
+def test_the_grip_axle_is_the_nominal_one_with_a_fitted_bicycle_and_its_record_is_required(
+        actuator_core, tmp_path: Path) -> None:
+    """A fitted bicycle for LMPC (ecu_data.py --bicycle) replaces the bicycle record only:
+    the grip envelope's rear axle stays the nominal one, as in the Python ECU; a data file
+    without the grip.axle record is refused, naming it."""
+    sys.path.insert(0, str(ROOT / "firmware" / "tools"))
+    from ecu_data import collect, write_data  # noqa: E402 (the build tool)
+
+    import json
+
+    from controller.grip_envelope import RearAxle
+    from models.bicycle import nominal_model_params
+    from models.bicycle_fit import BICYCLE_FIELDS, BICYCLE_FILE_KIND
+
+    nominal = RearAxle.nominal()
+    values = {name: getattr(nominal_model_params(), name) for name in BICYCLE_FIELDS}
+    values.update(mass=nominal.mass + 300.0, cornering_stiffness_rear=0.8 * nominal.cornering_stiffness_rear)
+    fitted = tmp_path / "bicycle.json"
+    fitted.write_text(json.dumps({"kind": BICYCLE_FILE_KIND, **values}))
+    records = collect(TUNING, ROOT / "models" / "artifacts" / "dk_d5", fitted)
+    assert records["bicycle"][2] == nominal.mass + 300.0
+    assert records["grip.axle"].tolist() == [nominal.mass, nominal.lf, nominal.lr, nominal.cornering_stiffness_rear]
+    missing = tmp_path / "no_axle.bin"
+    write_data({k: v for k, v in records.items() if k != "grip.axle"}, missing)
+    with pytest.raises(Exception, match="no_axle.bin: record grip.axle missing"):
+        actuator_core.NativeController("dkmpc", missing)
 
 
 # ------------------------------------------------------------------ delay compensation's twin

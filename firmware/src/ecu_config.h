@@ -41,6 +41,11 @@ typedef struct {
   /* Each step of the horizon's pose moves along yaw_i + advance * ts * r_i (MpcTuning,
    * controller/pose_kinematics.py): 0 is eq. 20's explicit Euler, 0.5 the step's midpoint. */
   double pose_heading_advance;
+  /* The grip envelope of the yaw-rate rows (MpcTuning, controller/grip_envelope.py,
+   * ecu_grip.h): the rear axle's slip beyond its linear need that marks the grip reached
+   * (rad; 0: off), the bound's margin over the estimate, the estimate's return once the rear
+   * axle grips again (m/s^2 per s) and the memory of the lateral acceleration's peak (s). */
+  double grip_slip_excess, grip_margin, grip_recovery, grip_peak_time;
 } ecu_tuning_t;
 
 typedef struct {
@@ -48,6 +53,11 @@ typedef struct {
   double speed_gain, torque_min, torque_max;
   /* Nominal bicycle: Cf, Cr (N/rad per axle), mass (kg), yaw inertia (kg m^2), lf, lr (m). */
   double cf, cr, mass, yaw_inertia, lf, lr;
+  /* The grip envelope's rear axle (controller.grip_envelope.RearAxle.nominal: the nominal
+   * bicycle's mass, lf, lr, Cr), a record of its own so that a fitted bicycle for LMPC
+   * (ecu_data.py --bicycle) leaves it as the Python ECU has it; has_grip_axle 0: not read. */
+  double grip_mass, grip_lf, grip_lr, grip_cr;
+  int has_grip_axle;
   ecu_tuning_t tuning[ECU_N_CONTROLLERS];
   /* Koopman model in physical units, one A, B, offset per speed knot (ECU_NK = 1: linear);
    * form: ecu_data.py's code (0 linear, 2 scheduled, 3 scheduled with the steer's N). */

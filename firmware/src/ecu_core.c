@@ -4,9 +4,9 @@
  *   controller/qp_mpc.py       the plan: affine state prediction, pose linearisation, QP
  *   controller/reference.py    path progress and the pose reference over the horizon
  * with the prediction of ecu_predict.c (lifted_mpc.py, eso_dkmpc.py, lmpc.py), the
- * observers of ecu_observer.c and the QP of ecu_qp.c. Quantities keep the Python names;
- * array shapes are in the comments. Nothing is allocated, so a step's time is bounded by
- * its loops.
+ * observers of ecu_observer.c, the grip envelope of ecu_grip.c (grip_envelope.py) and the
+ * QP of ecu_qp.c. Quantities keep the Python names; array shapes are in the comments.
+ * Nothing is allocated, so a step's time is bounded by its loops.
  */
 #include <math.h>
 #include <stdio.h>
@@ -24,6 +24,7 @@
 #define STEER_LIMIT 0.3           /* rad: controller.base.STEER_LIMIT_RAD */
 #define TWO_PI 6.283185307179586  /* 2.0 * math.pi */
 #define PI 3.141592653589793 /* math.pi */
+#define CONTROL_PERIOD 0.025     /* s: controller.base.CONTROL_PERIOD_S, the grip estimate's Ts */
 
 static double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
@@ -94,6 +95,7 @@ int ecu_core_load(ecu_core_t *core, const char *data_path, const char *name, cha
   core->n_pred = t->n_pred;
   core->n_ctrl = t->n_ctrl;
   for (int i = 0; i < core->n_pred; i++) core->decay_power[i] = pow(t->disturbance_decay, (double)i);
+  ecu_grip_init(&core->grip, t, &core->cfg, CONTROL_PERIOD); /* exp once, here */
   core->model.valid = 0; /* the per-speed matrices of this data file from the first step */
   core->path_n = 0;
   core->loaded = 1;
@@ -153,6 +155,8 @@ void ecu_core_reset(ecu_core_t *core) {
   core->history_n = 0;
   core->prepared = 0;
   ecu_observer_reset(&core->observer);
+  ecu_grip_reset(&core->grip);
+  core->yaw_rate_bound = INFINITY;
 }
 
 /* ------------------------------------------------------------------ reference */
@@ -243,12 +247,15 @@ static void predict(ecu_core_t *core, const ecu_sample_t *sample, double torque)
 /* models.measurement.wrap_angle: to [-pi, pi), values inside unchanged bit for bit. */
 static double wrap_angle(double a) { return (a >= -PI && a < PI) ? a : py_mod(a + PI, TWO_PI) - PI; }
 
-/* QpSteeringMpc._prepare: with delay compensation on, predict once from the measured sample,
- * move the prediction's start over the window and return (in planned) the sample at the
- * window's end; planned = *sample otherwise. */
+/* QpSteeringMpc._prepare: the grip envelope's bound from the measured sample; with delay
+ * compensation on, predict once from the measured sample, move the prediction's start over
+ * the window and return (in planned) the sample at the window's end; planned = *sample
+ * otherwise. */
 static void prepare(ecu_core_t *core, const ecu_sample_t *sample, double torque, ecu_sample_t *planned) {
   *planned = *sample;
   core->prepared = 0;
+  /* The grip estimate reads the measurement, as the observer does, before any delay shift. */
+  core->yaw_rate_bound = ecu_grip_update(&core->grip, sample);
   const double delay = ecu_total_delay(core->tun->delay_compensation_s, core->sample_age_s);
   if (delay <= 0.0) return;
   double (*free)[3] = core->free, (*gain)[3][NC] = core->gain;
@@ -326,7 +333,7 @@ static void make_plan(ecu_core_t *core, const ecu_sample_t *sample, double torqu
   /* The QP's arrays are (Np * 3, Nc) row-major: jac, and gain / free of steps 1..Np. */
   int64_t start = os_monotonic_ns();
   ecu_qp_solve(&core->qp, sample->vx, &jac[0][0][0], &pose_offset[0][0], previous_steer(core, sample), &gain[1][0][0],
-               &free[1][0], nominal, &solution);
+               &free[1][0], nominal, core->yaw_rate_bound, &solution);
   plan->solve_time_s = 1e-9 * (double)(os_monotonic_ns() - start);
   plan->status = solution.status;
   plan->iterations = solution.iterations;

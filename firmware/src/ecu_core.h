@@ -9,7 +9,8 @@
  *
  * Life cycle: ecu_core_load (start-up: reads the data file, selects the controller),
  * ecu_core_set_path (start-up or on a path change), then ecu_core_step every Ts = 25 ms;
- * ecu_core_reset forgets plans, progress and the observer (as Controller.reset()).
+ * ecu_core_reset forgets plans, progress, the observer and the grip estimate (as
+ * Controller.reset()).
  */
 #ifndef ECU_CORE_H
 #define ECU_CORE_H
@@ -17,6 +18,7 @@
 #include <stddef.h>
 
 #include "ecu_delay.h"
+#include "ecu_grip.h"
 #include "ecu_observer.h"
 #include "ecu_path_reader.h"
 #include "ecu_predict.h"
@@ -45,6 +47,10 @@ typedef struct {
   int prepared;
   ecu_prediction_basis_t basis;
   double sample_age_s; /* the age of the sample being stepped (ecu_core_step_aged) */
+  /* The grip envelope (QpSteeringMpc.grip) and the yaw-rate bound of this step's QP
+   * (rad/s; INFINITY: the table's bounds), from the measured sample in prepare. */
+  ecu_grip_t grip;
+  double yaw_rate_bound;
   /* ESO-DKMPC: the observers; the step's local model and z_k (for the observer's update). */
   ecu_observer_t observer;
   ecu_local_model_t model;
@@ -81,7 +87,8 @@ int ecu_core_select_path(ecu_core_t *core, const ecu_path_pool_t *paths, int pat
 /* Copy the current path (at most max points) out; returns its number of points. */
 ECU_API int ecu_core_path_copy(const ecu_core_t *core, double *x, double *y, double *yaw, double *s, int max);
 
-/* Forget plans, the previous command, progress and the observer (Controller.reset). */
+/* Forget plans, the previous command, progress, the observer and the grip estimate
+ * (Controller.reset). */
 ECU_API void ecu_core_reset(ecu_core_t *core);
 
 /* One control step (Controller.step): never fails; the command is finite and within

@@ -11,9 +11,10 @@
 
 #include "ecu_config.h"
 #include "ecu_contract.h"
+#include "ecu_pyfloat.h"
 
 #define NAME_BYTES 48
-#define N_TUNING_VALUES 34
+#define N_TUNING_VALUES 38
 #define MAX_RECORD_VALUES (ECU_NK * ECU_NZ * ECU_NZ > ECU_ENCODER_MAX ? ECU_NK * ECU_NZ * ECU_NZ : ECU_ENCODER_MAX)
 
 /* The bit of record koopman.N in ecu_read_data's `seen` (after the encoder's records). */
@@ -86,6 +87,10 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
   t->eso_innovation_persistence = v[31];
   t->eso_widening_lateral_accel = v[32];
   t->pose_heading_advance = v[33];
+  t->grip_slip_excess = v[34];
+  t->grip_margin = v[35];
+  t->grip_recovery = v[36];
+  t->grip_peak_time = v[37];
   for (int i = 2; i < N_TUNING_VALUES; i++) {
     if ((i >= 17 && i < 20) || i == 25 || i == 26 || i == 31 || i == 32) continue; /* the observer fields: NaN where the table has none */
     if (!isfinite(v[i])) {
@@ -108,6 +113,28 @@ static int read_tuning(const char *path, int id, ecu_tuning_t *t, char *err, siz
     snprintf(err, err_len,
              "%s: [%s] pose_heading_advance must be 0 (eq. 20, explicit Euler) or 0.5 (the step's midpoint), got %g",
              path, CONTROLLER_NAMES[id], t->pose_heading_advance);
+    return -1;
+  }
+  /* The grip envelope's fields, with the rule's text and the value as Python's repr: the
+   * Python loader's message word for word. */
+  const struct {
+    const char *name, *rule;
+    double value;
+    int ok;
+  } grip_fields[4] = {
+      {"grip_slip_excess", "must be in [0, 0.2] rad (0: off)", t->grip_slip_excess,
+       t->grip_slip_excess >= 0.0 && t->grip_slip_excess <= 0.2},
+      {"grip_margin", "must be in [0, 2]", t->grip_margin, t->grip_margin >= 0.0 && t->grip_margin <= 2.0},
+      {"grip_recovery", "must be in (0, 1000] m/s^2 per s", t->grip_recovery,
+       t->grip_recovery > 0.0 && t->grip_recovery <= 1000.0},
+      {"grip_peak_time", "must be in (0, 60] s", t->grip_peak_time,
+       t->grip_peak_time > 0.0 && t->grip_peak_time <= 60.0}};
+  for (int i = 0; i < 4; i++) {
+    if (grip_fields[i].ok) continue;
+    char got[32];
+    py_repr(got, sizeof got, grip_fields[i].value);
+    snprintf(err, err_len, "%s: [%s] %s %s, got %s", path, CONTROLLER_NAMES[id], grip_fields[i].name,
+             grip_fields[i].rule, got);
     return -1;
   }
   if (!(t->schedule_low >= 0.0 && t->schedule_low < t->schedule_high)) {
@@ -143,6 +170,15 @@ static int store_record(const char *path, ecu_config_t *cfg, unsigned long *seen
     cfg->lf = rec_values[4];
     cfg->lr = rec_values[5];
     *seen |= 1ul << 2;
+  } else if (strcmp(rec_name, "grip.axle") == 0) {
+    /* Checked after the loop (has_grip_axle), not by a bit: the bits past 13 are the model's. */
+    const uint32_t d[1] = {4};
+    if (check_shape(path, 1, d, err, err_len)) return -1;
+    cfg->grip_mass = rec_values[0];
+    cfg->grip_lf = rec_values[1];
+    cfg->grip_lr = rec_values[2];
+    cfg->grip_cr = rec_values[3];
+    cfg->has_grip_axle = 1;
   } else if (strncmp(rec_name, "tuning.", 7) == 0) {
     for (int id = 0; id < ECU_N_CONTROLLERS; id++) {
       if (strcmp(rec_name + 7, CONTROLLER_NAMES[id]) == 0) {
@@ -354,6 +390,10 @@ int ecu_read_data(const char *path, ecu_config_t *cfg, char *err, size_t err_len
     snprintf(err, err_len, "%s: the model's shape (form %s, %d knots, n_z %d) differs from this build's "
              "(form %s, %d knots, n_z %d): %.150s; rebuild with make firmware for this model", path,
              form_name(file_form), file_knots, file_nz, form_name(ECU_FORM), ECU_NK, ECU_NZ, detail);
+    status = -1;
+  }
+  if (status == 0 && !cfg->has_grip_axle) {
+    snprintf(err, err_len, "%s: record grip.axle missing", path);
     status = -1;
   }
   if (status == 0 && (seen & wanted) != wanted) {

@@ -30,6 +30,8 @@ void ecu_step_aged(const ecu_sample_t *sample, double sample_age_s, ecu_output_t
   ecu_core_step_aged(&core, sample, sample_age_s, out);
 }
 
+double ecu_yaw_rate_bound(void) { return core.yaw_rate_bound; }
+
 int ecu_load_path_csv(const char *file, char *err, size_t err_len) {
   ecu_paths_reset(&paths);
   if (ecu_paths_add(&paths, 0, file, err, err_len) != 0) return -1;

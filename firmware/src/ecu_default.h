@@ -21,6 +21,9 @@ ECU_API void ecu_reset(void);
 ECU_API void ecu_step(const ecu_sample_t *sample, ecu_output_t *out);
 /* ecu_core_step_aged on the default core: the sample's age at the task start (s). */
 ECU_API void ecu_step_aged(const ecu_sample_t *sample, double sample_age_s, ecu_output_t *out);
+/* The grip envelope's yaw-rate bound of the default core's last plan (rad/s; INFINITY: none,
+ * the table's bounds), QpSteeringMpc._yaw_rate_bound: for the twin tests. */
+ECU_API double ecu_yaw_rate_bound(void);
 
 /* Read and check a path CSV as controller.reference.ReferencePath.from_csv does (the
  * contract's checks, the same messages) into the default pool as PATH_ID 0 (the pool's

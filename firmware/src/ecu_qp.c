@@ -15,6 +15,8 @@
  * the gain's causal entries only, the rows of the steps i > c (SteeringQp's pattern: the
  * entries of c >= i are zero). With qp_steer_rate_limit > 0, Nc rate rows follow the soft
  * rows: row j bounds U_j - U_{j-1} (U_{-1} the previous command: row 0's bounds move).
+ * Where the grip envelope gives a finite yaw-rate bound (ecu_grip.h), the yaw-rate rows'
+ * bounds of that solve are narrowed to within +-bound (SteeringQp.solve's yaw_rate_bound).
  */
 #include <math.h>
 #include <string.h>
@@ -24,6 +26,7 @@
 #include "qp_workspaces.h" /* the generated solvers and the nonzeros of their A */
 
 #define N_SOFT ECU_QP_N_SOFT
+#define YAW_RATE_STATE 2 /* the yaw rate's index in [vx, vy, yaw_rate] (steering_qp.YAW_RATE_STATE) */
 #define STEER_LIMIT 0.3 /* rad, eq. 22 (controller.base.STEER_LIMIT_RAD) */
 #define CONTROL_PERIOD 0.025 /* s, Ts of the rate rows (controller.base.CONTROL_PERIOD_S) */
 #define NP ECU_NP_MAX
@@ -207,7 +210,8 @@ static void use_weights(ecu_qp_t *qp, double vx) {
 }
 
 void ecu_qp_solve(ecu_qp_t *qp, double vx, const double *jac, const double *pose_offset, double previous_steer,
-                  const double *gain, const double *free_states, const double *warm_steer, ecu_qp_solution_t *sol) {
+                  const double *gain, const double *free_states, const double *warm_steer, double yaw_rate_bound,
+                  ecu_qp_solution_t *sol) {
   const ecu_tuning_t *tun = qp->tuning;
   OSQPSolver *const solver = qp->solver;
   const int n_pred = qp->n_pred, n_ctrl = qp->n_ctrl, n_soft_rows = qp->n_soft_rows;
@@ -244,10 +248,16 @@ void ecu_qp_solve(ecu_qp_t *qp, double vx, const double *jac, const double *pose
     for (int r = qp->gain_first[j], k = 0; r < n_soft_rows; r++, k += 2)
       col[k] = col[k + 1] = gain[soft_row[r] * n_ctrl + j];
   }
+  const int narrowed = yaw_rate_bound < INFINITY; /* the grip envelope's bound on the yaw-rate rows */
   for (int r = 0; r < n_soft_rows; r++) {
-    const int row = soft_row[r];
-    upper[soft_first + 2 * r] = tun->state_max[row % N_SOFT] - free_states[row];
-    lower[soft_first + 2 * r + 1] = tun->state_min[row % N_SOFT] - free_states[row];
+    const int row = soft_row[r], state = row % N_SOFT;
+    double state_max = tun->state_max[state], state_min = tun->state_min[state];
+    if (narrowed && state == YAW_RATE_STATE) { /* numpy.minimum / maximum of finite numbers */
+      state_max = yaw_rate_bound < state_max ? yaw_rate_bound : state_max;
+      state_min = -yaw_rate_bound > state_min ? -yaw_rate_bound : state_min;
+    }
+    upper[soft_first + 2 * r] = state_max - free_states[row];
+    lower[soft_first + 2 * r + 1] = state_min - free_states[row];
   }
   if (qp->n_rate_rows > 0) { /* U_0 - U_{-1} within the step */
     lower[qp->rate_first] = previous_steer - qp->max_steer_step;

@@ -56,9 +56,10 @@ void ecu_qp_release(ecu_qp_t *qp);
 
 /* SteeringQp.solve: jac (Np*3 x Nc, row-major), offset (Np*3), gain (Np*3 x Nc, states at
  * steps 1..Np), free (Np*3), warm (Nc); vx (m/s) the measured speed the weights are
- * scheduled on. */
+ * scheduled on; yaw_rate_bound (rad/s, > 0) the grip envelope's (ecu_grip.h), narrowing the
+ * yaw-rate rows to within +-yaw_rate_bound for this solve (INFINITY: the table's bounds). */
 void ecu_qp_solve(ecu_qp_t *qp, double vx, const double *jac, const double *pose_offset, double previous_steer,
-                  const double *gain, const double *free_states, const double *warm,
+                  const double *gain, const double *free_states, const double *warm, double yaw_rate_bound,
                   ecu_qp_solution_t *solution);
 
 #endif

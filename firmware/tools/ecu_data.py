@@ -22,6 +22,8 @@ implements the steer's N only: a model whose torque slice N[:, 0] is not zero is
 ``--bicycle``: a fitted bicycle (models/bicycle_fit.py's JSON, ``models.bicycle_fit.
 load_bicycle_params``) in the "bicycle" record instead of the nominal one, for LMPC; the
 file's nonlinear fields are not in the record (LMPC's linear bicycle does not use them).
+The grip envelope's rear axle ("grip.axle": mass, lf, lr, Cr) is always the nominal one
+(``controller.grip_envelope.RearAxle.nominal``), as in the Python ECU.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from controller.errors import ControllerError
 from controller.lifted_mpc import MEASURED_STATES
 from controller.registry import check_ecu_model_ts
 from controller.tuning import ControllerTuning, load_tuning
+from controller.grip_envelope import RearAxle
 from models.bicycle import NominalModelParams, nominal_model_params
 from models.errors import ModelError
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
@@ -61,7 +64,8 @@ TUNING_FIELDS = ("prediction_horizon", "control_horizon", "q_position", "q_yaw",
                  "disturbance_decay", "low_speed_q_position", "low_speed_q_yaw", "low_speed_r_steer",
                  "weight_schedule_speeds", "eso_innovation_limit", "yaw_rate_bias_pole",
                  "slip_target_limit", "slip_target_gate", "qp_steer_rate_limit", "delay_compensation_s",
-                 "eso_innovation_persistence", "eso_widening_lateral_accel", "pose_heading_advance")
+                 "eso_innovation_persistence", "eso_widening_lateral_accel", "pose_heading_advance",
+                 "grip_slip_excess", "grip_margin", "grip_recovery", "grip_peak_time")
 
 
 class EcuDataError(Exception):
@@ -69,7 +73,7 @@ class EcuDataError(Exception):
 
 
 def tuning_vector(tuning: ControllerTuning, name: str) -> np.ndarray:
-    """The 34 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
+    """The 38 numbers of controller ``name``'s table in TUNING_FIELDS order (state bounds 3 each)."""
     table = tuning.for_controller(name)
     values: list[float] = []
     for field in TUNING_FIELDS:
@@ -142,6 +146,10 @@ def collect(tuning_path: Path | None, model_path: Path, bicycle_path: Path | Non
         "bicycle": np.array([bicycle.cornering_stiffness_front, bicycle.cornering_stiffness_rear,
                              bicycle.mass, bicycle.yaw_inertia, bicycle.lf, bicycle.lr]),
     }
+    # The grip envelope's rear axle is always the nominal one, as in the Python ECU, whatever
+    # bicycle LMPC gets.
+    axle = RearAxle.nominal()
+    records["grip.axle"] = np.array([axle.mass, axle.lf, axle.lr, axle.cornering_stiffness_rear])
     for name in QP_CONTROLLERS:
         records[f"tuning.{name}"] = tuning_vector(tuning, name)
     records.update(model_records(model))

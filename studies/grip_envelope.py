@@ -1,0 +1,369 @@
+"""The MPCs' grip envelope: what the tuning procedure would choose, and what it does on the
+lane changes (``make grip-envelope``).
+
+The grip envelope (``controller.grip_envelope``, docs/grip-envelope.md) bounds the QP's
+yaw-rate rows (NMPC's soft rows too) by (1 + margin) a_max / vx, a_max estimated from the rear axle's slip beyond
+the nominal bicycle's linear need; ``grip_slip_excess`` (rad, 0 = off) is its threshold.
+This study, with every other field at the tuning file's value (the other grip fields at
+the table's, i.e. their defaults):
+
+1. **The tuning stage**: each MPC (:data:`ENVELOPE_CONTROLLERS`: the QP MPCs and NMPC) at
+   each ``grip_slip_excess`` of :data:`SLIP_EXCESSES_DEG` (off, 2 to 6 degrees) on the tuning set with disturbances
+   (``studies.observer_tuning.disturbed_tuning_set``, 22 runs) and on a limit set: its 11
+   undisturbed manoeuvres on a plant whose rear tyres have :data:`LIMIT_REAR_SCALE` of their
+   cornering stiffness (an oversteering car at its limit; named ``<manoeuvre>@rear_x0.65``).
+   The objective is the procedure's (``studies.tuning_sweep_executor.objective``: the mean
+   e_Y RMSE, a run that does not complete counts 10 m) over the 33 runs; the chosen value
+   the lowest objective, ties to off.
+2. **The evaluation**, on scenarios the tuning never saw: Tables II / III's lane changes on
+   the nominal plant and on make identify's changed plant
+   (``studies.identification.changed_params``: mass +300 kg, rear tyres x0.8, steering lag
+   x3; named ``<scenario>@changed``), each MPC at each value (its chosen value among
+   them), Stanley (no envelope) beside them.
+3. ``grip_envelope.png``: e_Y over time on the changed plant's low-mu lane change.
+
+The plants are built as a closed-loop campaign cell builds them
+(``studies.campaign.closed_loop_cell.plant_for``): the rear tyres and the changed plant are
+vehicle faults of the scenario's ``[faults]`` table (``hil.faults.VehicleFaults``).
+
+A measurement: it writes no tuning file. The shipped tuning keeps the envelope off until
+the procedure's next retune.
+
+Usage: ``python -m studies.grip_envelope [--out DIR] [--workers N] [--no-progress]``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import re
+import sys
+import time
+import types
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from controller.tuning import load_tuning
+from hil.scenario import Scenario, load_scenario
+from studies.closed_loop import ClosedLoopResult
+from studies.observer_speed import run_on_changed_plant
+from studies.observer_tuning import disturbed_tuning_set
+from studies.pose_step import QP_CONTROLLERS
+from studies.tuning_sweep_executor import Evaluation, Job, SweepExecutor, best, build_controller, objective
+from studies.tuning_sweep_grids import Setting, with_setting
+
+#: The swept field and its values (degrees; 0 = off, the shipped value).
+FIELD = "grip_slip_excess"
+SLIP_EXCESSES_DEG = (0.0, 2.0, 3.0, 4.0, 5.0, 6.0)
+#: The controllers with the envelope (every MPC) and those without it, run beside them.
+ENVELOPE_CONTROLLERS = QP_CONTROLLERS + ("nmpc",)
+REFERENCE_CONTROLLERS = ("stanley",)
+#: The limit set's plant: the rear tyres' cornering stiffness times this (disjoint from the
+#: changed plant's x0.8 with +300 kg and lag x3).
+LIMIT_REAR_SCALE = 0.65
+#: How many of ``disturbed_tuning_set``'s runs are undisturbed (its first ones).
+UNDISTURBED_RUNS = 11
+#: The evaluation: Tables II / III's lane changes, on the nominal and the changed plant.
+TABLE_SCENARIOS = ("dlc_high_mu", "dlc_low_mu")
+CHANGED_SUFFIX = "@changed"
+#: The figure: the changed plant's low-mu lane change, these controllers off, at
+#: FIGURE_SLIP_EXCESS_DEG and at their chosen value.
+FIGURE_SCENARIO = f"dlc_low_mu{CHANGED_SUFFIX}"
+FIGURE_CONTROLLERS = ("eso-dkmpc", "dkmpc", "lmpc", "nmpc")
+FIGURE_SLIP_EXCESS_DEG = 3.0
+
+_FAILURE_TIME = re.compile(r"at t = ([0-9.]+) s")
+
+
+def setting(degrees: float) -> Setting:
+    """The one-field override of ``grip_slip_excess`` (given in degrees, set in radians)."""
+    return ((FIELD, math.radians(degrees)),)
+
+
+def degrees_of(evaluation: Evaluation) -> float | None:
+    """The evaluation's ``grip_slip_excess`` in degrees (None: a reference controller)."""
+    value = dict(evaluation.setting).get(FIELD)
+    return None if value is None else round(math.degrees(value), 6)
+
+
+def label(degrees: float | None) -> str:
+    """A value's name in tables and legends."""
+    if degrees is None:
+        return "(no envelope)"
+    return "off" if degrees == 0.0 else f"{degrees:g} deg"
+
+
+def with_vehicle_faults(scenario: Scenario, suffix: str, **faults: float) -> Scenario:
+    """``scenario`` renamed ``<name><suffix>`` with ``faults`` (``hil.faults.VehicleFaults``
+    fields) added to its ``[faults] vehicle`` table, so that ``plant_for`` builds the plant."""
+    table = dict(scenario.faults)
+    table["vehicle"] = {**dict(table.get("vehicle", {})), **faults}
+    return dataclasses.replace(scenario, name=f"{scenario.name}{suffix}", faults=types.MappingProxyType(table))
+
+
+def on_soft_rear_tyres(scenario: Scenario) -> Scenario:
+    """``scenario`` on a plant with the rear tyres at :data:`LIMIT_REAR_SCALE` of their
+    cornering stiffness, named ``<name>@rear_x0.65``."""
+    return with_vehicle_faults(scenario, f"@rear_x{LIMIT_REAR_SCALE:g}", cornering_stiffness_rear_scale=LIMIT_REAR_SCALE)
+
+
+def on_changed_plant(scenario: Scenario) -> Scenario:
+    """``scenario`` on make identify's changed plant (``studies.identification.changed_params``
+    as vehicle faults, as its identification drive injects them), named ``<name>@changed``."""
+    from models.vehicle_params import load_vehicle_params
+    from studies.identification import CHANGED_LAG_FACTOR, CHANGED_MASS_OFFSET_KG, CHANGED_REAR_STIFFNESS_SCALE
+
+    nominal_lag = load_vehicle_params().steer_time_constant
+    return with_vehicle_faults(scenario, CHANGED_SUFFIX, mass_offset_kg=CHANGED_MASS_OFFSET_KG,
+                               steer_extra_lag_s=(CHANGED_LAG_FACTOR - 1.0) * nominal_lag,
+                               cornering_stiffness_rear_scale=CHANGED_REAR_STIFFNESS_SCALE)
+
+
+def tuning_scenarios() -> tuple[list[Scenario], list[Scenario]]:
+    """The tuning stage's runs: the tuning set with disturbances (22) and the limit set (11)."""
+    disturbed = disturbed_tuning_set()
+    return disturbed, [on_soft_rear_tyres(s) for s in disturbed[:UNDISTURBED_RUNS]]
+
+
+def evaluation_scenarios() -> list[Scenario]:
+    """The lane changes on the nominal plant, then on the changed plant."""
+    nominal = [load_scenario(name) for name in TABLE_SCENARIOS]
+    return nominal + [on_changed_plant(s) for s in nominal]
+
+
+def tuning_jobs() -> list[Job]:
+    """Each MPC at each value, off first."""
+    return [(name, "grip", setting(d)) for name in ENVELOPE_CONTROLLERS for d in SLIP_EXCESSES_DEG]
+
+
+def evaluation_jobs() -> list[Job]:
+    """The tuning jobs and the reference controllers as the tuning file has them."""
+    return tuning_jobs() + [(name, "reference", ()) for name in REFERENCE_CONTROLLERS]
+
+
+def evaluate(jobs: Sequence[Job], scenarios: Sequence[Scenario], tuning: Any, workers: int, progress: bool,
+             desc: str) -> list[Evaluation]:
+    """``jobs`` on ``scenarios`` on the plants their ``[faults]`` tables build, in job order."""
+    bar = tqdm(total=len(jobs) * len(scenarios), desc=desc, unit="run", disable=not progress)
+    executor = SweepExecutor(scenarios, tuning, run_on_changed_plant, workers, bar)
+    try:
+        return executor.evaluate(jobs)
+    finally:
+        executor.close()
+        bar.close()
+
+
+# ---------------------------------------------------------------------------- the choice
+
+def subset_objective(evaluation: Evaluation, names: Sequence[str]) -> float:
+    """The procedure's objective (m) of ``evaluation`` over the runs ``names`` only."""
+    return objective({n: evaluation.rmse_m[n] for n in names}, {n: evaluation.completed[n] for n in names})
+
+
+def choices(evaluations: Sequence[Evaluation]) -> dict[str, Evaluation]:
+    """Controller -> its evaluation with the lowest objective; on a tie the first in
+    ``evaluations`` (off comes first: ties go to off)."""
+    by_controller: dict[str, list[Evaluation]] = {}
+    for e in evaluations:
+        by_controller.setdefault(e.controller, []).append(e)
+    return {name: best(group) for name, group in by_controller.items()}
+
+
+# ---------------------------------------------------------------------------- the report
+
+def outcome(evaluation: Evaluation, scenario: str) -> str:
+    """A run's e_Y RMSE (m), or 'lost at t s' (|e_Y| beyond 10 m) / 'failed at t s'."""
+    if evaluation.completed[scenario]:
+        return f"{evaluation.rmse_m[scenario]:.3f}"
+    failure = evaluation.failure[scenario] or ""
+    how = "lost" if failure.startswith("|e_Y|") else "failed"
+    found = _FAILURE_TIME.search(failure)
+    return f"{how} at {float(found.group(1)):.1f} s" if found else how
+
+
+def _stored(evaluation: Evaluation) -> dict[str, Any]:
+    """An evaluation for the JSON without its wall time (a rerun writes the same bytes)."""
+    fields = evaluation.as_dict()
+    fields.pop("seconds")
+    return fields
+
+
+def _mm(value_m: float) -> str:
+    return f"{1e3 * value_m:.2f}"
+
+
+def report(tuning_set: Sequence[Evaluation], studies: Sequence[Evaluation], disturbed: Sequence[str],
+           limit: Sequence[str], *, command: str, minutes: float) -> tuple[str, dict[str, Any]]:
+    """Markdown and JSON of the study: ``tuning_set`` the tuning stage's evaluations (over
+    the runs ``disturbed`` and ``limit``), ``studies`` the evaluation's."""
+    chosen = choices(tuning_set)
+    lines = ["# The grip envelope: what the tuning procedure would choose, and the lane changes", "",
+             f"Written by `{command}` in {minutes:.1f} min (`studies/grip_envelope.py`; its docstring says what "
+             f"and why, docs/grip-envelope.md what the envelope is). Closed loop without CAN; every field but "
+             f"`{FIELD}` at the tuning file's value (`grip_margin`, `grip_recovery`, `grip_peak_time` at the "
+             "table's). A measurement: it writes no tuning file.", "",
+             "Question: would the tuning procedure switch the envelope on, at which `grip_slip_excess`, and what "
+             "does that do on Tables II / III's lane changes on the nominal plant and on make identify's changed "
+             "plant (mass +300 kg, rear tyres x0.8, steering lag x3), where the nominal-model MPCs spin on the "
+             "low-mu lane change?", "",
+             f"## The tuning stage ({len(disturbed) + len(limit)} runs per setting)", "",
+             f"The procedure's objective (mean e_Y RMSE, mm; a run that does not complete counts 10 m) over the "
+             f"tuning set with disturbances ({len(disturbed)} runs) and the limit set (its {len(limit)} "
+             f"undisturbed manoeuvres with the rear tyres' cornering stiffness x{LIMIT_REAR_SCALE:g}), and over "
+             "each part; not completed: runs that did not complete. The chosen value has the lowest objective "
+             "over all runs (ties to off).", "",
+             "| controller | grip_slip_excess | objective (all) | tuning set | limit set | not completed | chosen |",
+             "|---|---|---:|---:|---:|---:|---|"]
+    summary: dict[str, Any] = {"field": FIELD, "values_deg": list(SLIP_EXCESSES_DEG),
+                               "limit_rear_scale": LIMIT_REAR_SCALE, "tuning_runs": {"disturbed": list(disturbed),
+                                                                                      "limit": list(limit)},
+                               "tuning": {}, "chosen_deg": {}, "evaluation": {}}
+    for e in tuning_set:
+        degrees = degrees_of(e)
+        failed = sum(not ok for ok in e.completed.values())
+        mark = "**chosen**" if chosen[e.controller] is e else ""
+        lines.append(f"| {e.controller} | {label(degrees)} | {_mm(e.objective_m)} | "
+                     f"{_mm(subset_objective(e, disturbed))} | {_mm(subset_objective(e, limit))} | {failed} | {mark} |")
+        summary["tuning"][f"{e.controller}@{degrees:g}"] = {
+            **_stored(e), "objective_disturbed_m": subset_objective(e, disturbed),
+            "objective_limit_m": subset_objective(e, limit)}
+    off = {e.controller: e for e in tuning_set if degrees_of(e) == 0.0}
+    lines += ["", "Chosen per controller (objective over all runs, mm, off -> chosen):", ""]
+    for name, e in chosen.items():
+        summary["chosen_deg"][name] = degrees_of(e)
+        edge = (" (the grid's largest value: a larger one was not run)"
+                if degrees_of(e) == max(SLIP_EXCESSES_DEG) else "")
+        lines.append(f"- {name}: {label(degrees_of(e))}, {_mm(off[name].objective_m)} -> {_mm(e.objective_m)}{edge}")
+    lines += evaluation_lines(studies, chosen, summary)
+    lines += ["", f"![e_Y on {FIGURE_SCENARIO}: ESO-DKMPC, DKMPC, LMPC, NMPC off, at {FIGURE_SLIP_EXCESS_DEG:g} deg "
+              "and at the chosen value](grip_envelope.png)", "", "## Commands", "",
+              "    make grip-envelope", "    .venv/bin/python -m studies.grip_envelope --out /tmp/grip --workers 2",
+              "    .venv/bin/python -m pytest -q tests/test_grip_envelope_study.py"]
+    return "\n".join(lines) + "\n", summary
+
+
+def evaluation_lines(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluation],
+                     summary: dict[str, Any]) -> list[str]:
+    """The evaluation's section of the report (``summary["evaluation"]`` filled)."""
+    names = list(studies[0].rmse_m) if studies else []
+    lines = ["", "## The evaluation: Tables II / III's lane changes", "",
+             "e_Y RMSE (m), or where the run stopped ('lost at t s': |e_Y| beyond 10 m); `@changed`: make "
+             "identify's changed plant. Chosen: the tuning stage's value. Stanley has no envelope.", "",
+             "| controller | grip_slip_excess | " + " | ".join(names) + f" | max abs e_Y (m), {FIGURE_SCENARIO} |",
+             "|---|---|" + "---:|" * (len(names) + 1)]
+    for e in studies:
+        degrees = degrees_of(e)
+        value = label(degrees) + (" (chosen)" if chosen.get(e.controller) is not None
+                                  and degrees_of(chosen[e.controller]) == degrees else "")
+        worst = e.max_abs_m.get(FIGURE_SCENARIO, math.nan)
+        lines.append(f"| {e.controller} | {value} | " + " | ".join(outcome(e, s) for s in names)
+                     + f" | {worst:.3f} |")
+        summary["evaluation"][f"{e.controller}@{'-' if degrees is None else f'{degrees:g}'}"] = _stored(e)
+    ranked = ranking(studies, chosen)
+    if ranked:
+        lines += ["", f"On `{FIGURE_SCENARIO}`, each MPC at its chosen value and Stanley, by e_Y RMSE "
+                  "(completed runs first): " + ", ".join(ranked) + "."]
+    return lines
+
+
+def ranking(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluation]) -> list[str]:
+    """The controllers on :data:`FIGURE_SCENARIO` (the MPCs at their chosen value) with their
+    outcome: the completed ones by e_Y RMSE, then the others, the longest-lasting first."""
+    rows = [e for e in studies if FIGURE_SCENARIO in e.rmse_m and (
+        e.controller not in chosen or degrees_of(e) == degrees_of(chosen[e.controller]))]
+
+    def key(e: Evaluation) -> tuple[bool, float]:
+        if e.completed[FIGURE_SCENARIO]:
+            return False, e.rmse_m[FIGURE_SCENARIO]
+        found = _FAILURE_TIME.search(e.failure[FIGURE_SCENARIO] or "")
+        return True, -float(found.group(1)) if found else 0.0
+
+    return [f"{e.controller} {outcome(e, FIGURE_SCENARIO)}" for e in sorted(rows, key=key)]
+
+
+# ---------------------------------------------------------------------------- the figure
+
+def figure_values(name: str, chosen_deg: Mapping[str, float]) -> list[float]:
+    """The values the figure shows for controller ``name``: off, FIGURE_SLIP_EXCESS_DEG and
+    its chosen value (when another)."""
+    return list(dict.fromkeys((0.0, FIGURE_SLIP_EXCESS_DEG, chosen_deg.get(name, 0.0))))
+
+
+def figure_runs(tuning: Any, chosen_deg: Mapping[str, float], progress: bool) -> dict[str, ClosedLoopResult]:
+    """The figure's runs with traces: key ``name@degrees``."""
+    scenario = next(s for s in evaluation_scenarios() if s.name == FIGURE_SCENARIO)
+    keys = [(name, d) for name in FIGURE_CONTROLLERS for d in figure_values(name, chosen_deg)]
+    runs = {}
+    for name, degrees in tqdm(keys, desc="figure traces", unit="run", disable=not progress):
+        controller = build_controller(name, with_setting(tuning, name, setting(degrees)))
+        runs[f"{name}@{degrees:g}"] = run_on_changed_plant(scenario, controller)
+    return runs
+
+
+#: The figure's e_Y range (m): the lost runs leave it upwards, the others stay within.
+FIGURE_RANGE_M = 1.5
+
+
+def figure(runs: Mapping[str, ClosedLoopResult], chosen_deg: Mapping[str, float], out: Path) -> None:
+    """e_Y (m) over time on :data:`FIGURE_SCENARIO`: each figure controller off, at
+    FIGURE_SLIP_EXCESS_DEG and at its chosen value, one panel each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, axes = plt.subplots(len(FIGURE_CONTROLLERS), 1, figsize=(9, 2.5 * len(FIGURE_CONTROLLERS)), sharex=True)
+    for ax, name in zip(np.atleast_1d(axes), FIGURE_CONTROLLERS):
+        for degrees, style in zip(figure_values(name, chosen_deg), ("-", "-.", ":")):
+            result = runs[f"{name}@{degrees:g}"]
+            chosen = " (chosen)" if degrees == chosen_deg.get(name) else ""
+            end = "" if result.completed else " (lost)"
+            ax.plot(result.trace.time_s, result.trace.lateral_error, style,
+                    label=f"{name}, {label(degrees)}{chosen}{end}")
+        ax.set_ylim(-FIGURE_RANGE_M, FIGURE_RANGE_M)
+        ax.set_ylabel("e_Y (m)")
+        ax.legend(loc="lower left", fontsize=8)
+        ax.grid(True, lw=0.3)
+    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
+    fig.suptitle(f"{FIGURE_SCENARIO}: e_Y with the grip envelope off, at {FIGURE_SLIP_EXCESS_DEG:g} deg and at the "
+                 "chosen value (lost runs leave the axis)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.grip_envelope", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (Ray)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error(f"--workers must be >= 1, got {args.workers}")
+    started = time.monotonic()
+    args.out.mkdir(parents=True, exist_ok=True)
+    tuning = load_tuning()
+    progress = not args.no_progress
+    disturbed, limit = tuning_scenarios()
+    tuning_set = evaluate(tuning_jobs(), disturbed + limit, tuning, args.workers, progress, "tuning stage")
+    studies = evaluate(evaluation_jobs(), evaluation_scenarios(), tuning, args.workers, progress, "evaluation")
+    chosen_deg = {name: degrees_of(e) for name, e in choices(tuning_set).items()}
+    runs = figure_runs(tuning, chosen_deg, progress)
+    command = "python -m studies.grip_envelope " + " ".join(sys.argv[1:] if argv is None else argv)
+    text, summary = report(tuning_set, studies, [s.name for s in disturbed], [s.name for s in limit],
+                           command=command.strip(), minutes=(time.monotonic() - started) / 60.0)
+    (args.out / "grip_envelope.md").write_text(text)
+    (args.out / "grip_envelope.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    figure(runs, chosen_deg, args.out / "grip_envelope.png")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

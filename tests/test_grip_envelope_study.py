@@ -1,0 +1,119 @@
+"""The grip-envelope study (studies/grip_envelope.py): its runs and the plants they build,
+the objective and the choice, and its report's lines. The envelope itself is tested with
+the controllers (controller/grip_envelope.py); no closed-loop run here."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from hil.scenario import load_scenario
+from studies import grip_envelope
+from studies.campaign.closed_loop_cell import plant_for
+from studies.identification import changed_params
+from studies.tuning_sweep_executor import FAILURE_PENALTY_M, Evaluation, objective
+
+
+def _evaluation(name: str, degrees: float | None, rmse: dict[str, float], completed: dict[str, bool],
+                failure: dict[str, str | None] | None = None) -> Evaluation:
+    setting = () if degrees is None else grip_envelope.setting(degrees)
+    return Evaluation(controller=name, stage="grip", setting=setting, rmse_m=rmse,
+                      max_abs_m={s: 3 * v for s, v in rmse.items()}, completed=completed,
+                      failure=failure or {s: None if ok else "|e_Y| = 10.20 m > 10.0 m at t = 8.215 s (X = 90.0 m)"
+                                          for s, ok in completed.items()},
+                      objective_m=objective(rmse, completed), seconds=1.0)
+
+
+def test_the_tuning_runs_and_their_plants() -> None:
+    disturbed, limit = grip_envelope.tuning_scenarios()
+    assert (len(disturbed), len(limit)) == (22, 11)
+    assert [s.name for s in limit] == [f"{s.name}@rear_x0.65" for s in disturbed[:11]]
+    assert not any(s.name.endswith("+disturbed") for s in disturbed[:11])
+    for scenario, original in zip(limit, disturbed):
+        params = original.vehicle_params()
+        expected = dataclasses.replace(params, cornering_stiffness_rear_scale=params.cornering_stiffness_rear_scale * 0.65)
+        assert plant_for(scenario)[0].params == expected
+    # the tuning set's own runs keep the nominal plant
+    assert plant_for(disturbed[0])[0].params == disturbed[0].vehicle_params()
+
+
+def test_the_evaluation_runs_on_the_nominal_and_the_changed_plant() -> None:
+    scenarios = grip_envelope.evaluation_scenarios()
+    assert [s.name for s in scenarios] == ["dlc_high_mu", "dlc_low_mu", "dlc_high_mu@changed", "dlc_low_mu@changed"]
+    for scenario in scenarios[2:]:
+        nominal = load_scenario(scenario.name.removesuffix("@changed"))
+        assert plant_for(scenario)[0].params == changed_params(nominal.vehicle_params())
+    assert plant_for(scenarios[1])[0].params == scenarios[1].vehicle_params()
+
+
+def test_the_jobs() -> None:
+    jobs = grip_envelope.tuning_jobs()
+    assert len(jobs) == 6 * 6
+    assert {name for name, _, _ in jobs} == {"eso-dkmpc", "dkmpc", "lmpc", "lmpc-eso", "dmdc-eso", "nmpc"}
+    values = [dict(s)["grip_slip_excess"] for name, _, s in jobs if name == "nmpc"]
+    assert values == pytest.approx([0.0] + [math.radians(d) for d in (2, 3, 4, 5, 6)])
+    references = grip_envelope.evaluation_jobs()[len(jobs):]
+    assert references == [("stanley", "reference", ())]
+
+
+def test_the_objective_counts_a_lost_run_and_ties_go_to_off() -> None:
+    runs = ["a", "b", "c"]
+    off = _evaluation("dkmpc", 0.0, {"a": 0.02, "b": 0.04, "c": 0.03}, dict.fromkeys(runs, True))
+    tied = _evaluation("dkmpc", 2.0, {"a": 0.03, "b": 0.03, "c": 0.03}, dict.fromkeys(runs, True))
+    lost = _evaluation("dkmpc", 3.0, {"a": 0.01, "b": 0.01, "c": 0.5}, {"a": True, "b": True, "c": False})
+    assert lost.objective_m == pytest.approx((0.02 + FAILURE_PENALTY_M) / 3)
+    assert grip_envelope.subset_objective(lost, ["a", "b"]) == pytest.approx(0.01)
+    assert grip_envelope.subset_objective(lost, ["c"]) == FAILURE_PENALTY_M
+    assert off.objective_m == pytest.approx(tied.objective_m)
+    assert grip_envelope.choices([off, tied, lost])["dkmpc"] is off
+    lower = _evaluation("dkmpc", 4.0, {"a": 0.02, "b": 0.02, "c": 0.02}, dict.fromkeys(runs, True))
+    assert grip_envelope.choices([off, tied, lost, lower])["dkmpc"] is lower
+
+
+def test_the_report_lines() -> None:
+    disturbed, limit = ["t1", "t2"], ["t1@rear_x0.65"]
+    runs = disturbed + limit
+    off = _evaluation("lmpc", 0.0, {"t1": 0.02, "t2": 0.04, "t1@rear_x0.65": 0.3},
+                      {"t1": True, "t2": True, "t1@rear_x0.65": False})
+    on = _evaluation("lmpc", 3.0, dict.fromkeys(runs, 0.03), dict.fromkeys(runs, True))
+    lane = ["dlc_high_mu", "dlc_low_mu@changed"]
+    study_off = _evaluation("lmpc", 0.0, {"dlc_high_mu": 0.02, "dlc_low_mu@changed": 2.0},
+                            {"dlc_high_mu": True, "dlc_low_mu@changed": False})
+    study_on = _evaluation("lmpc", 3.0, {"dlc_high_mu": 0.021, "dlc_low_mu@changed": 0.049}, dict.fromkeys(lane, True))
+    stanley = _evaluation("stanley", None, {"dlc_high_mu": 0.016, "dlc_low_mu@changed": 0.2},
+                          dict.fromkeys(lane, True))
+    text, summary = grip_envelope.report([off, on], [study_off, study_on, stanley], disturbed, limit,
+                                         command="python -m studies.grip_envelope", minutes=1.0)
+    # off: (0.02 + 0.04 + 10) / 3; over the tuning set alone 0.03
+    assert "| lmpc | off | 3353.33 | 30.00 | 10000.00 | 1 |  |" in text
+    assert "| lmpc | 3 deg | 30.00 | 30.00 | 30.00 | 0 | **chosen** |" in text
+    assert "- lmpc: 3 deg, 3353.33 -> 30.00\n" in text
+    edge = _evaluation("lmpc", 6.0, dict.fromkeys(runs, 0.01), dict.fromkeys(runs, True))
+    text_edge, _ = grip_envelope.report([off, on, edge], [], disturbed, limit, command="c", minutes=1.0)
+    assert "- lmpc: 6 deg, 3353.33 -> 10.00 (the grid's largest value: a larger one was not run)" in text_edge
+    assert "| lmpc | off | 0.020 | lost at 8.2 s | 6.000 |" in text
+    assert "| lmpc | 3 deg (chosen) | 0.021 | 0.049 | 0.147 |" in text
+    assert "| stanley | (no envelope) | 0.016 | 0.200 | 0.600 |" in text
+    assert "by e_Y RMSE (completed runs first): lmpc 0.049, stanley 0.200." in text
+    assert "writes no tuning file" in text
+    assert summary["chosen_deg"] == {"lmpc": 3.0}
+    assert summary["tuning"]["lmpc@0"]["objective_limit_m"] == FAILURE_PENALTY_M
+    assert "seconds" not in summary["evaluation"]["stanley@-"]
+
+
+def test_the_figure_shows_off_three_degrees_and_the_chosen_value() -> None:
+    assert grip_envelope.figure_values("dkmpc", {"dkmpc": 4.0}) == [0.0, 3.0, 4.0]
+    assert grip_envelope.figure_values("lmpc", {"lmpc": 3.0}) == [0.0, 3.0]
+    assert grip_envelope.figure_values("lmpc", {"lmpc": 0.0}) == [0.0, 3.0]
+
+
+def test_a_run_that_failed_otherwise_is_named_so() -> None:
+    e = _evaluation("dkmpc", 0.0, {"x": 0.5}, {"x": False}, {"x": "plant state not finite at t = 3.250 s"})
+    assert grip_envelope.outcome(e, "x") == "failed at 3.2 s"
+
+
+def test_cli_refuses_no_workers(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        grip_envelope.main(["--workers", "0", "--out", "/nonexistent/never-written"])
+    assert "--workers must be >= 1" in capsys.readouterr().err
