@@ -19,7 +19,9 @@ Per valid sample (vx above ``MIN_SPEED_M_S``), with Ts the control period:
         grip = min(grip + recovery * Ts, MAX_GRIP_M_S2)
 
 and the yaw-rate bound is (1 + margin) * grip / vx (rad/s), no wider than the table's
-state_max / state_min. Only the rear axle counts: a sliding front axle makes the car
+state_max / state_min; at ``MAX_GRIP_M_S2`` (no evidence of a limit) there is no bound at
+all, so that a table with the envelope on solves the same QP as one with it off until the
+rear axle first slides. Only the rear axle counts: a sliding front axle makes the car
 understeer, which is stable, while a sliding rear axle is the start of a spin. The front
 axle's slip is left out for a second reason: a steering offset (a misaligned rack) shifts
 it by the offset itself. The estimate starts at ``MAX_GRIP_M_S2`` (no bound) and returns
@@ -96,7 +98,8 @@ class GripEnvelope:
 
     def update(self, sample: VehicleSample) -> float:
         """Advance the estimate with ``sample`` (finite) and return the yaw-rate bound (rad/s,
-        > 0; ``math.inf`` when off, below ``MIN_SPEED_M_S`` or on the first sample)."""
+        > 0; ``math.inf`` when off, below ``MIN_SPEED_M_S``, on the first sample or with the
+        estimate at ``MAX_GRIP_M_S2``)."""
         if not self.enabled:
             return math.inf
         previous, self.previous_vy = self.previous_vy, sample.vy
@@ -110,4 +113,6 @@ class GripEnvelope:
             self.grip = max(self.peak, MIN_GRIP_M_S2)
         else:
             self.grip = min(self.grip + self.recovery_step, MAX_GRIP_M_S2)
+        if self.grip >= MAX_GRIP_M_S2:
+            return math.inf
         return (1.0 + self.margin) * self.grip / sample.vx

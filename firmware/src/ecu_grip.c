@@ -52,5 +52,6 @@ double ecu_grip_update(ecu_grip_t *grip, const ecu_sample_t *sample) {
   grip->sliding = fabs(rear_slip) - fabs(linear_slip) > grip->slip_excess;
   if (grip->sliding) grip->grip = py_max(grip->peak, MIN_GRIP);
   else grip->grip = py_min(grip->grip + grip->recovery_step, MAX_GRIP);
+  if (grip->grip >= MAX_GRIP) return INFINITY; /* no evidence of a limit: no bound */
   return (1.0 + grip->margin) * grip->grip / vx;
 }

@@ -29,8 +29,8 @@ void ecu_grip_init(ecu_grip_t *grip, const ecu_tuning_t *tuning, const ecu_confi
 void ecu_grip_reset(ecu_grip_t *grip);
 
 /* GripEnvelope.update: advance the estimate with the (finite) sample and return the
- * yaw-rate bound (rad/s, > 0); INFINITY when off (grip_slip_excess 0), below 3 m/s or on
- * the first sample. */
+ * yaw-rate bound (rad/s, > 0); INFINITY when off (grip_slip_excess 0), below 3 m/s, on
+ * the first sample or with the estimate at its ceiling (no evidence of a limit). */
 double ecu_grip_update(ecu_grip_t *grip, const ecu_sample_t *sample);
 
 #endif
