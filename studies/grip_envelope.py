@@ -331,8 +331,8 @@ def figure(runs: Mapping[str, ClosedLoopResult], chosen_deg: Mapping[str, float]
         ax.legend(loc="lower left", fontsize=8)
         ax.grid(True, lw=0.3)
     np.atleast_1d(axes)[-1].set_xlabel("time (s)")
-    fig.suptitle(f"{FIGURE_SCENARIO}: e_Y with the grip envelope off, at {FIGURE_SLIP_EXCESS_DEG:g} deg and at the "
-                 "chosen value (lost runs leave the axis)")
+    fig.suptitle(f"{FIGURE_SCENARIO}: e_Y with the grip envelope off, at {FIGURE_SLIP_EXCESS_DEG:g} deg\n"
+                 "and at the chosen value (lost runs leave the axis)")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
