@@ -247,10 +247,10 @@ static void predict(ecu_core_t *core, const ecu_sample_t *sample, double torque)
 /* models.measurement.wrap_angle: to [-pi, pi), values inside unchanged bit for bit. */
 static double wrap_angle(double a) { return (a >= -PI && a < PI) ? a : py_mod(a + PI, TWO_PI) - PI; }
 
-/* QpSteeringMpc._prepare: the grip envelope's bound from the measured sample; with delay
- * compensation on, predict once from the measured sample, move the prediction's start over
- * the window and return (in planned) the sample at the window's end; planned = *sample
- * otherwise. */
+/* SteeringMpc.step's grip estimate (the envelope's bound from the measured sample, just
+ * before _prepare), then QpSteeringMpc._prepare: with delay compensation on, predict once
+ * from the measured sample, move the prediction's start over the window and return (in
+ * planned) the sample at the window's end; planned = *sample otherwise. */
 static void prepare(ecu_core_t *core, const ecu_sample_t *sample, double torque, ecu_sample_t *planned) {
   *planned = *sample;
   core->prepared = 0;
