@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -79,13 +80,15 @@ class CourseAngleQp:
         self.qp, self.speed = qp, speed
 
     def solve(self, pose_jacobian: np.ndarray, pose_offset: np.ndarray, previous_steer: float,
-              state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray, weights: Any = None) -> Any:
+              state_gain: np.ndarray, state_free: np.ndarray, warm_steer: np.ndarray, weights: Any = None,
+              yaw_rate_bound: float = math.inf) -> Any:
         """``SteeringQp.solve`` with (Np, 3, Nc) / (Np, 3) pose rows whose yaw is the course."""
         vx = max(self.speed(), 1.0)
         jacobian, offset = pose_jacobian.copy(), pose_offset.copy()
         jacobian[:, 2, :] += state_gain[:, 1, :] / vx
         offset[:, 2] += state_free[:, 1] / vx
-        return self.qp.solve(jacobian, offset, previous_steer, state_gain, state_free, warm_steer, weights)
+        return self.qp.solve(jacobian, offset, previous_steer, state_gain, state_free, warm_steer, weights,
+                             yaw_rate_bound)
 
 
 class CourseAngleCost(EsoDkmpc):
