@@ -15,21 +15,27 @@ the table's, i.e. their defaults):
    The objective is the procedure's (``studies.tuning_sweep_executor.objective``: the mean
    e_Y RMSE, a run that does not complete counts 10 m) over the 33 runs; the chosen value
    the lowest objective, ties to off.
-2. **The evaluation**, on scenarios the tuning never saw: Tables II / III's lane changes on
+2. **The refinement**: for each MPC whose choice is on, the envelope's other fields one at a
+   time (:data:`REFINE_AXES`: the margin, then the recovery, then the peak memory), each on the
+   same 33 runs at the controller's choices so far; the tuning file's value is the incumbent,
+   so a tie keeps it.
+3. **The evaluation**, on scenarios the tuning never saw: Tables II / III's lane changes on
    the nominal plant and on make identify's changed plant
    (``studies.identification.changed_params``: mass +300 kg, rear tyres x0.8, steering lag
    x3; named ``<scenario>@changed``), each MPC at each value (its chosen value among
-   them), Stanley (no envelope) beside them.
-3. ``grip_envelope.png``: e_Y over time on the changed plant's low-mu lane change.
+   them, and its refined setting where the refinement moved a field), Stanley (no envelope)
+   beside them.
+4. ``grip_envelope.png``: e_Y over time on the changed plant's low-mu lane change.
 
 The plants are built as a closed-loop campaign cell builds them
 (``studies.campaign.closed_loop_cell.plant_for``): the rear tyres and the changed plant are
 vehicle faults of the scenario's ``[faults]`` table (``hil.faults.VehicleFaults``).
 
-A measurement: it writes no tuning file. The shipped tuning keeps the envelope off until
-the procedure's next retune.
+The procedure's last stage (after ``make tune`` and the observer stages, whose choices it
+takes as given): it writes each MPC's four grip fields into ``controller/tuning.toml``
+(``--no-write``: only the report).
 
-Usage: ``python -m studies.grip_envelope [--out DIR] [--workers N] [--no-progress]``.
+Usage: ``python -m studies.grip_envelope [--out DIR] [--workers N] [--no-progress] [--no-write]``.
 """
 from __future__ import annotations
 
@@ -42,24 +48,38 @@ import re
 import sys
 import time
 import types
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
 
-from controller.tuning import load_tuning
+from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
 from hil.scenario import Scenario, load_scenario
 from studies.closed_loop import ClosedLoopResult
 from studies.observer_speed import run_on_changed_plant
 from studies.observer_tuning import disturbed_tuning_set
 from studies.pose_step import QP_CONTROLLERS
+from studies.tuning_file import update_tuning_text
 from studies.tuning_sweep_executor import Evaluation, Job, SweepExecutor, best, build_controller, objective
 from studies.tuning_sweep_grids import Setting, with_setting
 
 #: The swept field and its values (degrees; 0 = off, the shipped value).
 FIELD = "grip_slip_excess"
 SLIP_EXCESSES_DEG = (0.0, 2.0, 3.0, 4.0, 5.0, 6.0)
+#: The refinement's fields, in their order, and the values each is tried at (the tuning
+#: file's value among them, tried first): the bound's margin over the estimate, the
+#: estimate's return once the rear axle grips again (m/s^2 per s), the peak's memory (s).
+REFINE_AXES: tuple[tuple[str, tuple[float, ...]], ...] = (
+    ("grip_margin", (0.05, 0.1, 0.2)),
+    ("grip_recovery", (5.0, 10.0, 20.0)),
+    ("grip_peak_time", (0.5, 1.0, 2.0)),
+)
+#: Every field the stage writes, per MPC table.
+WRITTEN_FIELDS = (FIELD,) + tuple(name for name, _ in REFINE_AXES)
+#: The comment line the written tables carry (studies.tuning_file).
+TUNING_COMMENT = "chosen by make grip-envelope on the tuning set with disturbances and the limit set, " \
+    "results/grip_envelope.md"
 #: The controllers with the envelope (every MPC) and those without it, run beside them.
 ENVELOPE_CONTROLLERS = QP_CONTROLLERS + ("nmpc",)
 REFERENCE_CONTROLLERS = ("stanley",)
@@ -96,6 +116,14 @@ def label(degrees: float | None) -> str:
     if degrees is None:
         return "(no envelope)"
     return "off" if degrees == 0.0 else f"{degrees:g} deg"
+
+
+def setting_label(setting: Setting) -> str:
+    """A setting's name: its ``grip_slip_excess`` and any refined field (``margin 0.2``)."""
+    values = dict(setting)
+    text = label(None if FIELD not in values else round(math.degrees(values[FIELD]), 6))
+    refined = [f"{name.removeprefix('grip_').replace('_', ' ')} {value:g}" for name, value in setting if name != FIELD]
+    return ", ".join([text] + refined)
 
 
 def with_vehicle_faults(scenario: Scenario, suffix: str, **faults: float) -> Scenario:
@@ -141,9 +169,13 @@ def tuning_jobs() -> list[Job]:
     return [(name, "grip", setting(d)) for name in ENVELOPE_CONTROLLERS for d in SLIP_EXCESSES_DEG]
 
 
-def evaluation_jobs() -> list[Job]:
-    """The tuning jobs and the reference controllers as the tuning file has them."""
-    return tuning_jobs() + [(name, "reference", ()) for name in REFERENCE_CONTROLLERS]
+def evaluation_jobs(chosen: Mapping[str, Evaluation] | None = None) -> list[Job]:
+    """The tuning jobs, each refined choice of ``chosen`` that is not among them, and the
+    reference controllers as the tuning file has them."""
+    jobs = tuning_jobs()
+    settings = {(name, s) for name, _, s in jobs}
+    refined = [(name, "grip", e.setting) for name, e in (chosen or {}).items() if (name, e.setting) not in settings]
+    return jobs + refined + [(name, "reference", ()) for name in REFERENCE_CONTROLLERS]
 
 
 def evaluate(jobs: Sequence[Job], scenarios: Sequence[Scenario], tuning: Any, workers: int, progress: bool,
@@ -174,6 +206,49 @@ def choices(evaluations: Sequence[Evaluation]) -> dict[str, Evaluation]:
     return {name: best(group) for name, group in by_controller.items()}
 
 
+def is_on(evaluation: Evaluation) -> bool:
+    """Whether the evaluation's setting has the envelope on."""
+    return dict(evaluation.setting).get(FIELD, 0.0) > 0.0
+
+
+#: One round of the refinement: its field and, per controller, the evaluations in the
+#: order they were compared (the incumbent first).
+Round = tuple[str, dict[str, list[Evaluation]]]
+
+
+def refine(stage_one: Mapping[str, Evaluation], incumbents: Mapping[str, Mapping[str, float]],
+           run: Callable[[Sequence[Job]], list[Evaluation]]) -> tuple[list[Round], dict[str, Evaluation]]:
+    """The refinement over :data:`REFINE_AXES`, field by field, of every controller whose
+    ``stage_one`` choice is on; ``incumbents[name][field]`` is the tuning file's value, whose
+    runs are those of the choice so far (not run again). ``run`` evaluates jobs in order.
+    Returns the rounds and each controller's final choice (``stage_one``'s where off)."""
+    chosen = dict(stage_one)
+    rounds: list[Round] = []
+    for field, values in REFINE_AXES:
+        on = [name for name, e in chosen.items() if is_on(e)]
+        jobs = [(name, "grip-refine", chosen[name].setting + ((field, value),))
+                for name in on for value in values if value != incumbents[name][field]]
+        tried = run(jobs) if jobs else []
+        compared = {name: [chosen[name]] + [e for e in tried if e.controller == name] for name in on}
+        for name, group in compared.items():
+            chosen[name] = best(group)
+        rounds.append((field, compared))
+    return rounds, chosen
+
+
+def written_settings(chosen: Mapping[str, Evaluation],
+                     incumbents: Mapping[str, Mapping[str, float]]) -> dict[str, Setting]:
+    """Each controller's four grip fields as the tuning file gets them: the choice's, the
+    incumbent where the choice did not name a field."""
+    return {name: tuple((f, dict(e.setting).get(f, incumbents[name].get(f, 0.0))) for f in WRITTEN_FIELDS)
+            for name, e in chosen.items()}
+
+
+def incumbents_of(tuning: Any, names: Sequence[str]) -> dict[str, dict[str, float]]:
+    """The tuning file's grip fields per controller."""
+    return {name: {f: float(getattr(tuning.for_controller(name), f)) for f in WRITTEN_FIELDS} for name in names}
+
+
 # ---------------------------------------------------------------------------- the report
 
 def outcome(evaluation: Evaluation, scenario: str) -> str:
@@ -198,16 +273,21 @@ def _mm(value_m: float) -> str:
 
 
 def report(tuning_set: Sequence[Evaluation], studies: Sequence[Evaluation], disturbed: Sequence[str],
-           limit: Sequence[str], *, command: str, minutes: float) -> tuple[str, dict[str, Any]]:
+           limit: Sequence[str], *, command: str, minutes: float, rounds: Sequence[Round] = (),
+           final: Mapping[str, Evaluation] | None = None, written: bool = False) -> tuple[str, dict[str, Any]]:
     """Markdown and JSON of the study: ``tuning_set`` the tuning stage's evaluations (over
-    the runs ``disturbed`` and ``limit``), ``studies`` the evaluation's."""
+    the runs ``disturbed`` and ``limit``), ``rounds`` the refinement's, ``final`` each
+    controller's final choice (default: the tuning stage's), ``studies`` the evaluation's;
+    ``written``: the choices went into the tuning file."""
     chosen = choices(tuning_set)
-    lines = ["# The grip envelope: what the tuning procedure would choose, and the lane changes", "",
+    final = dict(final) if final is not None else chosen
+    where = ("The choices are written into `controller/tuning.toml` (each MPC's four grip fields)." if written
+             else "Run with `--no-write`: the tuning file was left as it was.")
+    lines = ["# The grip envelope: the tuning procedure's choice, and the lane changes", "",
              f"Written by `{command}` in {minutes:.1f} min (`studies/grip_envelope.py`; its docstring says what "
              f"and why, docs/grip-envelope.md what the envelope is). Closed loop without CAN; every field but "
-             f"`{FIELD}` at the tuning file's value (`grip_margin`, `grip_recovery`, `grip_peak_time` at the "
-             "table's). A measurement: it writes no tuning file.", "",
-             "Question: would the tuning procedure switch the envelope on, at which `grip_slip_excess`, and what "
+             f"the grip envelope's at the tuning file's value. The procedure's last stage: {where}", "",
+             "Question: does the tuning procedure switch the envelope on, at which setting, and what "
              "does that do on Tables II / III's lane changes on the nominal plant and on make identify's changed "
              "plant (mass +300 kg, rear tyres x0.8, steering lag x3), where the nominal-model MPCs spin on the "
              "low-mu lane change?", "",
@@ -239,12 +319,42 @@ def report(tuning_set: Sequence[Evaluation], studies: Sequence[Evaluation], dist
         edge = (" (the grid's largest value: a larger one was not run)"
                 if degrees_of(e) == max(SLIP_EXCESSES_DEG) else "")
         lines.append(f"- {name}: {label(degrees_of(e))}, {_mm(off[name].objective_m)} -> {_mm(e.objective_m)}{edge}")
-    lines += evaluation_lines(studies, chosen, summary)
+    lines += refinement_lines(rounds, final, summary)
+    lines += evaluation_lines(studies, final, summary)
     lines += ["", f"![e_Y on {FIGURE_SCENARIO}: ESO-DKMPC, DKMPC, LMPC, NMPC off, at {FIGURE_SLIP_EXCESS_DEG:g} deg "
               "and at the chosen value](grip_envelope.png)", "", "## Commands", "",
               "    make grip-envelope", "    .venv/bin/python -m studies.grip_envelope --out /tmp/grip --workers 2",
               "    .venv/bin/python -m pytest -q tests/test_grip_envelope_study.py"]
     return "\n".join(lines) + "\n", summary
+
+
+def refinement_lines(rounds: Sequence[Round], final: Mapping[str, Evaluation],
+                     summary: dict[str, Any]) -> list[str]:
+    """The refinement's section of the report (``summary["refinement"]`` and
+    ``summary["chosen"]`` filled)."""
+    summary["refinement"] = {field: {name: [{"setting": [list(item) for item in e.setting],
+                                             "objective_m": e.objective_m} for e in group]
+                                     for name, group in compared.items()} for field, compared in rounds}
+    summary["chosen"] = {name: setting_label(e.setting) for name, e in final.items()}
+    if not rounds:
+        return []
+    lines = ["", f"## The refinement ({', '.join(field for field, _ in rounds)}, one at a time)", "",
+             "Each MPC whose choice is on, each field at its values on the same runs, at the choices so far; the "
+             "first row of each field is the incumbent (the tuning file's value, so a tie keeps it). Objective "
+             "over all runs (mm).", "",
+             "| controller | field | setting | objective (all) | not completed | chosen |",
+             "|---|---|---|---:|---:|---|"]
+    for field, compared in rounds:
+        for name, group in compared.items():
+            winner = best(group)
+            for e in group:
+                failed = sum(not ok for ok in e.completed.values())
+                lines.append(f"| {name} | {field} | {setting_label(e.setting)} | {_mm(e.objective_m)} | {failed} | "
+                             f"{'**chosen**' if e is winner else ''} |")
+    lines += ["", "Final choice per controller: " + "; ".join(f"{name} {setting_label(e.setting)} "
+                                                              f"({_mm(e.objective_m)} mm)"
+                                                              for name, e in final.items()) + "."]
+    return lines
 
 
 def evaluation_lines(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluation],
@@ -258,12 +368,12 @@ def evaluation_lines(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluat
              "|---|---|" + "---:|" * (len(names) + 1)]
     for e in studies:
         degrees = degrees_of(e)
-        value = label(degrees) + (" (chosen)" if chosen.get(e.controller) is not None
-                                  and degrees_of(chosen[e.controller]) == degrees else "")
+        value = setting_label(e.setting) + (" (chosen)" if is_chosen(e, chosen) else "")
         worst = e.max_abs_m.get(FIGURE_SCENARIO, math.nan)
         lines.append(f"| {e.controller} | {value} | " + " | ".join(outcome(e, s) for s in names)
                      + f" | {worst:.3f} |")
-        summary["evaluation"][f"{e.controller}@{'-' if degrees is None else f'{degrees:g}'}"] = _stored(e)
+        refined = "".join(f",{name.removeprefix('grip_')}={value:g}" for name, value in e.setting if name != FIELD)
+        summary["evaluation"][f"{e.controller}@{'-' if degrees is None else f'{degrees:g}'}{refined}"] = _stored(e)
     ranked = ranking(studies, chosen)
     if ranked:
         lines += ["", f"On `{FIGURE_SCENARIO}`, each MPC at its chosen value and Stanley, by e_Y RMSE "
@@ -271,11 +381,17 @@ def evaluation_lines(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluat
     return lines
 
 
+def is_chosen(evaluation: Evaluation, chosen: Mapping[str, Evaluation]) -> bool:
+    """Whether ``evaluation`` ran its controller's chosen setting."""
+    choice = chosen.get(evaluation.controller)
+    return choice is not None and dict(choice.setting) == dict(evaluation.setting)
+
+
 def ranking(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluation]) -> list[str]:
     """The controllers on :data:`FIGURE_SCENARIO` (the MPCs at their chosen value) with their
     outcome: the completed ones by e_Y RMSE, then the others, the longest-lasting first."""
     rows = [e for e in studies if FIGURE_SCENARIO in e.rmse_m and (
-        e.controller not in chosen or degrees_of(e) == degrees_of(chosen[e.controller]))]
+        e.controller not in chosen or is_chosen(e, chosen))]
 
     def key(e: Evaluation) -> tuple[bool, float]:
         if e.completed[FIGURE_SCENARIO]:
@@ -288,20 +404,24 @@ def ranking(studies: Sequence[Evaluation], chosen: Mapping[str, Evaluation]) -> 
 
 # ---------------------------------------------------------------------------- the figure
 
-def figure_values(name: str, chosen_deg: Mapping[str, float]) -> list[float]:
-    """The values the figure shows for controller ``name``: off, FIGURE_SLIP_EXCESS_DEG and
-    its chosen value (when another)."""
-    return list(dict.fromkeys((0.0, FIGURE_SLIP_EXCESS_DEG, chosen_deg.get(name, 0.0))))
+def figure_settings(name: str, chosen: Mapping[str, Setting]) -> list[Setting]:
+    """The settings the figure shows for controller ``name``: off, FIGURE_SLIP_EXCESS_DEG and
+    its chosen setting (when another)."""
+    shown: list[Setting] = []
+    for candidate in (setting(0.0), setting(FIGURE_SLIP_EXCESS_DEG), chosen.get(name, setting(0.0))):
+        if all(dict(candidate) != dict(other) for other in shown):
+            shown.append(candidate)
+    return shown
 
 
-def figure_runs(tuning: Any, chosen_deg: Mapping[str, float], progress: bool) -> dict[str, ClosedLoopResult]:
-    """The figure's runs with traces: key ``name@degrees``."""
+def figure_runs(tuning: Any, chosen: Mapping[str, Setting], progress: bool) -> dict[str, ClosedLoopResult]:
+    """The figure's runs with traces: key ``name@setting label``."""
     scenario = next(s for s in evaluation_scenarios() if s.name == FIGURE_SCENARIO)
-    keys = [(name, d) for name in FIGURE_CONTROLLERS for d in figure_values(name, chosen_deg)]
+    keys = [(name, shown) for name in FIGURE_CONTROLLERS for shown in figure_settings(name, chosen)]
     runs = {}
-    for name, degrees in tqdm(keys, desc="figure traces", unit="run", disable=not progress):
-        controller = build_controller(name, with_setting(tuning, name, setting(degrees)))
-        runs[f"{name}@{degrees:g}"] = run_on_changed_plant(scenario, controller)
+    for name, shown in tqdm(keys, desc="figure traces", unit="run", disable=not progress):
+        controller = build_controller(name, with_setting(tuning, name, shown))
+        runs[f"{name}@{setting_label(shown)}"] = run_on_changed_plant(scenario, controller)
     return runs
 
 
@@ -309,9 +429,9 @@ def figure_runs(tuning: Any, chosen_deg: Mapping[str, float], progress: bool) ->
 FIGURE_RANGE_M = 1.5
 
 
-def figure(runs: Mapping[str, ClosedLoopResult], chosen_deg: Mapping[str, float], out: Path) -> None:
+def figure(runs: Mapping[str, ClosedLoopResult], chosen: Mapping[str, Setting], out: Path) -> None:
     """e_Y (m) over time on :data:`FIGURE_SCENARIO`: each figure controller off, at
-    FIGURE_SLIP_EXCESS_DEG and at its chosen value, one panel each."""
+    FIGURE_SLIP_EXCESS_DEG and at its chosen setting, one panel each."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -320,12 +440,12 @@ def figure(runs: Mapping[str, ClosedLoopResult], chosen_deg: Mapping[str, float]
 
     fig, axes = plt.subplots(len(FIGURE_CONTROLLERS), 1, figsize=(9, 2.5 * len(FIGURE_CONTROLLERS)), sharex=True)
     for ax, name in zip(np.atleast_1d(axes), FIGURE_CONTROLLERS):
-        for degrees, style in zip(figure_values(name, chosen_deg), ("-", "-.", ":")):
-            result = runs[f"{name}@{degrees:g}"]
-            chosen = " (chosen)" if degrees == chosen_deg.get(name) else ""
+        for shown, style in zip(figure_settings(name, chosen), ("-", "-.", ":")):
+            result = runs[f"{name}@{setting_label(shown)}"]
+            mark = " (chosen)" if dict(shown) == dict(chosen.get(name, setting(0.0))) else ""
             end = "" if result.completed else " (lost)"
             ax.plot(result.trace.time_s, result.trace.lateral_error, style,
-                    label=f"{name}, {label(degrees)}{chosen}{end}")
+                    label=f"{name}, {setting_label(shown)}{mark}{end}")
         ax.set_ylim(-FIGURE_RANGE_M, FIGURE_RANGE_M)
         ax.set_ylabel("e_Y (m)")
         ax.legend(loc="lower left", fontsize=8)
@@ -343,25 +463,42 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("results"), help="output folder (default results/)")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), help="parallel runs (Ray)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--tuning", type=Path, default=DEFAULT_TUNING_PATH,
+                        help="the tuning file read, and written with the choices (default controller/tuning.toml)")
+    parser.add_argument("--no-write", action="store_true", help="write the report only, not the tuning file")
     args = parser.parse_args(argv)
     if args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
     started = time.monotonic()
     args.out.mkdir(parents=True, exist_ok=True)
-    tuning = load_tuning()
+    tuning = load_tuning(args.tuning)
+    text_before = args.tuning.read_text(encoding="utf-8")
     progress = not args.no_progress
     disturbed, limit = tuning_scenarios()
     tuning_set = evaluate(tuning_jobs(), disturbed + limit, tuning, args.workers, progress, "tuning stage")
-    studies = evaluate(evaluation_jobs(), evaluation_scenarios(), tuning, args.workers, progress, "evaluation")
-    chosen_deg = {name: degrees_of(e) for name, e in choices(tuning_set).items()}
-    runs = figure_runs(tuning, chosen_deg, progress)
+    incumbents = incumbents_of(tuning, ENVELOPE_CONTROLLERS)
+    rounds, final = refine(choices(tuning_set), incumbents,
+                           lambda jobs: evaluate(jobs, disturbed + limit, tuning, args.workers, progress, "refinement"))
+    studies = evaluate(evaluation_jobs(final), evaluation_scenarios(), tuning, args.workers, progress, "evaluation")
+    chosen = {name: e.setting for name, e in final.items()}
+    runs = figure_runs(tuning, chosen, progress)
     command = "python -m studies.grip_envelope " + " ".join(sys.argv[1:] if argv is None else argv)
     text, summary = report(tuning_set, studies, [s.name for s in disturbed], [s.name for s in limit],
-                           command=command.strip(), minutes=(time.monotonic() - started) / 60.0)
+                           command=command.strip(), minutes=(time.monotonic() - started) / 60.0, rounds=rounds,
+                           final=final, written=not args.no_write)
     (args.out / "grip_envelope.md").write_text(text)
     (args.out / "grip_envelope.json").write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
-    figure(runs, chosen_deg, args.out / "grip_envelope.png")
+    figure(runs, chosen, args.out / "grip_envelope.png")
     print(text)
+    if not args.no_write:
+        if args.tuning.read_text(encoding="utf-8") != text_before:
+            print(f"error: {args.tuning} changed while the stage ran; not written", file=sys.stderr)
+            return 1
+        temporary = args.tuning.with_name(args.tuning.name + ".tmp")
+        temporary.write_text(update_tuning_text(text_before, written_settings(final, incumbents),
+                                                comment=TUNING_COMMENT), encoding="utf-8")
+        os.replace(temporary, args.tuning)
+        print(f"wrote the grip fields into {args.tuning}")
     return 0
 
 

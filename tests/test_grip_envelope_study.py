@@ -96,16 +96,96 @@ def test_the_report_lines() -> None:
     assert "| lmpc | 3 deg (chosen) | 0.021 | 0.049 | 0.147 |" in text
     assert "| stanley | (no envelope) | 0.016 | 0.200 | 0.600 |" in text
     assert "by e_Y RMSE (completed runs first): lmpc 0.049, stanley 0.200." in text
-    assert "writes no tuning file" in text
+    assert "Run with `--no-write`: the tuning file was left as it was." in text
+    assert "## The refinement" not in text  # no rounds given
     assert summary["chosen_deg"] == {"lmpc": 3.0}
     assert summary["tuning"]["lmpc@0"]["objective_limit_m"] == FAILURE_PENALTY_M
     assert "seconds" not in summary["evaluation"]["stanley@-"]
 
 
-def test_the_figure_shows_off_three_degrees_and_the_chosen_value() -> None:
-    assert grip_envelope.figure_values("dkmpc", {"dkmpc": 4.0}) == [0.0, 3.0, 4.0]
-    assert grip_envelope.figure_values("lmpc", {"lmpc": 3.0}) == [0.0, 3.0]
-    assert grip_envelope.figure_values("lmpc", {"lmpc": 0.0}) == [0.0, 3.0]
+def test_the_figure_shows_off_three_degrees_and_the_chosen_setting() -> None:
+    four = grip_envelope.setting(4.0)
+    refined = grip_envelope.setting(3.0) + (("grip_margin", 0.2),)
+    assert grip_envelope.figure_settings("dkmpc", {"dkmpc": four}) == [
+        grip_envelope.setting(0.0), grip_envelope.setting(3.0), four]
+    assert grip_envelope.figure_settings("lmpc", {"lmpc": grip_envelope.setting(3.0)}) == [
+        grip_envelope.setting(0.0), grip_envelope.setting(3.0)]
+    assert grip_envelope.figure_settings("nmpc", {"nmpc": grip_envelope.setting(0.0)}) == [
+        grip_envelope.setting(0.0), grip_envelope.setting(3.0)]
+    assert grip_envelope.figure_settings("lmpc", {"lmpc": refined})[-1] == refined
+    assert grip_envelope.setting_label(refined) == "3 deg, margin 0.2"
+    assert grip_envelope.setting_label(grip_envelope.setting(0.0) + (("grip_peak_time", 0.5),)) == "off, peak time 0.5"
+
+
+INCUMBENTS = {name: {"grip_slip_excess": 0.0, "grip_margin": 0.1, "grip_recovery": 10.0, "grip_peak_time": 1.0}
+              for name in ("dkmpc", "nmpc")}
+
+
+def _refine_with(objectives: dict[tuple[str, str, float], float]) -> tuple[list, dict, list]:
+    """The refinement of dkmpc (on at 4 deg) and nmpc (off), every job's objective looked up
+    in ``objectives`` by (controller, field, value) (else 0.05 m); the jobs run, in order."""
+    runs = ["a"]
+    stage_one = {"dkmpc": _evaluation("dkmpc", 4.0, {"a": 0.04}, {"a": True}),
+                 "nmpc": _evaluation("nmpc", 0.0, {"a": 0.03}, {"a": True})}
+    ran: list = []
+
+    def run(jobs):
+        ran.extend(jobs)
+        out = []
+        for name, stage, setting in jobs:
+            field, value = setting[-1]
+            e = _evaluation(name, 4.0, dict.fromkeys(runs, objectives.get((name, field, value), 0.05)),
+                            dict.fromkeys(runs, True))
+            out.append(dataclasses.replace(e, stage=stage, setting=setting))
+        return out
+
+    rounds, final = grip_envelope.refine(stage_one, INCUMBENTS, run)
+    return rounds, final, ran
+
+
+def test_the_refinement_moves_one_field_at_a_time_and_ties_keep_the_incumbent() -> None:
+    rounds, final, ran = _refine_with({("dkmpc", "grip_margin", 0.2): 0.03, ("dkmpc", "grip_recovery", 5.0): 0.04})
+    # only the controller that is on; the incumbent's runs are not repeated
+    assert {name for name, _, _ in ran} == {"dkmpc"}
+    assert len(ran) == 3 * 2
+    assert [field for field, _ in rounds] == ["grip_margin", "grip_recovery", "grip_peak_time"]
+    # the margin moved to 0.2 (lower); the recovery's 5.0 (0.04 m) is worse than the choice so far (0.03 m)
+    assert dict(final["dkmpc"].setting) == {"grip_slip_excess": math.radians(4.0), "grip_margin": 0.2}
+    # the later rounds start from the choice so far
+    assert all(dict(s)["grip_margin"] == 0.2 for _, _, s in ran[2:])
+    assert final["nmpc"].setting == grip_envelope.setting(0.0)
+    first, compared = rounds[0]
+    assert [e.objective_m for e in compared["dkmpc"]] == pytest.approx([0.04, 0.05, 0.03])
+    summary: dict = {}
+    lines = grip_envelope.refinement_lines(rounds, final, summary)
+    assert "| dkmpc | grip_margin | 4 deg, margin 0.2 | 30.00 | 0 | **chosen** |" in lines
+    assert "| dkmpc | grip_margin | 4 deg | 40.00 | 0 |  |" in lines
+    assert summary["chosen"] == {"dkmpc": "4 deg, margin 0.2", "nmpc": "off"}
+    _, tie = _refine_with({("dkmpc", "grip_margin", 0.05): 0.04})[:2]
+    assert tie["dkmpc"].setting == grip_envelope.setting(4.0)  # a tie keeps the incumbent
+
+
+def test_the_written_fields_and_the_tuning_file_takes_them() -> None:
+    from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
+    from studies.tuning_file import update_tuning_text
+
+    _, final, _ = _refine_with({("dkmpc", "grip_margin", 0.2): 0.03})
+    tuning = load_tuning()
+    incumbents = grip_envelope.incumbents_of(tuning, ["dkmpc", "nmpc"])
+    written = grip_envelope.written_settings(final, incumbents)
+    assert written["dkmpc"] == (("grip_slip_excess", math.radians(4.0)), ("grip_margin", 0.2),
+                                ("grip_recovery", incumbents["dkmpc"]["grip_recovery"]),
+                                ("grip_peak_time", incumbents["dkmpc"]["grip_peak_time"]))
+    assert dict(written["nmpc"])["grip_slip_excess"] == 0.0
+    # every MPC table of the shipped file has the four fields in place
+    text = DEFAULT_TUNING_PATH.read_text(encoding="utf-8")
+    every = {name: tuple((f, 0.0 if f == "grip_slip_excess" else incumbents["dkmpc"][f])
+                         for f in grip_envelope.WRITTEN_FIELDS) for name in grip_envelope.ENVELOPE_CONTROLLERS}
+    updated = update_tuning_text(text, {**every, **written}, comment=grip_envelope.TUNING_COMMENT)
+    assert updated.count(grip_envelope.TUNING_COMMENT) == len(grip_envelope.ENVELOPE_CONTROLLERS)
+    jobs = grip_envelope.evaluation_jobs(final)
+    assert ("dkmpc", "grip", final["dkmpc"].setting) in jobs
+    assert len(jobs) == len(grip_envelope.evaluation_jobs()) + 1  # nmpc's choice is among the tuning jobs
 
 
 def test_a_run_that_failed_otherwise_is_named_so() -> None:
