@@ -1,14 +1,15 @@
 # The MPCs' grip envelope (studies/grip_envelope.py, docs/grip-envelope.md), the tuning
 # procedure's last stage: each MPC (the QP MPCs and NMPC) at grip_slip_excess off, 2 to 6
-# degrees on the tuning set with disturbances and on its undisturbed manoeuvres with the rear
-# tyres x0.65 (the objective and the choice); then, for each MPC the stage switches on, the
-# margin, the recovery and the peak memory one at a time on the same runs; then Tables II /
-# III's lane changes on the nominal and make identify's changed plant, Stanley beside them.
-# Writes each MPC's four grip fields into controller/tuning.toml. Closed loop without CAN:
-# about 2300 runs, about 30 min on 2 cores (NMPC takes most of it). As the other tuning stages,
-# its stamp leaves out the tuning file it writes.
+# degrees on the tuning set with disturbances and a limit set (its undisturbed manoeuvres
+# with the rear tyres x0.65, and with that +150 kg and the steering's lag x2); then, for each
+# MPC the stage switches on, the margin, the recovery and the peak memory one at a time on
+# the same runs; then Tables II / III's lane changes on the nominal and make identify's
+# changed plant, Stanley beside them. Writes each MPC's four grip fields into
+# controller/tuning.toml. Closed loop without CAN: about 2900 runs, about 45 min on 2 cores
+# (NMPC takes most of it). As the other tuning stages, its stamp leaves out the tuning file
+# it writes.
 .PHONY: grip-envelope
-## tune the grip envelope on the tuning set + limit set -> controller/tuning.toml, results/grip_envelope.* (~30 min)
+## tune the grip envelope on the tuning set + limit set -> controller/tuning.toml, results/grip_envelope.* (~45 min)
 grip-envelope: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.grip_envelope --out results --workers 2
 	$(PROVENANCE_STAMP) $(addprefix results/grip_envelope.,md json png) --command "make grip-envelope" \

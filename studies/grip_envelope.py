@@ -11,13 +11,14 @@ the table's, i.e. their defaults):
    each ``grip_slip_excess`` of :data:`SLIP_EXCESSES_DEG` (off, 2 to 6 degrees) on the tuning set with disturbances
    (``studies.observer_tuning.disturbed_tuning_set``, 22 runs) and on a limit set: its 11
    undisturbed manoeuvres on a plant whose rear tyres have :data:`LIMIT_REAR_SCALE` of their
-   cornering stiffness (an oversteering car at its limit; named ``<manoeuvre>@rear_x0.65``).
+   cornering stiffness (an oversteering car at its limit; named ``<manoeuvre>@rear_x0.65``),
+   and on the same with +150 kg and the steering's time constant x2 (``...+150kg+lag_x2``).
    The objective is the procedure's (``studies.tuning_sweep_executor.objective``: the mean
-   e_Y RMSE, a run that does not complete counts 10 m) over the 33 runs; the chosen value
+   e_Y RMSE, a run that does not complete counts 10 m) over the 44 runs; the chosen value
    the lowest objective, ties to off.
 2. **The refinement**: for each MPC whose choice is on, the envelope's other fields one at a
    time (:data:`REFINE_AXES`: the margin, then the recovery, then the peak memory), each on the
-   same 33 runs at the controller's choices so far; the tuning file's value is the incumbent,
+   same 44 runs at the controller's choices so far; the tuning file's value is the incumbent,
    so a tie keeps it.
 3. **The evaluation**, on scenarios the tuning never saw: Tables II / III's lane changes on
    the nominal plant and on make identify's changed plant
@@ -83,9 +84,14 @@ TUNING_COMMENT = "chosen by make grip-envelope on the tuning set with disturbanc
 #: The controllers with the envelope (every MPC) and those without it, run beside them.
 ENVELOPE_CONTROLLERS = QP_CONTROLLERS + ("nmpc",)
 REFERENCE_CONTROLLERS = ("stanley",)
-#: The limit set's plant: the rear tyres' cornering stiffness times this (disjoint from the
-#: changed plant's x0.8 with +300 kg and lag x3).
+#: The limit set's plants: the rear tyres' cornering stiffness times LIMIT_REAR_SCALE (an
+#: oversteering car at its limit), alone and with a heavier car whose steering is slower
+#: (LIMIT_SLOW_MASS_KG, the steering's time constant x LIMIT_SLOW_LAG_FACTOR: make
+#: observer-speed's changed plants' values). Disjoint from the changed plant's rear tyres x0.8
+#: with +300 kg and lag x3.
 LIMIT_REAR_SCALE = 0.65
+LIMIT_SLOW_MASS_KG = 150.0
+LIMIT_SLOW_LAG_FACTOR = 2.0
 #: How many of ``disturbed_tuning_set``'s runs are undisturbed (its first ones).
 UNDISTURBED_RUNS = 11
 #: The evaluation: Tables II / III's lane changes, on the nominal and the changed plant.
@@ -140,6 +146,19 @@ def on_soft_rear_tyres(scenario: Scenario) -> Scenario:
     return with_vehicle_faults(scenario, f"@rear_x{LIMIT_REAR_SCALE:g}", cornering_stiffness_rear_scale=LIMIT_REAR_SCALE)
 
 
+def on_slow_car_at_its_limit(scenario: Scenario) -> Scenario:
+    """``scenario`` on the rear tyres of :func:`on_soft_rear_tyres` with
+    :data:`LIMIT_SLOW_MASS_KG` more mass and the steering's time constant
+    x :data:`LIMIT_SLOW_LAG_FACTOR`, named ``<name>@rear_x0.65+150kg+lag_x2``."""
+    from models.vehicle_params import load_vehicle_params
+
+    nominal_lag = load_vehicle_params().steer_time_constant
+    return with_vehicle_faults(
+        scenario, f"@rear_x{LIMIT_REAR_SCALE:g}+{LIMIT_SLOW_MASS_KG:g}kg+lag_x{LIMIT_SLOW_LAG_FACTOR:g}",
+        cornering_stiffness_rear_scale=LIMIT_REAR_SCALE, mass_offset_kg=LIMIT_SLOW_MASS_KG,
+        steer_extra_lag_s=(LIMIT_SLOW_LAG_FACTOR - 1.0) * nominal_lag)
+
+
 def on_changed_plant(scenario: Scenario) -> Scenario:
     """``scenario`` on make identify's changed plant (``studies.identification.changed_params``
     as vehicle faults, as its identification drive injects them), named ``<name>@changed``."""
@@ -153,9 +172,11 @@ def on_changed_plant(scenario: Scenario) -> Scenario:
 
 
 def tuning_scenarios() -> tuple[list[Scenario], list[Scenario]]:
-    """The tuning stage's runs: the tuning set with disturbances (22) and the limit set (11)."""
+    """The tuning stage's runs: the tuning set with disturbances (22) and the limit set (22:
+    its undisturbed manoeuvres on each limit plant)."""
     disturbed = disturbed_tuning_set()
-    return disturbed, [on_soft_rear_tyres(s) for s in disturbed[:UNDISTURBED_RUNS]]
+    undisturbed = disturbed[:UNDISTURBED_RUNS]
+    return disturbed, [on_soft_rear_tyres(s) for s in undisturbed] + [on_slow_car_at_its_limit(s) for s in undisturbed]
 
 
 def evaluation_scenarios() -> list[Scenario]:
@@ -293,14 +314,17 @@ def report(tuning_set: Sequence[Evaluation], studies: Sequence[Evaluation], dist
              "low-mu lane change?", "",
              f"## The tuning stage ({len(disturbed) + len(limit)} runs per setting)", "",
              f"The procedure's objective (mean e_Y RMSE, mm; a run that does not complete counts 10 m) over the "
-             f"tuning set with disturbances ({len(disturbed)} runs) and the limit set (its {len(limit)} "
-             f"undisturbed manoeuvres with the rear tyres' cornering stiffness x{LIMIT_REAR_SCALE:g}), and over "
-             "each part; not completed: runs that did not complete. The chosen value has the lowest objective "
+             f"tuning set with disturbances ({len(disturbed)} runs) and the limit set ({len(limit)} runs: its "
+             f"undisturbed manoeuvres with the rear tyres' cornering stiffness x{LIMIT_REAR_SCALE:g}, and with "
+             f"that, {LIMIT_SLOW_MASS_KG:+g} kg and the steering's time constant x{LIMIT_SLOW_LAG_FACTOR:g}), "
+             "and over each part; not completed: runs that did not complete. The chosen value has the lowest objective "
              "over all runs (ties to off).", "",
              "| controller | grip_slip_excess | objective (all) | tuning set | limit set | not completed | chosen |",
              "|---|---|---:|---:|---:|---:|---|"]
     summary: dict[str, Any] = {"field": FIELD, "values_deg": list(SLIP_EXCESSES_DEG),
-                               "limit_rear_scale": LIMIT_REAR_SCALE, "tuning_runs": {"disturbed": list(disturbed),
+                               "limit_rear_scale": LIMIT_REAR_SCALE,
+                               "limit_slow_car": {"mass_offset_kg": LIMIT_SLOW_MASS_KG,
+                                                  "lag_factor": LIMIT_SLOW_LAG_FACTOR}, "tuning_runs": {"disturbed": list(disturbed),
                                                                                       "limit": list(limit)},
                                "tuning": {}, "chosen_deg": {}, "evaluation": {}}
     for e in tuning_set:

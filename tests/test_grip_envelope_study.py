@@ -27,13 +27,18 @@ def _evaluation(name: str, degrees: float | None, rmse: dict[str, float], comple
 
 def test_the_tuning_runs_and_their_plants() -> None:
     disturbed, limit = grip_envelope.tuning_scenarios()
-    assert (len(disturbed), len(limit)) == (22, 11)
-    assert [s.name for s in limit] == [f"{s.name}@rear_x0.65" for s in disturbed[:11]]
+    assert (len(disturbed), len(limit)) == (22, 22)
+    assert [s.name for s in limit] == ([f"{s.name}@rear_x0.65" for s in disturbed[:11]]
+                                       + [f"{s.name}@rear_x0.65+150kg+lag_x2" for s in disturbed[:11]])
     assert not any(s.name.endswith("+disturbed") for s in disturbed[:11])
-    for scenario, original in zip(limit, disturbed):
+    for scenario, original in zip(limit, disturbed[:11] * 2):
         params = original.vehicle_params()
         expected = dataclasses.replace(params, cornering_stiffness_rear_scale=params.cornering_stiffness_rear_scale * 0.65)
-        assert plant_for(scenario)[0].params == expected
+        plant = plant_for(scenario)[0]
+        if "+150kg" in scenario.name:
+            expected = dataclasses.replace(expected, mass=params.mass + 150.0,
+                                           steer_time_constant=2.0 * params.steer_time_constant)
+        assert plant.params == expected
     # the tuning set's own runs keep the nominal plant
     assert plant_for(disturbed[0])[0].params == disturbed[0].vehicle_params()
 
