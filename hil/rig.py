@@ -307,6 +307,17 @@ class Rig:
 VEHICLE_FILE_CONTROLLERS = ("lmpc", "lmpc-eso", "nmpc", "stanley")
 
 
+def reads_vehicle_file(controller: str) -> bool:
+    """Whether building ``controller`` reads models/vehicle.toml: the controllers of
+    `VEHICLE_FILE_CONTROLLERS`, and every MPC whose table in the tuning file switches the
+    grip envelope on (its rear axle is the nominal one, ``controller.grip_envelope.RearAxle``)."""
+    from controller.tuning import load_tuning
+
+    if controller in VEHICLE_FILE_CONTROLLERS:
+        return True
+    return float(getattr(load_tuning().for_controller(controller), "grip_slip_excess", 0.0)) > 0.0
+
+
 def default_model_files(controller: str) -> list[Path]:
     """The model files the registry builds ``controller`` on without ``--model``: the
     Koopman artefact of eso-dkmpc / dkmpc (``.npz``, ``.json``), the DMDc artefact of
@@ -328,7 +339,7 @@ def recorded_ecu_files(controller: str, model: Path | str | None,
                        ecu: str = "python") -> list[tuple[str, Path]]:
     """(role, file) of every file the ECU's controller reads as it is built, but the
     tuning: ``--model``'s files ("model"), else the default artefact ("default model"),
-    models/vehicle.toml ("vehicle") for `VEHICLE_FILE_CONTROLLERS`, and for the C ECU
+    models/vehicle.toml ("vehicle") where `reads_vehicle_file`, and for the C ECU
     without ``--model`` the build's data file ("C ECU data", build/firmware/ecu_data.bin;
     with ``--model`` its data file is converted from the model and the tuning, both
     recorded). A replay runs the Python ECU, which reads the same model files.
@@ -349,6 +360,6 @@ def recorded_ecu_files(controller: str, model: Path | str | None,
         defaults = [("default model", file) for file in default_model_files(controller)]
         if ecu == "c":
             defaults.append(("C ECU data", DEFAULT_DATA))
-    if controller in VEHICLE_FILE_CONTROLLERS:
+    if reads_vehicle_file(controller):
         defaults.append(("vehicle", DEFAULT_PARAMS_PATH))
     return files + [(role, file) for role, file in defaults if file.is_file()]

@@ -67,7 +67,6 @@ def test_the_actuator_terms_default_off() -> None:
     for name in QP_CONTROLLERS + ("nmpc", "lmpc-eso", "dmdc-eso"):
         table = tuning.for_controller(name)
         assert table.qp_steer_rate_limit == 0.0 and table.delay_compensation_s == 0.0
-        assert table.grip_slip_excess == 0.0  # the grip envelope off
 
 
 @pytest.mark.parametrize("fields, message", [

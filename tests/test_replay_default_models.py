@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from hil.logio import file_sha256, read_sidecar
-from hil.rig import recorded_ecu_files
+from hil.rig import reads_vehicle_file, recorded_ecu_files
 
 pytest.importorskip("osqp")
 
@@ -74,7 +74,8 @@ def test_the_recorded_files_are_those_each_controller_is_built_on(tmp_path: Path
         print(name, model, sorted(recorded))
         assert recorded | {str(DEFAULT_TUNING_PATH.resolve())} == set(opened[f"{name} {model}"])
     roles = {name: [role for role, _ in recorded_ecu_files(name, None)] for name in ALL_CONTROLLER_NAMES}
-    assert roles["eso-dkmpc"] == roles["dkmpc"] == roles["dmdc-eso"] == ["default model"] * 2
+    for name in ("eso-dkmpc", "dkmpc", "dmdc-eso"):  # the vehicle file with the grip envelope on
+        assert roles[name] == ["default model"] * 2 + ["vehicle"] * reads_vehicle_file(name)
     assert roles["lmpc"] == roles["nmpc"] == roles["stanley"] == ["vehicle"]
     c_ecu = recorded_ecu_files("eso-dkmpc", None, ecu="c")
     assert ("C ECU data", ROOT / "build" / "firmware" / "ecu_data.bin") in c_ecu \
