@@ -71,6 +71,12 @@ class RearAxle:
         return self.mass * self.lf / (self.lf + self.lr) * lateral_accel / self.cornering_stiffness_rear
 
 
+def envelope_on(tuning: MpcTuning) -> bool:
+    """Whether an MPC's tuning table switches the envelope on (``grip_slip_excess`` > 0):
+    then the MPC builds a ``GripEnvelope`` on the nominal rear axle (models/vehicle.toml)."""
+    return tuning.grip_slip_excess > 0.0
+
+
 class GripEnvelope:
     """The estimate above; ``update`` once per valid sample, before the plan."""
 
@@ -86,7 +92,7 @@ class GripEnvelope:
 
     @property
     def enabled(self) -> bool:
-        """Whether the table switches the envelope on (``grip_slip_excess`` > 0)."""
+        """Whether the table switches the envelope on (`envelope_on`)."""
         return self.slip_excess > 0.0
 
     def reset(self) -> None:

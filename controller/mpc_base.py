@@ -22,7 +22,7 @@ import numpy as np
 from controller.base import (CONTROL_PERIOD_S, STEER_LIMIT_RAD, Command, Controller, SolverStatus, StepDebug,
                              VehicleSample, sample_is_finite)
 from controller.delay_compensation import COMMAND_HISTORY
-from controller.grip_envelope import GripEnvelope, RearAxle
+from controller.grip_envelope import GripEnvelope, RearAxle, envelope_on
 from controller.longitudinal import SpeedController
 from controller.reference import PathTracker, ReferencePath
 from controller.steady_slip import measured_slip, reference_bend, slip_target
@@ -58,7 +58,7 @@ class SteeringMpc(Controller):
         self._observer_reset = False
         # The nominal bicycle's rear axle only where the envelope is on: the tables that
         # leave it off need no vehicle file.
-        self.grip = GripEnvelope(tuning, RearAxle.nominal()) if tuning.grip_slip_excess > 0.0 else None
+        self.grip = GripEnvelope(tuning, RearAxle.nominal()) if envelope_on(tuning) else None
         self.reset()
 
     # -- interface ---------------------------------------------------------------------

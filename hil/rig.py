@@ -311,11 +311,13 @@ def reads_vehicle_file(controller: str) -> bool:
     """Whether building ``controller`` reads models/vehicle.toml: the controllers of
     `VEHICLE_FILE_CONTROLLERS`, and every MPC whose table in the tuning file switches the
     grip envelope on (its rear axle is the nominal one, ``controller.grip_envelope.RearAxle``)."""
-    from controller.tuning import load_tuning
+    from controller.grip_envelope import envelope_on
+    from controller.tuning import MpcTuning, load_tuning
 
     if controller in VEHICLE_FILE_CONTROLLERS:
         return True
-    return float(getattr(load_tuning().for_controller(controller), "grip_slip_excess", 0.0)) > 0.0
+    table = load_tuning().for_controller(controller)
+    return isinstance(table, MpcTuning) and envelope_on(table)
 
 
 def default_model_files(controller: str) -> list[Path]:

@@ -16,3 +16,17 @@ grip-envelope: setup
 		--inputs $(PROVENANCE_VEHICLE) $(PROVENANCE_ARTEFACT) $(PROVENANCE_SCENARIOS) $(PROVENANCE_PATHS) \
 		$(PROVENANCE_DMDC) $(PROVENANCE_TUNING_SET) \
 		--modules studies.grip_envelope studies.identification controller.grip_envelope models.disturbance hil.fault_injector
+
+# The margin's effect on make identify's changed plant (a sensitivity study: it chooses
+# nothing): every QP MPC at grip_margin 0 to 0.2 and the file's value, NMPC beside them, on
+# the low-mu lane change with the nominal models (studies/campaign/grids/grip_margin.toml).
+# Closed loop without CAN, 31 runs, about 1 min on 2 cores.
+.PHONY: grip-margin
+GRIP_MARGIN_OUT := results/grip_margin
+## the grip envelope's margin on the changed plant's low-mu lane change, every QP MPC -> results/grip_margin/ (~1 min)
+grip-margin: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.campaign grip_margin --out $(GRIP_MARGIN_OUT) --workers 2 --no-progress
+	$(PROVENANCE_STAMP) $(addprefix $(GRIP_MARGIN_OUT)/,cells.csv summary.md heatmap_e_y_rmse.png) \
+		--command "make grip-margin" \
+		--inputs $(PROVENANCE_CLOSED_LOOP) $(PROVENANCE_DMDC) studies/campaign/grids/grip_margin.toml \
+		--modules studies.campaign.__main__ hil.fault_injector

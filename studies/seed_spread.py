@@ -110,7 +110,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", type=lambda t: tuple(int(v) for v in t.split(",")), default=(0, 1, 2, 3, 4))
     parser.add_argument("--models-dir", type=Path, default=Path("build/table1"))
     parser.add_argument("--out", type=Path, default=Path("results"))
+    parser.add_argument("--check-models", action="store_true",
+                        help="only say whether --models-dir holds every seed's model (exit 0) or not (1)")
     args = parser.parse_args(argv)
+    if args.check_models:
+        try:
+            for _, row, _ in FORMS:
+                seed_artifacts(args.models_dir, args.seeds, row)
+        except SystemExit as missing:
+            print(missing, file=sys.stderr)
+            return 1
+        print(f"{args.models_dir}: every seed's model of the {len(FORMS)} forms is there")
+        return 0
     forms = [(suffix, key, seed_artifacts(args.models_dir, args.seeds, row)) for suffix, row, key in FORMS]
     runs: dict[str, dict[str, list[dict]]] = {}
     for suffix, _, paths in forms:

@@ -35,6 +35,7 @@ def test_every_study_the_tuning_file_feeds_is_in_the_list() -> None:
     assert targets[-2:] == ["bench", "timing"]
     assert targets.index("identify") < targets.index("identify-lsq")
     assert targets.index("faults") < targets.index("faults-c")
+    assert targets.index("seed-spread-models") < targets.index("seed-spread")
     assert targets[0] == "firmware"
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from hil.logio import file_sha256, read_sidecar
-from hil.rig import reads_vehicle_file, recorded_ecu_files
+from hil.rig import recorded_ecu_files
 
 pytest.importorskip("osqp")
 
@@ -60,7 +60,7 @@ def _bicycle_file(path: Path) -> Path:
 
 def test_the_recorded_files_are_those_each_controller_is_built_on(tmp_path: Path) -> None:
     from controller.registry import ALL_CONTROLLER_NAMES
-    from controller.tuning import DEFAULT_TUNING_PATH
+    from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
 
     bicycle = _bicycle_file(tmp_path / "bicycle.json")
     cases = [(name, None) for name in ALL_CONTROLLER_NAMES]
@@ -74,8 +74,10 @@ def test_the_recorded_files_are_those_each_controller_is_built_on(tmp_path: Path
         print(name, model, sorted(recorded))
         assert recorded | {str(DEFAULT_TUNING_PATH.resolve())} == set(opened[f"{name} {model}"])
     roles = {name: [role for role, _ in recorded_ecu_files(name, None)] for name in ALL_CONTROLLER_NAMES}
+    tuning = load_tuning()
     for name in ("eso-dkmpc", "dkmpc", "dmdc-eso"):  # the vehicle file with the grip envelope on
-        assert roles[name] == ["default model"] * 2 + ["vehicle"] * reads_vehicle_file(name)
+        envelope = tuning.for_controller(name).grip_slip_excess > 0.0
+        assert roles[name] == ["default model"] * 2 + ["vehicle"] * envelope
     assert roles["lmpc"] == roles["nmpc"] == roles["stanley"] == ["vehicle"]
     c_ecu = recorded_ecu_files("eso-dkmpc", None, ecu="c")
     assert ("C ECU data", ROOT / "build" / "firmware" / "ecu_data.bin") in c_ecu \
