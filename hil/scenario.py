@@ -19,6 +19,8 @@ everything else SI; the attributes of :class:`Scenario` are SI)::
     mass_offset_kg = 0.0         # or mass_kg = 1648.0 (not both; neither = nominal)
     variant = "van"              # optional: a car of models/vehicle_variants.toml
                                  # (the masses above are then the variant's)
+    cornering_stiffness_rear_scale = 0.8  # optional: the rear tyres' cornering stiffness
+                                 # times this (on the car's own factor; 1 = as it is)
 
     [start]                      # plant initial state
     x_m = 0.0
@@ -77,13 +79,15 @@ _MASS_RANGE_KG = (300.0, 5000.0)
 SCENARIO_FILE_MAX_BYTES = 1024 * 1024
 _SPEED_RANGE_KMH = (0.0, 200.0)
 _DURATION_RANGE_S = (0.025, 3600.0)
+#: ``[vehicle] cornering_stiffness_rear_scale``: a changed tyre, not a unit slip (percent).
+_REAR_STIFFNESS_SCALE_RANGE = (0.5, 1.5)
 
 _ALLOWED_FIELDS: dict[str, frozenset[str]] = {
     "": frozenset({"name", "description", "duration_s", "path", "road", "vehicle", "start",
                    "speed_profile", "faults", "disturbances"}),
     "path": frozenset({"id", "file"}),
     "road": frozenset({"mu"}),
-    "vehicle": frozenset({"mass_kg", "mass_offset_kg", "variant"}),
+    "vehicle": frozenset({"mass_kg", "mass_offset_kg", "variant", "cornering_stiffness_rear_scale"}),
     "start": frozenset({"x_m", "y_m", "yaw_rad", "speed_kmh"}),
     "speed_profile": frozenset({"time_s", "target_speed_kmh"}),
 }
@@ -153,6 +157,9 @@ class Scenario:
     )
     disturbances: Any = field(default_factory=_no_disturbances)
     vehicle_variant: str | None = None
+    #: ``[vehicle] cornering_stiffness_rear_scale``: factor on the car's rear tyres' cornering
+    #: stiffness (a changed plant, oversteering below 1; 1.0: the car's own).
+    rear_stiffness_scale: float = 1.0
 
     @classmethod
     def load(cls, file: str | Path) -> "Scenario":
@@ -194,17 +201,22 @@ class Scenario:
 
     def vehicle_params(self) -> Any:
         """The plant's ``models.vehicle_params.VehicleParams`` (the nominal car's or the
-        vehicle variant's) with this scenario's mu and mass (lazy import: scenario files
-        load without the models package)."""
+        vehicle variant's) with this scenario's mu, mass and rear stiffness factor (lazy
+        import: scenario files load without the models package)."""
         from models.vehicle_params import load_vehicle_params
 
         if self.vehicle_variant is None:
             nominal = load_vehicle_params()
-            return load_vehicle_params(mu=self.mu, mass=self.plant_mass(nominal.mass))
-        from models.vehicle_variants import load_variant
+            car = load_vehicle_params(mu=self.mu, mass=self.plant_mass(nominal.mass))
+        else:
+            from models.vehicle_variants import load_variant
 
-        car = load_variant(self.vehicle_variant).params
-        return dataclasses.replace(car, mu=self.mu, mass=self.plant_mass(car.mass))
+            variant = load_variant(self.vehicle_variant).params
+            car = dataclasses.replace(variant, mu=self.mu, mass=self.plant_mass(variant.mass))
+        if self.rear_stiffness_scale == 1.0:
+            return car
+        return dataclasses.replace(car, cornering_stiffness_rear_scale=(
+            car.cornering_stiffness_rear_scale * self.rear_stiffness_scale))
 
     def vehicle(self, params: Any = None) -> Any:
         """The plant of this scenario: ``models.vehicle.FourWheelVehicle`` with ``params``
@@ -361,6 +373,8 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
     mass_kg = vehicle.number("mass_kg", *_MASS_RANGE_KG) if vehicle.has("mass_kg") else None
     mass_offset_kg = vehicle.number("mass_offset_kg", -1000.0, 2000.0, default=0.0)
     variant = _vehicle_variant(vehicle) if vehicle.has("variant") else None
+    rear_stiffness_scale = vehicle.number("cornering_stiffness_rear_scale", *_REAR_STIFFNESS_SCALE_RANGE,
+                                          default=1.0)
 
     start_fields = _Fields(file, top.table_of("start"), "start")
     start = StartState(
@@ -406,6 +420,7 @@ def _parse(raw: Mapping[str, Any], file: Path) -> Scenario:
         faults=types.MappingProxyType(copy.deepcopy(faults_raw)),
         disturbances=disturbances,
         vehicle_variant=variant,
+        rear_stiffness_scale=rear_stiffness_scale,
     )
 
 

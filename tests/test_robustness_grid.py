@@ -30,8 +30,6 @@ from studies.robustness_cells import GRID, GRID_CONTROLLERS, MANOEUVRES, MARGIN_
 from studies.robustness_records import CSV_FIELDS, RunRecord, records_from_rows
 from tests.test_closed_loop_doubles import ScriptedController
 
-ROOT = Path(__file__).resolve().parent.parent
-
 
 def _grid_cell(grid: Grid, controller: str, cell: Cell) -> Any:
     """The campaign cell of ``grid`` for ``controller`` on the robustness ``cell``."""
@@ -254,39 +252,18 @@ def test_the_grid_refuses_bus_faults_on_the_closed_loop_runner(tmp_path: Path) -
     assert grid.c_left_out == {"the closed_loop runner has no bus for the C ECU": 1}
 
 
-def test_a_changed_plant_runs_on_the_closed_loop_runner(tmp_path: Path) -> None:
-    """A [faults.NAME] table of vehicle faults alone is a changed plant, which a closed_loop
-    cell builds (make grip-margin's is make identify's changed plant, parameter for
-    parameter); a table with a bus fault is still refused."""
+def test_the_grip_margin_grid_runs_make_identifys_changed_plant(tmp_path: Path) -> None:
+    """make grip-margin's cells (a scenario file with the mass and the rear tyres, the lag
+    axis x3) build make identify's changed plant, parameter for parameter."""
     import dataclasses
 
-    from studies.campaign.grid import GridError
     from studies.identification import changed_params
 
     grid = load_grid("grip_margin")
-    assert {c.fault for c in grid.cells} == {"changed plant"}
     cell = next(c for c in grid.cells if c.controller == "lmpc")
     plant, _ = closed_loop_cell.plant_for(_scenario(grid, cell, tmp_path))
-    scenario = load_scenario("dlc_low_mu")
     assert dataclasses.asdict(plant.params) == pytest.approx(
-        dataclasses.asdict(changed_params(scenario.vehicle_params())), rel=1e-12)
-    file = tmp_path / "g.toml"
-    file.write_text('[axes]\ncontroller = "lmpc"\nscenario = "dlc_high_mu"\nrunner = "closed_loop"\n'
-                    'fault = ["heavy"]\n[faults.heavy]\nvehicle = { mass_offset_kg = 300.0 }\n'
-                    'sensor = { vy_noise = 0.01 }\n')
-    with pytest.raises(GridError, match="'heavy' with runner 'closed_loop'.*vehicle faults alone"):
-        load_grid(file)
-
-
-def test_the_mass_axis_keeps_the_scenarios_vehicle_variant(tmp_path: Path) -> None:
-    base = tmp_path / "van.toml"
-    text = (ROOT / "hil" / "scenarios" / "dlc_low_mu.toml").read_text()
-    base.write_text(text.replace('file = "../paths/dlc.csv"', 'file = "hil/paths/dlc.csv"')
-                    .replace("mass_offset_kg = 0.0", 'mass_offset_kg = 0.0\nvariant = "van"'))
-    file = tmp_path / "g.toml"
-    file.write_text('[axes]\ncontroller = "lmpc"\nscenario = "van.toml"\nmass_offset_kg = [100.0]\n')
-    grid = load_grid(file)
-    assert grid.scenario_document(grid.cells[0])["vehicle"] == {"variant": "van", "mass_offset_kg": 100.0}
+        dataclasses.asdict(changed_params(load_scenario("dlc_low_mu").vehicle_params())), rel=1e-12)
 
 
 def test_the_report_names_a_campaign_that_is_missing_or_not_computed(tmp_path: Path,

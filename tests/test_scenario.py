@@ -167,6 +167,16 @@ def test_vehicle_params_carry_mu_and_mass(tmp_path: Path) -> None:
     absolute = Scenario.load(_write(tmp_path, VALID.replace("mass_offset_kg = 0.0",
                                                             "mass_kg = 1700.0")))
     assert absolute.vehicle_params().mass == 1700.0
+    rear = Scenario.load(_write(tmp_path, VALID.replace(
+        "mass_offset_kg = 0.0", 'mass_offset_kg = 0.0\nvariant = "van"\ncornering_stiffness_rear_scale = 0.8')))
+    from models.vehicle_variants import load_variant
+
+    van = load_variant("van").params
+    assert rear.vehicle_params().cornering_stiffness_rear_scale == pytest.approx(
+        0.8 * van.cornering_stiffness_rear_scale)
+    assert rear.vehicle_params().mass == van.mass
+    as_it_is = Scenario.load(_write(tmp_path, VALID)).vehicle_params()
+    assert as_it_is.cornering_stiffness_rear_scale == nominal.cornering_stiffness_rear_scale
 
 
 # --- validation -------------------------------------------------------------------------
@@ -227,6 +237,8 @@ def test_valid_file_loads_with_si_units(tmp_path: Path) -> None:
          "target_speed_kmh = -1.0"),
         ("mass_offset_kg = 0.0", "mass_offset_kg = 0.0\nmass_kg = 1600.0", "exclusive"),
         ("mass_offset_kg = 0.0", "mass_kg = 16.0", "vehicle.mass_kg = 16.0"),
+        ("mass_offset_kg = 0.0", "mass_offset_kg = 0.0\ncornering_stiffness_rear_scale = 80.0",
+         "vehicle.cornering_stiffness_rear_scale = 80.0"),
         ("[road]", "[roads]", "unknown field.*roads"),
         ("[road]\nmu = 0.85", "", "missing field road"),
         ("mu = 0.85", "mu = 0.85 0.9", "invalid TOML"),

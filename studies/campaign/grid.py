@@ -63,9 +63,8 @@ per reason in ``Grid.c_left_out``.
 The ``runner`` axis (default ``["hil"]``) runs a cell over CAN in lockstep
 (``hil.session.run_hil``, either ECU) or, with ``closed_loop``, the controller and the plant
 in one loop without CAN (``studies.campaign.closed_loop_cell``: the runner of ``make
-tables``, for grids too large for the bus). A ``closed_loop`` cell takes no bus fault (no bus
-carries frames there; the lag, mass, friction and disturbance axes act on the plant, and so
-does a ``[faults.NAME]`` table of vehicle faults alone: a changed plant) and
+tables``, for grids too large for the bus). A ``closed_loop`` cell takes no fault (no bus
+carries frames there; the lag, mass, friction and disturbance axes act on the plant) and
 no C ECU (left out as a C cell the C ECU cannot run).
 
 The ``tuning`` axis (default ``["file"]``; ``studies.campaign.tuning_override``) builds a
@@ -290,13 +289,9 @@ def load_grid(file: str | Path) -> Grid | PredictionGrid:
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
                                   or not 0 <= value < 1e5):
             raise GridError(f"{file}: run.{key} = {value!r}: must be a number >= 0")
-    # Without a bus only a change of the plant (a [faults.NAME] table of vehicle faults
-    # alone: mass, tyres, actuator lag) can act, as the lag axis does.
-    bus_faults = [name for name in axes["fault"] if name != NO_FAULT and set(faults[name]) != {"vehicle"}]
-    if CLOSED_LOOP_RUNNER in axes["runner"] and bus_faults:
-        raise GridError(f"{file}: axes.fault {bus_faults[0]!r} with runner {CLOSED_LOOP_RUNNER!r}: that "
-                        f"runner has no bus to inject faults on (it takes a [faults.NAME] table of "
-                        f"vehicle faults alone); run faults with runner {HIL_RUNNER!r}")
+    if CLOSED_LOOP_RUNNER in axes["runner"] and any(name != NO_FAULT for name in axes["fault"]):
+        raise GridError(f"{file}: axes.fault with runner {CLOSED_LOOP_RUNNER!r}: that runner has no bus "
+                        f"to inject faults on; run faults with runner {HIL_RUNNER!r}")
     leave_road = run.get("leave_road_m")
     if leave_road is not None and (isinstance(leave_road, bool) or not isinstance(leave_road, (int, float))
                                    or not 0 < leave_road < 1e3):
@@ -431,10 +426,7 @@ def scenario_document(grid: Grid, cell: Cell) -> dict[str, Any]:
     if cell.mu != SCENARIO_VALUE:
         document.setdefault("road", {})["mu"] = cell.mu
     if cell.mass_offset_kg != SCENARIO_VALUE:
-        # the cell's mass replaces the scenario's; the rest of its [vehicle] (a variant, its
-        # tyres) stays
-        vehicle = {key: value for key, value in document.get("vehicle", {}).items() if key != "mass_kg"}
-        document["vehicle"] = {**vehicle, "mass_offset_kg": cell.mass_offset_kg}
+        document["vehicle"] = {"mass_offset_kg": cell.mass_offset_kg}
     start_speed_kmh = base.start.speed_mps * 3.6
     if cell.speed != SCENARIO_VALUE:
         if isinstance(cell.speed, str):

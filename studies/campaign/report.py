@@ -247,12 +247,9 @@ def runner_lines(grid: Grid) -> list[str]:
                      "verdict passed; end reason: its outcome; e_Y max: max |e_Y|. The report is "
                      "`studies.fault_report`'s (results/faults.*).")
     if CLOSED_LOOP_RUNNER in runners:
-        from studies.campaign.cell import LEAVE_ROAD_M
-
-        limit = LEAVE_ROAD_M if grid.leave_road_m is None else grid.leave_road_m
         lines.append(f"- Each {CLOSED_LOOP_RUNNER} cell: one run of the controller and the plant without "
                      "CAN (`studies.closed_loop.run_closed_loop`, the runner of `make tables`). Completed: "
-                     f"ran to the end with |e_Y| <= {limit:g} m throughout; step times are the controller's.")
+                     "ran to the end with |e_Y| <= 2 m throughout; step times are the controller's.")
     return lines
 
 
