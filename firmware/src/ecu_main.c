@@ -270,7 +270,13 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     }
     int64_t wait = RECV_TIMEOUT_NS;
     if (realtime) {
-      int64_t now = os_monotonic_ns(), next = ecu_node_poll(&node, now);
+      int64_t now = os_monotonic_ns(), next = ecu_node_poll(&node, now), warm_at = ecu_node_warm_at(&node);
+      if (warm_at <= now) { /* the next sample is due: its step finds the model in the cache */
+        ecu_core_warm_cache(&core);
+        ecu_node_warmed(&node);
+      } else if (warm_at < next) {
+        next = warm_at;
+      }
       if (next - now < wait) wait = next - now > 0 ? next - now : 0;
     }
     int status = os_can_recv(&frame, wait);
