@@ -40,22 +40,19 @@ def test_the_default_plan_repeats_eso_dkmpc_under_both_releases_and_the_others_o
                      ["clock", "sample"], 3, 45.0, 30.0)
     rows = [(s.label, s.release, s.repeat, s.seconds) for s in plan]
     print(rows)
-    assert len(plan) == 20
-    # interleaved: repeat 1 of every repeated row before repeat 2; the C ECU without its
-    # cache warm-up beside it under the sample release only
-    assert rows[:5] == [("eso-dkmpc", "clock", 1, 45.0), ("eso-dkmpc", "sample", 1, 45.0),
-                        ("eso-dkmpc (C)", "clock", 1, 45.0), ("eso-dkmpc (C)", "sample", 1, 45.0),
-                        ("eso-dkmpc (C, no warm-up)", "sample", 1, 45.0)]
-    assert [r[2] for r in rows[:15]] == [1] * 5 + [2] * 5 + [3] * 5
-    assert rows[15:] == [("dkmpc", "clock", 1, 45.0), ("lmpc", "clock", 1, 45.0),
+    assert len(plan) == 17
+    # interleaved: repeat 1 of every repeated row before repeat 2
+    assert rows[:4] == [("eso-dkmpc", "clock", 1, 45.0), ("eso-dkmpc", "sample", 1, 45.0),
+                        ("eso-dkmpc (C)", "clock", 1, 45.0), ("eso-dkmpc (C)", "sample", 1, 45.0)]
+    assert [r[2] for r in rows[:12]] == [1] * 4 + [2] * 4 + [3] * 4
+    assert rows[12:] == [("dkmpc", "clock", 1, 45.0), ("lmpc", "clock", 1, 45.0),
                          ("nmpc", "clock", 1, 30.0), ("dkmpc (C)", "clock", 1, 45.0),
                          ("lmpc (C)", "clock", 1, 45.0)]
-    assert len({s.work_name("idle") for s in plan}) == 20   # one folder per run
-    assert plan[8].work_name("stress") == "stress__eso-dkmpc_c__sample__r2"
-    assert plan[9].work_name("stress") == "stress__eso-dkmpc_c_cold__sample__r2"
-    # 2 conditions x (19 x 45 s + 30 s) plus the start-up of each of the 40 runs
-    assert estimated_seconds(plan, 2) == pytest.approx(2 * (19 * 45 + 30) + 40 * RUN_OVERHEAD_S)
-    assert estimated_seconds(plan, 2) <= 35 * 60
+    assert len({s.work_name("idle") for s in plan}) == 17   # one folder per run
+    assert plan[7].work_name("stress") == "stress__eso-dkmpc_c__sample__r2"
+    # 2 conditions x (16 x 45 s + 30 s) plus the start-up of each of the 34 runs
+    assert estimated_seconds(plan, 2) == pytest.approx(2 * (16 * 45 + 30) + 34 * RUN_OVERHEAD_S)
+    assert estimated_seconds(plan, 2) <= 30 * 60
 
 
 def test_a_single_release_applies_to_every_row_and_nmpc_is_capped_by_seconds():
@@ -231,8 +228,8 @@ def test_the_report_states_run_lengths_releases_goals_and_spread(tmp_path):
     print(text[:3000])
     assert "`python -m studies.timing.bench --repeats 2 --out 'x y.md'` (`make timing`)" in text
     assert ("- Run lengths: eso-dkmpc rows 45 s per run, 2 runs per ECU and release "
-            "(clock, sample); eso-dkmpc (C, no warm-up) under the sample release only; nmpc: 30 s, "
-            "one run (clock release). 11 runs in all, 10.0 min of wall time (start-up included).") in text
+            "(clock, sample); nmpc: 30 s, one run (clock release). 9 runs in all, "
+            "10.0 min of wall time (start-up included).") in text
     assert "- Speed reference: 3.25 ms before the first run" in text
     for heading in ("## Goals (issue 37)", "## Run-to-run spread", "## Summary\n",
                     "## Percentiles (ms)", "![timing_idle](timing_idle.png)"):

@@ -108,34 +108,6 @@ void ecu_core_unload(ecu_core_t *core) {
   ecu_qp_release(&core->qp);
 }
 
-/* The bytes read by ecu_core_warm_cache go here, so that the compiler keeps the reads. */
-static volatile unsigned warm_sink;
-
-/* Every CACHE_LINE-th byte of [p, p + bytes). */
-static unsigned touch(const unsigned char *p, size_t bytes) {
-  enum { CACHE_LINE = 64 };
-  unsigned sum = 0;
-  for (size_t i = 0; i < bytes; i += CACHE_LINE) sum += p[i];
-  return sum;
-}
-
-void ecu_core_warm_cache(const ecu_core_t *core) {
-  const ecu_config_t *cfg = &core->cfg;
-  unsigned sum = 0;
-  for (int layer = 0; layer < ECU_N_LAYERS; layer++) {
-    size_t n = (size_t)cfg->layer_in[layer] * (size_t)cfg->layer_out[layer];
-    if (cfg->weights_single[layer])
-      sum += touch((const unsigned char *)(cfg->weights.single + 2 * cfg->weight_at[layer]), n * sizeof(float));
-    else
-      sum += touch((const unsigned char *)(cfg->weights.value + cfg->weight_at[layer]), n * sizeof(double));
-  }
-  /* from the observer to the end of the working arrays (ecu_core_t's last members; the path
-   * arrays before them are read only near the car's progress) */
-  const unsigned char *state = (const unsigned char *)&core->observer;
-  sum += touch(state, (size_t)((const unsigned char *)(core + 1) - state));
-  warm_sink = sum;
-}
-
 int ecu_core_set_path(ecu_core_t *core, const double *x, const double *y, const double *yaw, const double *s,
                       int n, char *err, size_t err_len) {
   if (n < 2 || n > ECU_MAX_PATH_POINTS) {

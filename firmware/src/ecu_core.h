@@ -76,12 +76,6 @@ ECU_API int ecu_core_load(ecu_core_t *core, const char *data_path, const char *c
 /* Give the core's QP workspace back (the core steps no more until loaded again). */
 ECU_API void ecu_core_unload(ecu_core_t *core);
 
-/* Read one byte of every cache line that a step streams through (the lift's weights, the
- * core's step state: observer, local model, QP, working arrays), changing nothing. A real-
- * time node calls it just before the next sample is due (ecu_node_warm_at), so that a step
- * after 10-25 ms of idle finds them in the cache; a step's result does not depend on it. */
-ECU_API void ecu_core_warm_cache(const ecu_core_t *core);
-
 /* Set the path: n points x, y (m), yaw (rad, unwrapped) and s (m, arc length from 0), as
  * controller.reference.ReferencePath holds them. Resets the progress. 0 or -1 + err. */
 ECU_API int ecu_core_set_path(ecu_core_t *core, const double *x, const double *y, const double *yaw,

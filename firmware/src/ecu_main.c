@@ -10,8 +10,6 @@
  *       [--release clock|sample]  (what releases the control task: the 25 ms clock of
  *                            contract revision 2, the default, or revision 3's plant samples)
  *       [--plant-period 10|25]  (the plant's sample period; 25 ms only with --release sample)
- *       [--no-cache-warm]   (real time: no cache warm-up before the next sample is due,
- *                            ecu_node_warm_at; for make timing's side-by-side rows only)
  *       [--excite PROGRAM]  (identification excitation while ACTIVE: chirp, prbs, steps,
  *                            prbs-torque, or a .toml / .csv program file; ecu_excite.c)
  *   ecu --controller NAME --path ID=FILE.csv [--path ...] [--data FILE] [--path-id ID]
@@ -76,13 +74,11 @@ static const char *const USAGE =
   "           --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE] (--lockstep | --realtime)\n"
   "           [--cpu N] [--rt-priority P] [--timing-out FILE.npz [--replace]] [--log-level L]\n"
   "           [--model FILE.bin] [--dbc FILE.dbc] [--bitrate N] [--debug] [--excite PROGRAM]\n"
-  "           [--release clock|sample] [--plant-period 10|25] [--no-cache-warm]\n"
+  "           [--release clock|sample] [--plant-period 10|25]\n"
   "       ecu --controller NAME --path ID=FILE.csv [--path ID=FILE.csv ...] [--data FILE]\n"
   "           [--path-id ID] --replay SAMPLES.csv [--realtime]\n";
 
 static volatile sig_atomic_t stop_requested;
-/* --no-cache-warm clears it: the real-time loop then never warms the core's cache. */
-static int cache_warm = 1;
 
 static int fail(const char *message) {
   fprintf(stderr, "error: %s\n", message);
@@ -274,13 +270,7 @@ static int run_bus(const char *interface, const char *channel, const char *host,
     }
     int64_t wait = RECV_TIMEOUT_NS;
     if (realtime) {
-      int64_t now = os_monotonic_ns(), next = ecu_node_poll(&node, now), warm_at = ecu_node_warm_at(&node);
-      if (cache_warm && warm_at <= now) { /* the next sample is due: its step finds the model in the cache */
-        ecu_core_warm_cache(&core);
-        ecu_node_warmed(&node);
-      } else if (cache_warm && warm_at < next) {
-        next = warm_at;
-      }
+      int64_t now = os_monotonic_ns(), next = ecu_node_poll(&node, now);
       if (next - now < wait) wait = next - now > 0 ? next - now : 0;
     }
     int status = os_can_recv(&frame, wait);
@@ -345,8 +335,6 @@ int main(int argc, char **argv) {
       lockstep = 1;
     } else if (strcmp(arg, "--replace") == 0) {
       replace = 1;
-    } else if (strcmp(arg, "--no-cache-warm") == 0) {
-      cache_warm = 0;
     } else if (strcmp(arg, "--debug") == 0) {
       debug = info = 1;
     } else if (!value && (strcmp(arg, "--controller") == 0 || strcmp(arg, "--path") == 0 ||

@@ -25,7 +25,6 @@ static void reset_run(ecu_node_t *node) {
   node->fallback_streak = 0;
   node->overruns = 0;
   node->cycles = 0;
-  node->warmed_for = INT64_MIN;
   ecu_release_reset(&node->release);
   node->release.sample_period_ns = (int64_t)(node->plant_period_ms ? node->plant_period_ms : SAMPLE_PERIOD_MS) * NS_PER_MS;
 }
@@ -195,33 +194,6 @@ int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns) {
   if (os_monotonic_ns() > ideal + period) node->overruns++;
   return node->next_release;
 }
-
-/* How long before the expected release the cache is warmed: more than the warm-up takes
- * (about 20 us for the 300 KB of a d = 5 encoder), little enough that the idle core has no
- * time to evict it again. Measured side by side (2026-12-07): task p50 0.19 -> 0.14 ms. */
-#define WARM_LEAD_NS 300000LL
-
-/* The release the next task is expected at (INT64_MIN: none known). */
-static int64_t expected_release(const ecu_node_t *node) {
-  if (node->sample_release && node->release.anchored) {
-    if (!node->rx.sample_arrival.set || node->release.sample_period_ns <= 0) return INT64_MIN;
-    int64_t opens = node->release.instant_ns - SAMPLE_WINDOW_EARLY_NS, expected = node->rx.sample_arrival.ns;
-    if (expected < opens)
-      expected += (opens - expected + node->release.sample_period_ns - 1) / node->release.sample_period_ns *
-                  node->release.sample_period_ns;
-    return expected;
-  }
-  return node->release_started ? node->next_release : INT64_MIN;
-}
-
-int64_t ecu_node_warm_at(const ecu_node_t *node) {
-  if (!node->realtime || (node->mode != ECU_ACTIVE && node->mode != ECU_DEGRADED)) return INT64_MAX;
-  int64_t release = expected_release(node);
-  if (release == INT64_MIN || release == node->warmed_for) return INT64_MAX;
-  return release - WARM_LEAD_NS;
-}
-
-void ecu_node_warmed(ecu_node_t *node) { node->warmed_for = expected_release(node); }
 
 void ecu_node_close(ecu_node_t *node) {
   int final_mode = node->mode == ECU_FAULT ? ECU_FAULT : ECU_STANDBY;

@@ -44,15 +44,6 @@ int64_t ecu_node_poll(ecu_node_t *node, int64_t now_ns);
 
 /* On stopping: one last STEER_TORQUE_CMD with CMD_VALID = 0 (STANDBY, FAULT when latched),
  * the held steering angle and zero torque. */
-/* Real time: when (monotonic ns) to warm the core's cache (ecu_core_warm_cache) for the next
- * release, or INT64_MAX when there is nothing to warm (lockstep, a mode that runs no law, or
- * warmed already). Revision 3: WARM_LEAD_NS before the sample expected to release the pending
- * instant (the last sample's arrival plus whole sample periods, the first inside the
- * instant's window); revision 2's clock: WARM_LEAD_NS before the next release.
- * ecu_node_warmed records that it was done. Neither changes what a task computes. */
-int64_t ecu_node_warm_at(const ecu_node_t *node);
-void ecu_node_warmed(ecu_node_t *node);
-
 void ecu_node_close(ecu_node_t *node);
 
 #endif

@@ -35,7 +35,6 @@ typedef struct {
   int sample_release;    /* revision 3: the control task released by the plant's samples */
   ecu_release_t release; /* its grid of control instants (ecu_release.h) */
   int plant_period_ms;   /* the plant's sample period (0: 10 ms; revision 3 allows 25) */
-  int64_t warmed_for;    /* the release the cache was last warmed for (ecu_node_warm_at) */
   ecu_output_t out; /* the core's output of the task running (no state between tasks) */
   ecu_timing_t timing;
 } ecu_node_t;

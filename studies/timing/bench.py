@@ -214,8 +214,6 @@ def durations_line(plan: list[RunSpec], conditions: int, wall_s: float) -> str:
         releases = ", ".join(dict.fromkeys(s.release for s in repeated))
         parts.append(f"{REPEATED_CONTROLLER} rows {repeated[0].seconds:g} s per run, "
                      f"{repeats} run{'s' if repeats > 1 else ''} per ECU and release ({releases})")
-        for label, release in dict.fromkeys((s.label, s.release) for s in repeated if s.ecu == "c-cold"):
-            parts.append(f"{label} under the {release} release only")
     for seconds in dict.fromkeys(s.seconds for s in others):
         names = ", ".join(s.label for s in others if s.seconds == seconds)
         parts.append(f"{names}: {seconds:g} s, one run ({others[0].release} release)")
@@ -256,9 +254,7 @@ def _report(figures: list[RunFigures], context: ReportContext) -> list[str]:
         *(f"- {condition}: {text}" for condition, text in context.loads.items()),
         "- ECUs: rows NAME are the Python ECU (`python -m firmware_sim`), rows NAME (C) the C ECU "
         "executable (`build/firmware/ecu`, docs/firmware.md), both started with the same options "
-        "and writing the same per-cycle record; rows NAME (C, no warm-up) the same executable with "
-        "`--no-cache-warm`, beside which the C ECU's cache warm-up before each sample is measured "
-        "(docs/timing.md).",
+        "and writing the same per-cycle record.",
         f"- Plant: four-wheel model, 5 ms ticks on absolute deadlines, frames every 10 ms; "
         f"35 km/h, mu 0.85, repeated double lane changes. Window: from {SETTLE_S:g} s after the "
         "plant started to its end (the ECU's own CLOCK_MONOTONIC stamps).",

@@ -1,11 +1,10 @@
 """Which runs `make timing` makes, in which order, and about how long they take.
 
 Per load condition: the repeated rows first (ESO-DKMPC on the Python and the C ECU, under
-every release asked for, and on the C ECU without its cache warm-up under the last release
-asked for: ``sample`` by default), interleaved by repeat (repeat 1 of every repeated row,
-then repeat 2, ...) so that a slow spell of the shared machine falls on several rows instead
-of on all repeats of one; then every other controller once, under the first release asked
-for (``clock`` by default, contract revision 2, as before revision 3).
+every release asked for), interleaved by repeat (repeat 1 of every repeated row, then
+repeat 2, ...) so that a slow spell of the shared machine falls on several rows instead of
+on all repeats of one; then every other controller once, under the first release asked for
+(``clock`` by default, contract revision 2, as before revision 3).
 """
 from __future__ import annotations
 
@@ -27,7 +26,7 @@ RUN_OVERHEAD_S = 5.0
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run: ``controller`` on ``ecu`` ("python", "c" or "c-cold") under ``release`` for
+    """One run: ``controller`` on ``ecu`` ("python" or "c") under ``release`` for
     ``seconds``; ``repeat`` is its number among the repeats of its row (1-based)."""
 
     controller: str
@@ -43,7 +42,7 @@ class RunSpec:
 
     def work_name(self, condition: str) -> str:
         """Its folder under ``--work``: ``<load>__<controller>[_c]__<release>__r<repeat>``."""
-        suffix = {"c": "_c", "c-cold": "_c_cold"}.get(self.ecu, "")
+        suffix = "_c" if self.ecu == "c" else ""
         return f"{condition}__{self.controller}{suffix}__{self.release}__r{self.repeat}"
 
 
@@ -81,11 +80,8 @@ def plan_runs(controllers: list[str], c_controllers: list[str], releases: list[s
     rows = [(controller, ecu) for ecu, names in (("python", controllers), ("c", c_controllers))
             for controller in names]
     repeated = [(c, ecu) for c, ecu in rows if c == REPEATED_CONTROLLER]
-    # the C ECU's warm-up measured beside its absence, under one release (the last: sample)
-    cold = [(c, "c-cold", releases[-1]) for c, ecu in repeated if ecu == "c"]
     plan = [RunSpec(c, ecu, release, repeat, seconds)
-            for repeat in range(1, repeats + 1)
-            for c, ecu, release in [(c, ecu, r) for c, ecu in repeated for r in releases] + cold]
+            for repeat in range(1, repeats + 1) for c, ecu in repeated for release in releases]
     plan += [RunSpec(c, ecu, releases[0], 1, min(seconds, nmpc_seconds) if c == "nmpc" else seconds)
              for c, ecu in rows if c != REPEATED_CONTROLLER]
     return plan

@@ -135,25 +135,16 @@ def _stop(process: subprocess.Popen[Any], timeout_s: float = _STOP_TIMEOUT_S) ->
     return process.returncode
 
 
-#: The ECUs a run can use: the Python ECU, the C ECU, and the C ECU without its cache warm-up
-#: (``--no-cache-warm``: the row beside which the warm-up's effect is measured).
-ECUS = ("python", "c", "c-cold")
-#: The C ECU's kinds: the same executable.
-C_ECUS = ("c", "c-cold")
-
-
 def ecu_label(controller: str, ecu: str = "python") -> str:
-    """A run's name in the tables: the controller, "NAME (C)" on the C ECU, "NAME (C, no
-    warm-up)" on the C ECU without its cache warm-up."""
-    return {"c": f"{controller} (C)", "c-cold": f"{controller} (C, no warm-up)"}.get(ecu, controller)
+    """A run's name in the tables: the controller, "NAME (C)" on the C ECU."""
+    return f"{controller} (C)" if ecu == "c" else controller
 
 
 def run_timing(controller: str, seconds: float, work_dir: Path,
                placement: Placement | None = None, ecu: str = "python",
                release: str = "clock") -> TimingRun:
     """Run the ECU with ``controller`` against the plant for ``seconds`` (see module doc);
-    ``ecu`` "python" (firmware_sim), "c" (the executable ``C_ECU_EXECUTABLE``) or "c-cold"
-    (the same with ``--no-cache-warm``);
+    ``ecu`` "python" (firmware_sim) or "c" (the executable ``C_ECU_EXECUTABLE``);
     ``release``: the ECUs' ``--release`` (clock: contract revision 2; sample: revision 3).
 
     Raises:
@@ -161,7 +152,7 @@ def run_timing(controller: str, seconds: float, work_dir: Path,
             failed (with its output).
     """
     label = ecu_label(controller, ecu)
-    c_ecu = ecu in C_ECUS  # (the name ecu is the process below)
+    c_ecu = ecu == "c"  # (the name ecu is the process below)
     if c_ecu and not C_ECU_EXECUTABLE.is_file():
         raise TimingRunError(f"the C ECU {C_ECU_EXECUTABLE} is not built: run make firmware")
     placement = placement or Placement.for_this_machine()
@@ -193,8 +184,6 @@ def run_timing(controller: str, seconds: float, work_dir: Path,
                        "--channel", CHANNEL, "--controller", controller,
                        "--path", f"1={work_dir / 'path.csv'}", "--realtime",
                        "--timing-out", str(timing_file), "--log-level", "info", "--release", release]
-        if ecu == "c-cold":
-            ecu_command.append("--no-cache-warm")
         if placement.ecu_cpu is not None:
             ecu_command += ["--cpu", str(placement.ecu_cpu)]
         if placement.ecu_priority is not None:
