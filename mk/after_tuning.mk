@@ -12,13 +12,34 @@ AFTER_TUNING_TARGETS := firmware tables tables-unscheduled run observer-variants
 	robustness tradeoff grip-margin identify identify-lsq seed-spread-models seed-spread replay-report \
 	vehicle-variants bench timing
 AFTER_TUNING_FROM ?= firmware
-.PHONY: after-tuning
-## rerun every study the tuning file feeds, in order (~3 h; AFTER_TUNING_FROM=TARGET to go on)
-after-tuning: setup
-	@case " $(AFTER_TUNING_TARGETS) " in *" $(AFTER_TUNING_FROM) "*) ;; \
-		*) echo "error: AFTER_TUNING_FROM=$(AFTER_TUNING_FROM) is not one of: $(AFTER_TUNING_TARGETS)" >&2; exit 2;; esac
-	@started=; for target in $(AFTER_TUNING_TARGETS); do \
-		[ "$$target" = "$(AFTER_TUNING_FROM)" ] && started=1; [ -n "$$started" ] || continue; \
+
+# $(call run_in_order,TARGETS,FROM,VARIABLE): make each of TARGETS in turn from FROM on (the
+# value of VARIABLE, which names it in the error), stopping at the first that fails.
+define run_in_order
+	@case " $(1) " in *" $(2) "*) ;; \
+		*) echo "error: $(3)=$(2) is not one of: $(1)" >&2; exit 2;; esac
+	@started=; for target in $(1); do \
+		[ "$$target" = "$(2)" ] && started=1; [ -n "$$started" ] || continue; \
 		echo "== make $$target ($$(date -u +%H:%M) UTC)"; \
 		$(MAKE) --no-print-directory $$target || exit 1; \
 	done
+endef
+
+.PHONY: after-tuning
+## rerun every study the tuning file feeds, in order (~3 h; AFTER_TUNING_FROM=TARGET to go on)
+after-tuning: setup
+	$(call run_in_order,$(AFTER_TUNING_TARGETS),$(AFTER_TUNING_FROM),AFTER_TUNING_FROM)
+
+# The whole tuning procedure and every study after it (docs/tuning.md, "The whole chain"):
+# the stages in the order each takes the ones before it as given (the weights, the
+# observers, their refinement, the heading target's side slip, the grip envelope), then
+# the after-tuning list. About 6 h on 2 cores, so in several sittings: RETUNE_FROM=TARGET
+# starts at TARGET (a stage or an after-tuning target) after a stop. It does not train: a
+# new model is make train (and make dmdc) first.
+RETUNE_STAGES := tune tune-observer tune-observer-refine tune-slip-target grip-envelope
+RETUNE_TARGETS := $(RETUNE_STAGES) $(AFTER_TUNING_TARGETS)
+RETUNE_FROM ?= tune
+.PHONY: retune
+## the whole tuning procedure, then every study after it (~6 h; RETUNE_FROM=TARGET to go on)
+retune: setup
+	$(call run_in_order,$(RETUNE_TARGETS),$(RETUNE_FROM),RETUNE_FROM)

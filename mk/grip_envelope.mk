@@ -5,11 +5,11 @@
 # MPC the stage switches on, the margin, the recovery and the peak memory one at a time on
 # the same runs; then Tables II / III's lane changes on the nominal and make identify's
 # changed plant, Stanley beside them. Writes each MPC's four grip fields into
-# controller/tuning.toml. Closed loop without CAN: about 2900 runs, about 45 min on 2 cores
+# controller/tuning.toml. Closed loop without CAN: about 3600 runs, about 50 min on 2 cores
 # (NMPC takes most of it). As the other tuning stages, its stamp leaves out the tuning file
 # it writes.
 .PHONY: grip-envelope
-## tune the grip envelope on the tuning set + limit set -> controller/tuning.toml, results/grip_envelope.* (~45 min)
+## tune the grip envelope on the tuning set + limit set -> controller/tuning.toml, results/grip_envelope.* (~50 min)
 grip-envelope: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m studies.grip_envelope --out results --workers 2
 	$(PROVENANCE_STAMP) $(addprefix results/grip_envelope.,md json png) --command "make grip-envelope" \

@@ -4,8 +4,9 @@ lane changes (``make grip-envelope``).
 The grip envelope (``controller.grip_envelope``, docs/grip-envelope.md) bounds the QP's
 yaw-rate rows (NMPC's soft rows too) by (1 + margin) a_max / vx, a_max estimated from the rear axle's slip beyond
 the nominal bicycle's linear need; ``grip_slip_excess`` (rad, 0 = off) is its threshold.
-This study, with every other field at the tuning file's value (the other grip fields at
-the table's, i.e. their defaults):
+This study, with every other field at the tuning file's value and the envelope's other three
+fields starting from their defaults (:func:`starting_tuning`, not from the tuning file, which
+holds this stage's own earlier choice: so a second run chooses what the first did):
 
 1. **The tuning stage**: each MPC (:data:`ENVELOPE_CONTROLLERS`: the QP MPCs and NMPC) at
    each ``grip_slip_excess`` of :data:`SLIP_EXCESSES_DEG` (off, 2 to 6 degrees) on the tuning set with disturbances
@@ -17,9 +18,11 @@ the table's, i.e. their defaults):
    e_Y RMSE, a run that does not complete counts 10 m) over the 44 runs; the chosen value
    the lowest objective, ties to off.
 2. **The refinement**: for each MPC whose choice is on, the envelope's other fields one at a
-   time (:data:`REFINE_AXES`: the margin, then the recovery, then the peak memory), each on the
-   same 44 runs at the controller's choices so far; the tuning file's value is the incumbent,
-   so a tie keeps it.
+   time (:data:`REFINE_AXES`: the margin, then the recovery, then the peak memory), each over
+   its whole grid on the same 44 runs at the controller's choices so far; the field's default
+   (:data:`GRIP_DEFAULTS`) is the incumbent, so a tie keeps it. A choice at a grid's end is
+   marked in the report (a value beyond it was not run), except a margin of 0, the field's
+   own bound.
 3. **The evaluation**, on scenarios the tuning never saw: Tables II / III's lane changes on
    the nominal plant and on make identify's changed plant
    (``studies.identification.changed_params``: mass +300 kg, rear tyres x0.8, steering lag
@@ -55,7 +58,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from controller.tuning import DEFAULT_TUNING_PATH, load_tuning
+from controller.tuning import DEFAULT_TUNING_PATH, MpcTuning, load_tuning
 from hil.scenario import Scenario, load_scenario
 from studies.closed_loop import ClosedLoopResult
 from studies.observer_speed import run_on_changed_plant
@@ -68,14 +71,20 @@ from studies.tuning_sweep_grids import Setting, with_setting
 #: The swept field and its values (degrees; 0 = off, the shipped value).
 FIELD = "grip_slip_excess"
 SLIP_EXCESSES_DEG = (0.0, 2.0, 3.0, 4.0, 5.0, 6.0)
-#: The refinement's fields, in their order, and the values each is tried at (the tuning
-#: file's value among them, tried first): the bound's margin over the estimate, the
+#: The refinement's fields, in their order, and the values each is tried at (its default
+#: among them, tried first): the bound's margin over the estimate (from 0, no margin), the
 #: estimate's return once the rear axle grips again (m/s^2 per s), the peak's memory (s).
 REFINE_AXES: tuple[tuple[str, tuple[float, ...]], ...] = (
-    ("grip_margin", (0.05, 0.1, 0.2)),
-    ("grip_recovery", (5.0, 10.0, 20.0)),
-    ("grip_peak_time", (0.5, 1.0, 2.0)),
+    ("grip_margin", (0.0, 0.05, 0.1, 0.2)),
+    ("grip_recovery", (5.0, 10.0, 20.0, 40.0)),
+    ("grip_peak_time", (0.5, 1.0, 2.0, 4.0)),
 )
+#: The refined fields' defaults (the tuning tables' own, ``controller.tuning.MpcTuning``):
+#: where the stage starts each field, whatever the tuning file holds.
+GRIP_DEFAULTS: dict[str, float] = {f.name: float(f.default) for f in dataclasses.fields(MpcTuning)
+                                   if f.name in dict(REFINE_AXES)}
+#: Refined fields whose smallest value is the field's own bound (no mark at that end).
+BOUNDED_BELOW = {"grip_margin": 0.0}
 #: Every field the stage writes, per MPC table.
 WRITTEN_FIELDS = (FIELD,) + tuple(name for name, _ in REFINE_AXES)
 #: The comment line the written tables carry (studies.tuning_file).
@@ -185,6 +194,15 @@ def evaluation_scenarios() -> list[Scenario]:
     return nominal + [on_changed_plant(s) for s in nominal]
 
 
+def starting_tuning(tuning: Any) -> Any:
+    """``tuning`` with every envelope controller's refined grip fields at
+    :data:`GRIP_DEFAULTS`: the stage's runs do not depend on its own earlier choice."""
+    start = tuple(GRIP_DEFAULTS.items())
+    for name in ENVELOPE_CONTROLLERS:
+        tuning = with_setting(tuning, name, start)
+    return tuning
+
+
 def tuning_jobs() -> list[Job]:
     """Each MPC at each value, off first."""
     return [(name, "grip", setting(d)) for name in ENVELOPE_CONTROLLERS for d in SLIP_EXCESSES_DEG]
@@ -237,18 +255,19 @@ def is_on(evaluation: Evaluation) -> bool:
 Round = tuple[str, dict[str, list[Evaluation]]]
 
 
-def refine(stage_one: Mapping[str, Evaluation], incumbents: Mapping[str, Mapping[str, float]],
+def refine(stage_one: Mapping[str, Evaluation],
            run: Callable[[Sequence[Job]], list[Evaluation]]) -> tuple[list[Round], dict[str, Evaluation]]:
     """The refinement over :data:`REFINE_AXES`, field by field, of every controller whose
-    ``stage_one`` choice is on; ``incumbents[name][field]`` is the tuning file's value, whose
-    runs are those of the choice so far (not run again). ``run`` evaluates jobs in order.
-    Returns the rounds and each controller's final choice (``stage_one``'s where off)."""
+    ``stage_one`` choice is on (its runs at :func:`starting_tuning`): each field's default
+    (:data:`GRIP_DEFAULTS`) is the incumbent, whose runs are those of the choice so far (not
+    run again). ``run`` evaluates jobs in order. Returns the rounds and each controller's
+    final choice (``stage_one``'s where off)."""
     chosen = dict(stage_one)
     rounds: list[Round] = []
     for field, values in REFINE_AXES:
         on = [name for name, e in chosen.items() if is_on(e)]
         jobs = [(name, "grip-refine", chosen[name].setting + ((field, value),))
-                for name in on for value in values if value != incumbents[name][field]]
+                for name in on for value in values if value != GRIP_DEFAULTS[field]]
         tried = run(jobs) if jobs else []
         compared = {name: [chosen[name]] + [e for e in tried if e.controller == name] for name in on}
         for name, group in compared.items():
@@ -257,17 +276,24 @@ def refine(stage_one: Mapping[str, Evaluation], incumbents: Mapping[str, Mapping
     return rounds, chosen
 
 
-def written_settings(chosen: Mapping[str, Evaluation],
-                     incumbents: Mapping[str, Mapping[str, float]]) -> dict[str, Setting]:
+def written_settings(chosen: Mapping[str, Evaluation]) -> dict[str, Setting]:
     """Each controller's four grip fields as the tuning file gets them: the choice's, the
-    incumbent where the choice did not name a field."""
-    return {name: tuple((f, dict(e.setting).get(f, incumbents[name].get(f, 0.0))) for f in WRITTEN_FIELDS)
-            for name, e in chosen.items()}
+    default (:data:`GRIP_DEFAULTS`, where the stage started) where the choice did not name a
+    field."""
+    values = {name: {**GRIP_DEFAULTS, **dict(e.setting)} for name, e in chosen.items()}
+    return {name: tuple((f, values[name][f]) for f in WRITTEN_FIELDS) for name in chosen}
 
 
-def incumbents_of(tuning: Any, names: Sequence[str]) -> dict[str, dict[str, float]]:
-    """The tuning file's grip fields per controller."""
-    return {name: {f: float(getattr(tuning.for_controller(name), f)) for f in WRITTEN_FIELDS} for name in names}
+def grid_edge(field: str, value: float) -> str:
+    """The report's mark for a refined ``field`` chosen at ``value``: at its grid's largest
+    or smallest value (a value beyond it was not run), or '' (inside, or at the field's own
+    bound, :data:`BOUNDED_BELOW`)."""
+    values = dict(REFINE_AXES)[field]
+    if value == max(values):
+        return " (the grid's largest value: a larger one was not run)"
+    if value == min(values) and BOUNDED_BELOW.get(field) != value:
+        return " (the grid's smallest value: a smaller one was not run)"
+    return ""
 
 
 # ---------------------------------------------------------------------------- the report
@@ -307,7 +333,9 @@ def report(tuning_set: Sequence[Evaluation], studies: Sequence[Evaluation], dist
     lines = ["# The grip envelope: the tuning procedure's choice, and the lane changes", "",
              f"Written by `{command}` in {minutes:.1f} min (`studies/grip_envelope.py`; its docstring says what "
              f"and why, docs/grip-envelope.md what the envelope is). Closed loop without CAN; every field but "
-             f"the grip envelope's at the tuning file's value. The procedure's last stage: {where}", "",
+             f"the grip envelope's at the tuning file's value, the envelope's margin, recovery and peak memory "
+             f"starting from their defaults ({', '.join(f'{k} {v:g}' for k, v in GRIP_DEFAULTS.items())}), not "
+             f"from the file's (this stage's own earlier choice). The procedure's last stage: {where}", "",
              "Question: does the tuning procedure switch the envelope on, at which setting, and what "
              "does that do on Tables II / III's lane changes on the nominal plant and on make identify's changed "
              "plant (mass +300 kg, rear tyres x0.8, steering lag x3), where the nominal-model MPCs spin on the "
@@ -364,7 +392,8 @@ def refinement_lines(rounds: Sequence[Round], final: Mapping[str, Evaluation],
         return []
     lines = ["", f"## The refinement ({', '.join(field for field, _ in rounds)}, one at a time)", "",
              "Each MPC whose choice is on, each field at its values on the same runs, at the choices so far; the "
-             "first row of each field is the incumbent (the tuning file's value, so a tie keeps it). Objective "
+             "first row of each field is the incumbent (the field's default, where the stage starts it, so a tie "
+             "keeps it). Objective "
              "over all runs (mm).", "",
              "| controller | field | setting | objective (all) | not completed | chosen |",
              "|---|---|---|---:|---:|---|"]
@@ -378,6 +407,12 @@ def refinement_lines(rounds: Sequence[Round], final: Mapping[str, Evaluation],
     lines += ["", "Final choice per controller: " + "; ".join(f"{name} {setting_label(e.setting)} "
                                                               f"({_mm(e.objective_m)} mm)"
                                                               for name, e in final.items()) + "."]
+    edges = {name: {field: value for field, value in e.setting if field in GRIP_DEFAULTS and grid_edge(field, value)}
+             for name, e in final.items()}
+    summary["grid_edges"] = {name: fields for name, fields in edges.items() if fields}
+    for name, fields in summary["grid_edges"].items():
+        lines += [f"- {name}: {field.removeprefix('grip_').replace('_', ' ')} {value:g}{grid_edge(field, value)}"
+                  for field, value in fields.items()]
     return lines
 
 
@@ -495,13 +530,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--workers must be >= 1, got {args.workers}")
     started = time.monotonic()
     args.out.mkdir(parents=True, exist_ok=True)
-    tuning = load_tuning(args.tuning)
+    tuning = starting_tuning(load_tuning(args.tuning))
     text_before = args.tuning.read_text(encoding="utf-8")
     progress = not args.no_progress
     disturbed, limit = tuning_scenarios()
     tuning_set = evaluate(tuning_jobs(), disturbed + limit, tuning, args.workers, progress, "tuning stage")
-    incumbents = incumbents_of(tuning, ENVELOPE_CONTROLLERS)
-    rounds, final = refine(choices(tuning_set), incumbents,
+    rounds, final = refine(choices(tuning_set),
                            lambda jobs: evaluate(jobs, disturbed + limit, tuning, args.workers, progress, "refinement"))
     studies = evaluate(evaluation_jobs(final), evaluation_scenarios(), tuning, args.workers, progress, "evaluation")
     chosen = {name: e.setting for name, e in final.items()}
@@ -519,7 +553,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {args.tuning} changed while the stage ran; not written", file=sys.stderr)
             return 1
         temporary = args.tuning.with_name(args.tuning.name + ".tmp")
-        temporary.write_text(update_tuning_text(text_before, written_settings(final, incumbents),
+        temporary.write_text(update_tuning_text(text_before, written_settings(final),
                                                 comment=TUNING_COMMENT), encoding="utf-8")
         os.replace(temporary, args.tuning)
         print(f"wrote the grip fields into {args.tuning}")

@@ -27,6 +27,7 @@ import numpy as np
 
 from controller.registry import create_controller
 from controller.tuning import load_tuning
+from hil.errors import StudyError
 from hil.scenario import load_scenario
 from models.koopman import DEFAULT_ARTIFACT, KoopmanModel
 from studies.closed_loop import run_closed_loop
@@ -49,16 +50,30 @@ FORMS = (("", DEFAULT_ROW, "artifacts"), (VY_ANCHOR, VY_ANCHOR_ROW, "vy_anchor_a
          (NO_SQUARE, DICTIONARY_NO_SQUARE_ROW, "no_square_artifacts"))
 
 
+def artifact_paths(models_dir: Path, seeds: Sequence[int], row: Row = DEFAULT_ROW) -> dict[int, Path]:
+    """Seed -> where the artefact of Table I's ``row`` is (the default row's seed 0: the
+    committed default artefact), whether it is there or not."""
+    return {seed: DEFAULT_ARTIFACT if seed == 0 and row is DEFAULT_ROW else cached_model_path(row, seed, models_dir)
+            for seed in seeds}
+
+
+def missing_models(models_dir: Path, seeds: Sequence[int], row: Row = DEFAULT_ROW) -> list[str]:
+    """One line per seed whose artefact of ``row`` is not there, naming the command that
+    trains it."""
+    return [f"{path} missing: run `make table1` (it trains the seeds of {row.label!r})"
+            for path in artifact_paths(models_dir, seeds, row).values() if not path.is_file()]
+
+
 def seed_artifacts(models_dir: Path, seeds: Sequence[int], row: Row = DEFAULT_ROW) -> dict[int, Path]:
-    """Seed -> artefact of Table I's ``row`` (the default row's seed 0: the committed default
-    artefact)."""
-    paths = {}
-    for seed in seeds:
-        path = DEFAULT_ARTIFACT if seed == 0 and row is DEFAULT_ROW else cached_model_path(row, seed, models_dir)
-        if not path.is_file():
-            raise SystemExit(f"error: {path} missing: run `make table1` (it trains the seeds of {row.label!r})")
-        paths[seed] = path
-    return paths
+    """Seed -> artefact of Table I's ``row``.
+
+    Raises:
+        StudyError: a seed's artefact is missing (:func:`missing_models`'s first line).
+    """
+    missing = missing_models(models_dir, seeds, row)
+    if missing:
+        raise StudyError(missing[0])
+    return artifact_paths(models_dir, seeds, row)
 
 
 def learned_controller(name: str, model: KoopmanModel):
@@ -114,15 +129,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="only say whether --models-dir holds every seed's model (exit 0) or not (1)")
     args = parser.parse_args(argv)
     if args.check_models:
-        try:
-            for _, row, _ in FORMS:
-                seed_artifacts(args.models_dir, args.seeds, row)
-        except SystemExit as missing:
-            print(missing, file=sys.stderr)
+        missing = [line for _, row, _ in FORMS for line in missing_models(args.models_dir, args.seeds, row)]
+        for line in missing:
+            print(f"error: {line}", file=sys.stderr)
+        if missing:
             return 1
         print(f"{args.models_dir}: every seed's model of the {len(FORMS)} forms is there")
         return 0
-    forms = [(suffix, key, seed_artifacts(args.models_dir, args.seeds, row)) for suffix, row, key in FORMS]
+    try:
+        forms = [(suffix, key, seed_artifacts(args.models_dir, args.seeds, row)) for suffix, row, key in FORMS]
+    except StudyError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     runs: dict[str, dict[str, list[dict]]] = {}
     for suffix, _, paths in forms:
         for name in LEARNED:

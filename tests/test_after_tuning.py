@@ -15,11 +15,19 @@ TUNING_FILE = "controller/tuning.toml"
 TUNING_STAGES = {"tune", "tune-observer", "tune-observer-refine", "tune-slip-target", "grip-envelope"}
 
 
-def _targets() -> list[str]:
+def _targets(variable: str = "AFTER_TUNING_TARGETS") -> list[str]:
     text = (ROOT / "mk" / "after_tuning.mk").read_text()
-    found = re.search(r"^AFTER_TUNING_TARGETS := (.*?)(?<!\\)$", text, re.M | re.S)
-    assert found, "mk/after_tuning.mk has no AFTER_TUNING_TARGETS"
+    found = re.search(rf"^{variable} := (.*?)(?<!\\)$", text, re.M | re.S)
+    assert found, f"mk/after_tuning.mk has no {variable}"
     return found.group(1).replace("\\\n", " ").split()
+
+
+def _make_list(variable: str) -> list[str]:
+    """``variable`` as make expands it."""
+    result = subprocess.run(["make", "--no-print-directory", "-s", "-f", "mk/after_tuning.mk", "-f", "-",
+                             "show"], input=f"show:\n\t@echo $({variable})\n", cwd=ROOT, capture_output=True,
+                            text=True, check=True)
+    return result.stdout.split()
 
 
 def test_every_study_the_tuning_file_feeds_is_in_the_list() -> None:
@@ -44,3 +52,18 @@ def test_an_unknown_start_is_refused() -> None:
                             cwd=ROOT, capture_output=True, text=True)
     assert result.returncode != 0
     assert "AFTER_TUNING_FROM=nonsense is not one of" in result.stderr
+
+
+def test_the_retune_runs_every_tuning_stage_in_order_then_every_study_after_it() -> None:
+    stages = _targets("RETUNE_STAGES")
+    assert set(stages) == TUNING_STAGES
+    # each stage takes the ones before it as given (docs/tuning.md): weights, observers, grip
+    assert stages == ["tune", "tune-observer", "tune-observer-refine", "tune-slip-target", "grip-envelope"]
+    assert _make_list("RETUNE_TARGETS") == stages + _targets()
+
+
+def test_an_unknown_retune_start_is_refused() -> None:
+    result = subprocess.run(["make", "--no-print-directory", "-s", "retune", "RETUNE_FROM=nonsense"],
+                            cwd=ROOT, capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "RETUNE_FROM=nonsense is not one of: tune tune-observer" in result.stderr

@@ -122,10 +122,6 @@ def test_the_figure_shows_off_three_degrees_and_the_chosen_setting() -> None:
     assert grip_envelope.setting_label(grip_envelope.setting(0.0) + (("grip_peak_time", 0.5),)) == "off, peak time 0.5"
 
 
-INCUMBENTS = {name: {"grip_slip_excess": 0.0, "grip_margin": 0.1, "grip_recovery": 10.0, "grip_peak_time": 1.0}
-              for name in ("dkmpc", "nmpc")}
-
-
 def _refine_with(objectives: dict[tuple[str, str, float], float]) -> tuple[list, dict, list]:
     """The refinement of dkmpc (on at 4 deg) and nmpc (off), every job's objective looked up
     in ``objectives`` by (controller, field, value) (else 0.05 m); the jobs run, in order."""
@@ -144,28 +140,32 @@ def _refine_with(objectives: dict[tuple[str, str, float], float]) -> tuple[list,
             out.append(dataclasses.replace(e, stage=stage, setting=setting))
         return out
 
-    rounds, final = grip_envelope.refine(stage_one, INCUMBENTS, run)
+    rounds, final = grip_envelope.refine(stage_one, run)
     return rounds, final, ran
 
 
 def test_the_refinement_moves_one_field_at_a_time_and_ties_keep_the_incumbent() -> None:
     rounds, final, ran = _refine_with({("dkmpc", "grip_margin", 0.2): 0.03, ("dkmpc", "grip_recovery", 5.0): 0.04})
-    # only the controller that is on; the incumbent's runs are not repeated
+    # only the controller that is on; the incumbent's (the default's) runs are not repeated
     assert {name for name, _, _ in ran} == {"dkmpc"}
-    assert len(ran) == 3 * 2
+    assert len(ran) == sum(len(values) - 1 for _, values in grip_envelope.REFINE_AXES) == 3 * 3
     assert [field for field, _ in rounds] == ["grip_margin", "grip_recovery", "grip_peak_time"]
     # the margin moved to 0.2 (lower); the recovery's 5.0 (0.04 m) is worse than the choice so far (0.03 m)
     assert dict(final["dkmpc"].setting) == {"grip_slip_excess": math.radians(4.0), "grip_margin": 0.2}
     # the later rounds start from the choice so far
-    assert all(dict(s)["grip_margin"] == 0.2 for _, _, s in ran[2:])
+    assert [dict(s)["grip_margin"] for _, _, s in ran[:3]] == [0.0, 0.05, 0.2]
+    assert all(dict(s)["grip_margin"] == 0.2 for _, _, s in ran[3:])
     assert final["nmpc"].setting == grip_envelope.setting(0.0)
     first, compared = rounds[0]
-    assert [e.objective_m for e in compared["dkmpc"]] == pytest.approx([0.04, 0.05, 0.03])
+    assert [e.objective_m for e in compared["dkmpc"]] == pytest.approx([0.04, 0.05, 0.05, 0.03])
     summary: dict = {}
     lines = grip_envelope.refinement_lines(rounds, final, summary)
     assert "| dkmpc | grip_margin | 4 deg, margin 0.2 | 30.00 | 0 | **chosen** |" in lines
     assert "| dkmpc | grip_margin | 4 deg | 40.00 | 0 |  |" in lines
     assert summary["chosen"] == {"dkmpc": "4 deg, margin 0.2", "nmpc": "off"}
+    # 0.2 is the margin grid's largest value: the report says a larger one was not run
+    assert summary["grid_edges"] == {"dkmpc": {"grip_margin": 0.2}}
+    assert "- dkmpc: margin 0.2 (the grid's largest value: a larger one was not run)" in lines
     _, tie = _refine_with({("dkmpc", "grip_margin", 0.05): 0.04})[:2]
     assert tie["dkmpc"].setting == grip_envelope.setting(4.0)  # a tie keeps the incumbent
 
@@ -176,15 +176,16 @@ def test_the_written_fields_and_the_tuning_file_takes_them() -> None:
 
     _, final, _ = _refine_with({("dkmpc", "grip_margin", 0.2): 0.03})
     tuning = load_tuning()
-    incumbents = grip_envelope.incumbents_of(tuning, ["dkmpc", "nmpc"])
-    written = grip_envelope.written_settings(final, incumbents)
+    defaults = grip_envelope.GRIP_DEFAULTS
+    written = grip_envelope.written_settings(final)
+    # the fields the choice does not name go in at their defaults, where the stage ran them
     assert written["dkmpc"] == (("grip_slip_excess", math.radians(4.0)), ("grip_margin", 0.2),
-                                ("grip_recovery", incumbents["dkmpc"]["grip_recovery"]),
-                                ("grip_peak_time", incumbents["dkmpc"]["grip_peak_time"]))
+                                ("grip_recovery", defaults["grip_recovery"]),
+                                ("grip_peak_time", defaults["grip_peak_time"]))
     assert dict(written["nmpc"])["grip_slip_excess"] == 0.0
     # every MPC table of the shipped file has the four fields in place
     text = DEFAULT_TUNING_PATH.read_text(encoding="utf-8")
-    every = {name: tuple((f, 0.0 if f == "grip_slip_excess" else incumbents["dkmpc"][f])
+    every = {name: tuple((f, 0.0 if f == "grip_slip_excess" else defaults[f])
                          for f in grip_envelope.WRITTEN_FIELDS) for name in grip_envelope.ENVELOPE_CONTROLLERS}
     updated = update_tuning_text(text, {**every, **written}, comment=grip_envelope.TUNING_COMMENT)
     assert updated.count(grip_envelope.TUNING_COMMENT) == len(grip_envelope.ENVELOPE_CONTROLLERS)
@@ -202,3 +203,33 @@ def test_cli_refuses_no_workers(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         grip_envelope.main(["--workers", "0", "--out", "/nonexistent/never-written"])
     assert "--workers must be >= 1" in capsys.readouterr().err
+
+
+def test_the_margin_can_go_to_zero_and_zero_is_no_grid_edge() -> None:
+    _, final, _ = _refine_with({("dkmpc", "grip_margin", 0.0): 0.02})
+    assert dict(final["dkmpc"].setting)["grip_margin"] == 0.0
+    assert grip_envelope.grid_edge("grip_margin", 0.0) == ""  # the field's own bound
+    assert "smallest" in grip_envelope.grid_edge("grip_recovery", 5.0)
+    assert "largest" in grip_envelope.grid_edge("grip_peak_time", 4.0)
+    assert grip_envelope.grid_edge("grip_recovery", 10.0) == ""
+
+
+def test_the_stage_starts_from_the_defaults_not_from_its_own_earlier_choice() -> None:
+    """A second run must choose what the first did: the refined fields start from the
+    tuning tables' defaults whatever the tuning file holds, every other field as the file."""
+    from controller.tuning import MpcTuning, load_tuning
+
+    shipped = load_tuning()
+    moved = shipped
+    for name in grip_envelope.ENVELOPE_CONTROLLERS:
+        moved = grip_envelope.with_setting(moved, name, (("grip_margin", 0.5), ("grip_recovery", 33.0),
+                                                         ("grip_peak_time", 3.0)))
+    for tuning in (shipped, moved):
+        start = grip_envelope.starting_tuning(tuning)
+        for name in grip_envelope.ENVELOPE_CONTROLLERS:
+            table = start.for_controller(name)
+            for field, default in grip_envelope.GRIP_DEFAULTS.items():
+                assert getattr(table, field) == default == MpcTuning.__dataclass_fields__[field].default
+            assert table.grip_slip_excess == shipped.for_controller(name).grip_slip_excess
+            assert table.q_yaw == shipped.for_controller(name).q_yaw
+    assert grip_envelope.starting_tuning(shipped) == grip_envelope.starting_tuning(moved)

@@ -36,9 +36,17 @@ def test_table_has_a_row_per_controller_and_scenario_with_mean_and_spread() -> N
     assert seed_spread.FORMS[-1][1] is seed_spread.DICTIONARY_NO_SQUARE_ROW
 
 
-def test_missing_seed_models_name_the_command(tmp_path: Path) -> None:
-    with pytest.raises(SystemExit, match="make table1"):
+def test_missing_seed_models_name_the_command(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from hil.errors import StudyError
+
+    with pytest.raises(StudyError, match="make table1"):
         seed_spread.seed_artifacts(tmp_path, (0, 1))
     # The anchored row has no committed artefact: its seed 0 comes from Table I's cache too.
-    with pytest.raises(SystemExit, match="vy anchor"):
+    with pytest.raises(StudyError, match="vy anchor"):
         seed_spread.seed_artifacts(tmp_path, (0,), seed_spread.VY_ANCHOR_ROW)
+    # --check-models names every missing model (the default row's seed 0 is the committed one)
+    assert seed_spread.main(["--check-models", "--models-dir", str(tmp_path), "--seeds", "0,1"]) == 1
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2 * len(seed_spread.FORMS) - 1
+    assert all(line.startswith("error: ") and "make table1" in line for line in lines)
+    assert seed_spread.main(["--models-dir", str(tmp_path), "--seeds", "0,1"]) == 1
