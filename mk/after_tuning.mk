@@ -18,7 +18,7 @@ AFTER_TUNING_FROM ?= firmware
 define run_in_order
 	@case " $(1) " in *" $(2) "*) ;; \
 		*) echo "error: $(3)=$(2) is not one of: $(1)" >&2; exit 2;; esac
-	@started=; for target in $(1); do \
+	+@started=; for target in $(1); do \
 		[ "$$target" = "$(2)" ] && started=1; [ -n "$$started" ] || continue; \
 		echo "== make $$target ($$(date -u +%H:%M) UTC)"; \
 		$(MAKE) --no-print-directory $$target || exit 1; \

@@ -388,6 +388,9 @@ def refinement_lines(rounds: Sequence[Round], final: Mapping[str, Evaluation],
                                              "objective_m": e.objective_m} for e in group]
                                      for name, group in compared.items()} for field, compared in rounds}
     summary["chosen"] = {name: setting_label(e.setting) for name, e in final.items()}
+    edges = {name: {field: value for field, value in e.setting if field in GRIP_DEFAULTS and grid_edge(field, value)}
+             for name, e in final.items()}
+    summary["grid_edges"] = {name: fields for name, fields in edges.items() if fields}
     if not rounds:
         return []
     lines = ["", f"## The refinement ({', '.join(field for field, _ in rounds)}, one at a time)", "",
@@ -407,9 +410,6 @@ def refinement_lines(rounds: Sequence[Round], final: Mapping[str, Evaluation],
     lines += ["", "Final choice per controller: " + "; ".join(f"{name} {setting_label(e.setting)} "
                                                               f"({_mm(e.objective_m)} mm)"
                                                               for name, e in final.items()) + "."]
-    edges = {name: {field: value for field, value in e.setting if field in GRIP_DEFAULTS and grid_edge(field, value)}
-             for name, e in final.items()}
-    summary["grid_edges"] = {name: fields for name, fields in edges.items() if fields}
     for name, fields in summary["grid_edges"].items():
         lines += [f"- {name}: {field.removeprefix('grip_').replace('_', ' ')} {value:g}{grid_edge(field, value)}"
                   for field, value in fields.items()]
