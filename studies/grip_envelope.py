@@ -76,8 +76,8 @@ SLIP_EXCESSES_DEG = (0.0, 2.0, 3.0, 4.0, 5.0, 6.0)
 #: estimate's return once the rear axle grips again (m/s^2 per s), the peak's memory (s).
 REFINE_AXES: tuple[tuple[str, tuple[float, ...]], ...] = (
     ("grip_margin", (0.0, 0.05, 0.1, 0.2)),
-    ("grip_recovery", (5.0, 10.0, 20.0, 40.0)),
-    ("grip_peak_time", (0.5, 1.0, 2.0, 4.0)),
+    ("grip_recovery", (5.0, 10.0, 20.0, 40.0, 80.0, 160.0)),
+    ("grip_peak_time", (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)),
 )
 #: The refined fields' defaults (the tuning tables' own, ``controller.tuning.MpcTuning``):
 #: where the stage starts each field, whatever the tuning file holds.

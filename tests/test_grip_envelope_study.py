@@ -148,7 +148,7 @@ def test_the_refinement_moves_one_field_at_a_time_and_ties_keep_the_incumbent() 
     rounds, final, ran = _refine_with({("dkmpc", "grip_margin", 0.2): 0.03, ("dkmpc", "grip_recovery", 5.0): 0.04})
     # only the controller that is on; the incumbent's (the default's) runs are not repeated
     assert {name for name, _, _ in ran} == {"dkmpc"}
-    assert len(ran) == sum(len(values) - 1 for _, values in grip_envelope.REFINE_AXES) == 3 * 3
+    assert len(ran) == sum(len(values) - 1 for _, values in grip_envelope.REFINE_AXES) == 3 + 5 + 5
     assert [field for field, _ in rounds] == ["grip_margin", "grip_recovery", "grip_peak_time"]
     # the margin moved to 0.2 (lower); the recovery's 5.0 (0.04 m) is worse than the choice so far (0.03 m)
     assert dict(final["dkmpc"].setting) == {"grip_slip_excess": math.radians(4.0), "grip_margin": 0.2}
@@ -209,7 +209,8 @@ def test_the_margin_can_go_to_zero_and_zero_is_no_grid_edge() -> None:
     assert dict(final["dkmpc"].setting)["grip_margin"] == 0.0
     assert grip_envelope.grid_edge("grip_margin", 0.0) == ""  # the field's own bound
     assert "smallest" in grip_envelope.grid_edge("grip_recovery", 5.0)
-    assert "largest" in grip_envelope.grid_edge("grip_peak_time", 4.0)
+    assert "largest" in grip_envelope.grid_edge("grip_peak_time", 16.0)
+    assert grip_envelope.grid_edge("grip_peak_time", 4.0) == ""
     assert grip_envelope.grid_edge("grip_recovery", 10.0) == ""
 
 
