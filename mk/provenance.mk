@@ -29,8 +29,10 @@ provenance: setup
 
 # A product-code change that keeps behaviour: restamp the stale studies on the proof of a
 # smoke subset run at BASE and here (studies/restamp.py; docs/architecture.md).
+# RESTAMP_EXCLUDE: globs of results files to leave stale (a path the smoke does not run).
 BASE ?=
+RESTAMP_EXCLUDE ?=
 ## restamp results made stale by a behaviour-keeping code change: make restamp BASE=REV
 restamp: setup firmware
 	@if [ -z "$(BASE)" ]; then echo "error: make restamp needs BASE=REV (the commit at which the stale files were current)" >&2; exit 2; fi
-	$(PY) -m studies.restamp --base $(BASE)
+	$(PY) -m studies.restamp --base $(BASE) $(foreach glob,$(RESTAMP_EXCLUDE),--exclude '$(glob)')

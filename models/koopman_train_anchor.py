@@ -32,9 +32,17 @@ the training loss. Validation and early stopping keep the plain prediction loss.
 
 The lateral velocity (``TrainingSettings.gain_anchor_vy``, off by default). Why: the yaw
 term alone leaves the step-steer vy free, and the anchored default's is off by up to
-0.12 m/s 1 s after the step (docs/koopman.md, "The lateral velocity"), although the same
-local fits give the plant's. Targets (``lateral_velocity_targets``): the same fits' vy after
-the same steps, smoothed over speed through the ratio vy / r, the distance behind the
+0.12 m/s 1 s after the step (docs/koopman.md, "The lateral velocity"), although local fits
+give the plant's. Fits at the step's amplitude: the vy after a steer step of ANCHOR_STEP
+stops being linear in the step at speed (the plant's is 11-14 % larger in magnitude at
+20-28 m/s than 8 x its response to a quarter of the step, the yaw rate within 1.2 %), so
+the gentle samples' fit, which holds the small-signal response, gives a vy below the step's.
+Each speed's vy therefore comes from a fit on the samples whose grip use stays below the
+step's own (``vy_grip_limit``: the smoothed yaw target's v r / g, the step taken on a dry
+road, and at least GENTLE_GRIP), the response that the step reaches, linearised over the
+range it crosses; it is a superset of the gentle samples, so every anchored speed has one.
+Targets (``lateral_velocity_targets``): those fits' vy after the same steps, smoothed over
+speed through their ratio vy / r (each fit's own r), the distance behind the
 centre of gravity of the point of the car's axis that moves without sideslip. For a linear
 single track at steady state it is b - c v^2 (b the distance to the rear axle, c = m l_f /
 (L C_r)), so vy_target = r_target (b - c v^2), with (b, c) fitted by least squares on the
@@ -60,8 +68,9 @@ import torch
 from models.koopman import KoopmanError, MinMaxScaling, knot_weights
 from models.koopman_dictionary import dictionary_features
 from models.koopman_metrics import Trajectory
-from models.local_lateral_fit import (INPUTS, MIN_SAMPLES, STATES, LocalLateralModel, antisymmetric_final,
-                                      band_segments, local_fit, signals, single_track_yaw_rate)
+from models.local_lateral_fit import (GRAVITY, INPUTS, MIN_SAMPLES, STATES, LocalLateralModel,
+                                      antisymmetric_final, band_segments, local_fit, signals,
+                                      single_track_yaw_rate)
 
 #: Speeds (m/s) of the anchor: every 2 m/s over the training data's range above 6 m/s.
 ANCHOR_SPEEDS = tuple(float(v) for v in range(8, 32, 2))
@@ -84,8 +93,12 @@ class AnchorTargets:
     yaw rate (rad/s), the local fit's own (unsmoothed) yaw rate, and its sample count;
     arrays of shape (n_speeds,). ``runs_with_friction``: how many of the training runs had a
     known mu (the others were taken as mu = 1). ``fitted_lateral_velocities`` (n_speeds,):
-    the local fit's own vy (m/s) after the same steps, for ``lateral_velocity_targets``
-    (None where not computed); not part of ``as_json``, whose record predates it."""
+    vy (m/s) after the same steps of the fit at the step's amplitude (module docstring),
+    ``lateral_fit_yaw_rates`` (n_speeds,) that fit's yaw rate (rad/s),
+    ``lateral_grip_limits`` (n_speeds,) the grip use below which its samples lie and
+    ``lateral_samples`` (n_speeds,) their count, for
+    ``lateral_velocity_targets`` (None where not computed); not part of ``as_json``, whose
+    record predates them."""
 
     speeds: np.ndarray
     torques: np.ndarray
@@ -95,6 +108,9 @@ class AnchorTargets:
     single_track: tuple[float, float] = (0.0, 0.0)
     runs_with_friction: int = 0
     fitted_lateral_velocities: np.ndarray | None = None
+    lateral_fit_yaw_rates: np.ndarray | None = None
+    lateral_grip_limits: np.ndarray | None = None
+    lateral_samples: np.ndarray | None = None
 
     def yaw_rate_at(self, speed: float | np.ndarray) -> float | np.ndarray:
         """The smoothed target at any ``speed`` (m/s): ANCHOR_STEP v / (L + K v^2)."""
@@ -143,24 +159,46 @@ def anchor_targets(train_runs: Sequence[Trajectory], friction: Mapping[str, floa
     -> mu where known (``models.dataset.friction_of_runs``)."""
     friction = friction or {}
     runs = [_on_fit_columns(run) for run in train_runs]
-    masks = [signals(run, friction.get(run.name, 1.0)).combined_grip < GENTLE_GRIP for run in runs]
+    grip_use = [signals(run, friction.get(run.name, 1.0)).combined_grip for run in runs]
+    masks = [use < GENTLE_GRIP for use in grip_use]
     rows = []
     for speed in speeds:
         fit, n = local_fit(runs, masks, speed)
         if fit is None:
             continue
         torque = float(np.median(np.concatenate([s.inputs[:, 0] for s in band_segments(runs, masks, speed)])))
-        commands = np.zeros((ANCHOR_STEPS, 2))
-        commands[:, 0], commands[:, 1] = torque, ANCHOR_STEP
-        final = antisymmetric_final(LocalLateralModel(fit), np.array([speed, 0.0, 0.0, 0.0]), commands)
-        rows.append((speed, torque, final[2], n, final[1]))
+        final = anchor_step_response(fit, speed, torque)
+        rows.append((speed, torque, final[2], n))
     if len(rows) < MIN_SPEEDS:
         raise KoopmanError(f"gain anchor: only {len(rows)} of the speeds {tuple(speeds)} have {MIN_SAMPLES} gentle "
                            f"samples (combined grip use < {GENTLE_GRIP}); need {MIN_SPEEDS}")
-    v, torque, fitted, n, fitted_vy = (np.array(column, dtype=float) for column in zip(*rows))
+    v, torque, fitted, n = (np.array(column, dtype=float) for column in zip(*rows))
     length, understeer = single_track_gain_fit(v, fitted, np.sqrt(n))
-    return AnchorTargets(v, torque, single_track_yaw_rate(ANCHOR_STEP, length, understeer, v), fitted, n,
-                         (float(length), float(understeer)), sum(run.name in friction for run in runs), fitted_vy)
+    yaw_rates = single_track_yaw_rate(ANCHOR_STEP, length, understeer, v)
+    limits = vy_grip_limit(v, yaw_rates)
+    lateral = []
+    for speed, band_torque, limit in zip(v, torque, limits):
+        # a superset of the gentle samples (limit >= GENTLE_GRIP), so the fit exists
+        fit, samples = local_fit(runs, [use < limit for use in grip_use], float(speed))
+        lateral.append((*anchor_step_response(fit, float(speed), float(band_torque))[1:3], samples))
+    fitted_vy, lateral_yaw, lateral_n = (np.array(column, dtype=float) for column in zip(*lateral))
+    return AnchorTargets(v, torque, yaw_rates, fitted, n, (float(length), float(understeer)),
+                         sum(run.name in friction for run in runs), fitted_vy, lateral_yaw, limits, lateral_n)
+
+
+def vy_grip_limit(speeds: np.ndarray, yaw_rates: np.ndarray) -> np.ndarray:
+    """The grip use below which the lateral velocity's fit takes its samples (each (n,)):
+    the steady lateral acceleration v r / g of the step's smoothed yaw-rate target on a dry
+    road (mu = 1), and at least GENTLE_GRIP (module docstring)."""
+    return np.maximum(GENTLE_GRIP, np.asarray(speeds) * np.asarray(yaw_rates) / GRAVITY)
+
+
+def anchor_step_response(fit: object, speed: float, torque: float) -> np.ndarray:
+    """[vx, vy, r, delta] (4,): the antisymmetric state of a local ``fit`` ANCHOR_STEPS after a
+    steer step of ANCHOR_STEP from straight driving at ``speed`` with ``torque`` held."""
+    commands = np.zeros((ANCHOR_STEPS, 2))
+    commands[:, 0], commands[:, 1] = torque, ANCHOR_STEP
+    return antisymmetric_final(LocalLateralModel(fit), np.array([speed, 0.0, 0.0, 0.0]), commands)
 
 
 @dataclass(frozen=True)
@@ -168,7 +206,8 @@ class LateralVelocityTargets:
     """The lateral-velocity term's targets, every VY_SPEED_STEP over the anchored range (each
     (n_points,)): speed (m/s), torque (N m), the smoothed target yaw rate (rad/s, the
     scale of the error) and vy (m/s); the local fits' own vy at the yaw anchor's speeds
-    (``fitted_speeds``, ``fitted_lateral_velocities``, (n_speeds,)); ``slip_free_point``
+    (``fitted_speeds``, ``fitted_lateral_velocities``, (n_speeds,)) and the grip use below
+    which each fit's samples lie (``fitted_grip_limits``, (n_speeds,)); ``slip_free_point``
     (b, c) of the smoothing, vy / r = b - c v^2 (m, s^2/m; see the module docstring)."""
 
     speeds: np.ndarray
@@ -177,13 +216,14 @@ class LateralVelocityTargets:
     lateral_velocities: np.ndarray
     fitted_speeds: np.ndarray
     fitted_lateral_velocities: np.ndarray
+    fitted_grip_limits: np.ndarray
     slip_free_point: tuple[float, float]
 
     def as_json(self) -> dict[str, list[float] | float]:
         out: dict[str, list[float] | float] = {
             name: [round(float(v), 6) for v in getattr(self, name)]
             for name in ("speeds", "torques", "yaw_rates", "lateral_velocities", "fitted_speeds",
-                         "fitted_lateral_velocities")}
+                         "fitted_lateral_velocities", "fitted_grip_limits")}
         out["slip_free_point"] = [float(v) for v in self.slip_free_point]  # b, c: vy / r = b - c v^2
         out["length"] = VY_LENGTH
         return out
@@ -213,16 +253,21 @@ def slip_free_point_fit(speeds: np.ndarray, distances: np.ndarray, weights: np.n
 def lateral_velocity_targets(targets: AnchorTargets) -> LateralVelocityTargets:
     """The lateral-velocity targets from the yaw anchor's ``targets`` (``anchor_targets``):
     r_target (b - c v^2) every VY_SPEED_STEP over the anchored speeds, (b, c) fitted on the
-    fits' vy / r weighted by sqrt(samples)."""
-    if targets.fitted_lateral_velocities is None:
+    vy / r of the fits at the step's amplitude, weighted by sqrt(their samples)."""
+    if (targets.fitted_lateral_velocities is None or targets.lateral_fit_yaw_rates is None
+            or targets.lateral_samples is None):
         raise KoopmanError("gain anchor vy: the anchor targets carry no fitted lateral velocities")
-    distances = targets.fitted_lateral_velocities / targets.fitted_yaw_rates  # r > 0: single_track_gain_fit
-    near, speed_factor = slip_free_point_fit(targets.speeds, distances, np.sqrt(targets.samples))
+    if np.any(targets.lateral_fit_yaw_rates <= 0.0):
+        raise KoopmanError(f"gain anchor vy: a fit at the step's amplitude turns the wrong way or not at all at "
+                           f"{targets.speeds[targets.lateral_fit_yaw_rates <= 0.0].tolist()} m/s")
+    distances = targets.fitted_lateral_velocities / targets.lateral_fit_yaw_rates
+    near, speed_factor = slip_free_point_fit(targets.speeds, distances, np.sqrt(targets.lateral_samples))
     speeds = np.arange(targets.speeds[0], targets.speeds[-1] + 1e-9, VY_SPEED_STEP)
     yaw_rates = np.asarray(targets.yaw_rate_at(speeds), dtype=float)
     return LateralVelocityTargets(speeds, np.interp(speeds, targets.speeds, targets.torques), yaw_rates,
                                   yaw_rates * slip_free_distance(near, speed_factor, speeds), targets.speeds,
-                                  targets.fitted_lateral_velocities, (float(near), float(speed_factor)))
+                                  targets.fitted_lateral_velocities, targets.lateral_grip_limits,
+                                  (float(near), float(speed_factor)))
 
 
 class GainAnchor:

@@ -38,11 +38,14 @@ the stamps to the current commit instead of rerunning hours of studies:
 
 The smoke runs the shipped settings: a study that runs other settings (the tuning sweeps,
 the trade-off, the observer variants) is covered where those settings take the same code
-paths. Exit status: 0 restamped (or nothing to do), 1 the smoke differs, 2 bad input.
+paths. Where a change reaches a path that only such settings take (a training option off in
+the default form, say), ``--exclude GLOB`` (repeatable, matched against the results path)
+leaves those files stale: they need their rerun, or a row in results/KNOWN_STALE.md. Exit status: 0 restamped (or nothing to do), 1 the smoke differs, 2 bad input.
 """
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import os
 import re
 import shutil
@@ -170,6 +173,13 @@ def candidates(base_root: Path, root: Path = provenance.ROOT,
             continue
         eligible.append(Candidate(entry.path, stamp["command"], changed, provenance.combined_digest(now)))
     return eligible, refused
+
+
+def excluded_candidates(chosen: list[Candidate], patterns: list[str]) -> tuple[list[Candidate], list[Candidate]]:
+    """``chosen`` split into those no pattern of ``patterns`` (fnmatch globs on the results
+    path) matches and those one does (left stale)."""
+    left = [c for c in chosen if any(fnmatch.fnmatch(c.path, pattern) for pattern in patterns)]
+    return [c for c in chosen if c not in left], left
 
 
 # ---------------------------------------------------------------------------- smoke
@@ -343,6 +353,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workdir", type=Path, default=provenance.ROOT / "build" / "restamp",
                         help="where the base's worktree and the smoke logs go (default build/restamp)")
     parser.add_argument("--dry-run", action="store_true", help="list what would be restamped; run nothing")
+    parser.add_argument("--exclude", action="append", default=[], metavar="GLOB",
+                        help="leave the results files matching GLOB stale (a path the smoke does not run; repeatable)")
     args = parser.parse_args(argv)
     command = f"python -m studies.restamp --base {args.base}"
     root = provenance.ROOT
@@ -353,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
                                "so that the new stamps name the code that was checked")
         base_tree = base_checkout(args.base, args.workdir.resolve(), root)
         chosen, refused = candidates(base_tree, root)
+        chosen, excluded = excluded_candidates(chosen, args.exclude)
+        refused.update({c.path: "--exclude: left stale" for c in excluded})
         for name, reason in sorted(refused.items()):
             print(f"not restamped: {name}: {reason}")
         for candidate in chosen:

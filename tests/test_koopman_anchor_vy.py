@@ -11,9 +11,10 @@ torch = pytest.importorskip("torch")
 from models.koopman import KoopmanError, KoopmanModel  # noqa: E402
 from models.koopman_metrics import Trajectory  # noqa: E402
 from models.koopman_train import TrainingSettings, settings_json, train  # noqa: E402
-from models.koopman_train_anchor import (ANCHOR_SPEEDS, ANCHOR_STEP, ANCHOR_STEPS, VY_LENGTH,  # noqa: E402
-                                        VY_SPEED_STEP, AnchorTargets, GainAnchor, anchor_targets,
-                                        lateral_velocity_targets, slip_free_distance, slip_free_point_fit)
+from models.koopman_train_anchor import (ANCHOR_SPEEDS, ANCHOR_STEP, ANCHOR_STEPS, GENTLE_GRIP,  # noqa: E402
+                                        VY_LENGTH, VY_SPEED_STEP, AnchorTargets, GainAnchor, anchor_targets,
+                                        lateral_velocity_targets, slip_free_distance, slip_free_point_fit,
+                                        vy_grip_limit)
 from test_koopman_symmetric import INPUTS, KNOTS, STATES, _random_net, _scalings  # noqa: E402
 from test_koopman_train_anchor import _runs as anchor_runs  # noqa: E402
 
@@ -66,6 +67,53 @@ def test_targets_are_the_local_fits_vy_smoothed_through_vy_over_r() -> None:
     recorded = vy_targets.as_json()
     assert recorded["length"] == VY_LENGTH and recorded["fitted_speeds"] == targets.speeds.tolist()
     assert "fitted_lateral_velocities" not in targets.as_json()  # the yaw anchor's record is as it was
+
+
+def _stiffening_step(x: np.ndarray, steer: float, speed: float) -> np.ndarray:
+    """A lateral system whose vy grows faster than the step at speed, as the plant's does (its
+    rear axle takes up more slip at a larger lateral acceleration): a cubic term in r, 12 %
+    of vy at 30 m/s after the anchor's step; the yaw rate linear."""
+    vy, r, delta = x
+    return np.array([0.8 * vy + 0.2 * (slip_free_distance(NEAR, SPEED_FACTOR, speed) * r - 0.03 * speed ** 2 * r ** 3),
+                     0.9 * r + 0.02 * speed * delta, 0.8 * delta + 0.2 * steer])
+
+
+def _step_vy(speed: float, step: float) -> float:
+    """The antisymmetric vy of ``_stiffening_step`` ANCHOR_STEPS after a steer step, scaled to ANCHOR_STEP."""
+    finals = []
+    for sign in (1.0, -1.0):
+        x = np.zeros(3)
+        for _ in range(ANCHOR_STEPS):
+            x = _stiffening_step(x, sign * step, speed)
+        finals.append(x[0])
+    return (finals[0] - finals[1]) / 2.0 * ANCHOR_STEP / step
+
+
+def test_the_vy_fits_take_the_samples_up_to_the_steps_own_grip_use() -> None:
+    """Where vy stops being linear in the step, the targets move from the small-signal
+    response (the gentle samples') to the step's own: the fit at each speed takes the
+    samples below the step's lateral acceleration, recorded in the targets."""
+    rng = np.random.default_rng(4)
+    runs = []
+    for speed in ANCHOR_SPEEDS:  # the steer's amplitude grows over the run, past the step's
+        steer = np.linspace(0.001, 0.03, 2000) * np.sin(np.cumsum(rng.uniform(0.05, 0.3, 2000)))
+        x, states = np.zeros(3), []
+        for k in range(2000):
+            states.append([speed, *x])
+            x = _stiffening_step(x, steer[k], speed)
+        runs.append(Trajectory(f"v{speed:g}", np.array(states), np.c_[np.full(2000, 100.0), steer], STATES, INPUTS))
+    targets = anchor_targets(runs)
+    vy_targets = lateral_velocity_targets(targets)
+    limits = vy_grip_limit(targets.speeds, targets.yaw_rates)
+    assert targets.lateral_grip_limits.tolist() == limits.tolist()
+    assert np.all(limits >= GENTLE_GRIP) and limits[-1] > 3 * GENTLE_GRIP  # the step at 30 m/s: about 0.36 g
+    assert vy_targets.as_json()["fitted_grip_limits"] == [round(float(v), 6) for v in limits]
+    assert np.all(targets.lateral_samples >= targets.samples)  # a superset of the gentle samples
+    for speed in (20.0, 24.0, 28.0, 30.0):
+        target = float(np.interp(speed, vy_targets.speeds, vy_targets.lateral_velocities))
+        step, small_signal = _step_vy(speed, ANCHOR_STEP), _step_vy(speed, 1e-4)
+        print(f"{speed:g} m/s: step {step:+.4f}, small signal {small_signal:+.4f}, target {target:+.4f} m/s")
+        assert abs(target - step) < 0.8 * abs(small_signal - step)
 
 
 def test_the_slip_free_point_fit_recovers_its_parameters_and_refuses_a_wrong_trend() -> None:

@@ -114,6 +114,18 @@ def test_only_product_code_changes_of_non_machine_studies_are_candidates(tmp_pat
     assert "changed beyond the code the smoke runs: studies/study.py" in refused["results/table.md"]
 
 
+def test_excluded_files_are_left_stale(tmp_path: Path) -> None:
+    base, now = tmp_path / "base", tmp_path / "now"
+    _project(base)
+    shutil.copytree(base, now)
+    (now / "controller" / "law.py").write_text("GAIN = 2  # same law, new comment\n")
+    chosen, _ = restamp.candidates(base, now, SMOKED)
+    kept, left = restamp.excluded_candidates(chosen, ["results/ta*", "results/none.md"])
+    assert [c.path for c in kept] == ["results/data.md", "results/other.md"]
+    assert [c.path for c in left] == ["results/table.md"]
+    assert restamp.excluded_candidates(chosen, []) == (chosen, [])
+
+
 def test_a_stamp_stale_already_at_the_base_is_refused(tmp_path: Path) -> None:
     base, now = tmp_path / "base", tmp_path / "now"
     _project(now)
