@@ -56,8 +56,11 @@ class TrainingSettings:
     w times the gain anchor's loss (``models/koopman_train_anchor.py``): the model's
     small-signal steer response held to local fits of the training runs' gentle samples.
     ``gain_anchor_vy`` w > 0 (with ``gain_anchor``; recorded only when on) adds w times the
-    anchor's lateral-velocity term: the model's step-steer vy held to the same fits, its error
-    that of vy / r in metres.
+    anchor's lateral-velocity term: the model's step-steer vy held to local fits at the step's
+    amplitude, its error that of vy / r in metres. Recorded with it, ``gain_anchor_vy_fits``
+    names those fits' samples (:data:`VY_ANCHOR_FITS`), so that an artefact trained on the
+    earlier targets (the gentle samples', before 2026-12-08) does not pass for one of these
+    (Table I's model cache compares the settings).
     """
 
     n_features: int = 5
@@ -152,7 +155,14 @@ def settings_json(settings: TrainingSettings) -> dict:
         del out["gain_anchor"]
     if not settings.gain_anchor_vy:
         del out["gain_anchor_vy"]
+    else:
+        out["gain_anchor_vy_fits"] = VY_ANCHOR_FITS
     return out
+
+
+#: How the vy anchor's local fits choose their samples (``models/koopman_train_anchor.py``,
+#: ``vy_grip_limit``), recorded in the settings of a training with ``gain_anchor_vy``.
+VY_ANCHOR_FITS = "grip use below the step's"
 
 
 #: Columns an option needs: option -> (states, inputs) that must be among the data's.

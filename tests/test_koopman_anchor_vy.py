@@ -186,7 +186,11 @@ def test_descending_the_vy_loss_moves_vy_to_the_target() -> None:
 
 def test_the_vy_setting_is_recorded_only_when_on_and_checked() -> None:
     assert "gain_anchor_vy" not in settings_json(TrainingSettings(gain_anchor=10.0))
-    assert settings_json(TrainingSettings(gain_anchor=10.0, gain_anchor_vy=3.0))["gain_anchor_vy"] == 3.0
+    on = settings_json(TrainingSettings(gain_anchor=10.0, gain_anchor_vy=3.0))
+    assert on["gain_anchor_vy"] == 3.0
+    # the fits' recipe, so that a model on the gentle fits' targets is not taken for one of these
+    assert on["gain_anchor_vy_fits"] == "grip use below the step's"
+    assert "gain_anchor_vy_fits" not in settings_json(TrainingSettings(gain_anchor=10.0))
     for bad in ({"gain_anchor": 10.0, "gain_anchor_vy": -1.0}, {"gain_anchor_vy": 1.0}):  # needs the yaw anchor
         with pytest.raises(KoopmanError, match="gain_anchor_vy"):
             TrainingSettings(**bad)
