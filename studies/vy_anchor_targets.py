@@ -34,19 +34,36 @@ from models.koopman_data import load_trajectories
 from models.koopman_train_anchor import (ANCHOR_STEP, GENTLE_GRIP, anchor_step_response, anchor_targets,
                                         lateral_velocity_targets, slip_free_distance, slip_free_point_fit)
 from models.local_lateral_fit import INPUTS, STATES, band_segments, friction_of_runs, local_fit, signals
-from studies.model_fidelity import plant_step_steer
+from models.data import speed_hold_torque
+from models.vehicle import FourWheelVehicle, PlantModel, VehicleCommand
+from studies.model_fidelity import LEAD_IN_SECONDS, STEP_SECONDS, TS
 
 #: Speeds of the table (m/s): the step-steer goal's.
-SPEEDS = (10.0, 15.0, 20.0, 22.0, 25.0, 28.0)
+SPEEDS = (10.0, 15.0, 20.0, 22.0, 25.0, 26.0, 28.0, 30.0)
 #: The small-signal step, as a fraction of the anchor's.
 SMALL_FRACTION = 0.25
+
+
+def plant_final_vy(speed: float, step: float) -> float:
+    """The plant's vy (m/s) STEP_SECONDS after a steer step of ``step`` rad from straight
+    driving at ``speed``, the speed held, as ``studies.model_fidelity.plant_step_steer``
+    drives it (whose step is fixed at its STEP_STEER)."""
+    vehicle = FourWheelVehicle()
+    vehicle.reset(vx=speed)
+    drag = PlantModel(vehicle.params).drag_factor
+    lead, steps = round(LEAD_IN_SECONDS / TS), round(STEP_SECONDS / TS)
+    out = vehicle.outputs()
+    for k in range(lead + steps):
+        torque = speed_hold_torque(vehicle.params, drag, out.vx, speed)
+        out = vehicle.step(VehicleCommand(drive_torque=torque, steer_angle=step if k >= lead else 0.0), TS)
+    return float(out.vy)
 
 
 def plant_vy(speed: float, step: float) -> float:
     """The plant's antisymmetric vy (m/s) 1 s after a steer step of ``step`` rad, scaled to
     ANCHOR_STEP: (vy(+step) - vy(-step)) / 2 x ANCHOR_STEP / step."""
-    up, down = (plant_step_steer(speed, sign * step)[0][-1, 1] for sign in (1.0, -1.0))
-    return float((up - down) / 2.0 * ANCHOR_STEP / step)
+    up, down = (plant_final_vy(speed, sign * step) for sign in (1.0, -1.0))
+    return (up - down) / 2.0 * ANCHOR_STEP / step
 
 
 def rows(data: Path) -> list[dict[str, float]]:

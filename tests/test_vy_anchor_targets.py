@@ -4,11 +4,13 @@ from __future__ import annotations
 import pytest
 
 from studies import vy_anchor_targets
-from studies.model_fidelity import plant_step_steer
+from studies.model_fidelity import STEP_STEER, plant_step_steer
 
 
 def test_the_plants_vy_is_the_antisymmetric_response_scaled_to_the_anchors_step() -> None:
-    up, down = (plant_step_steer(25.0, s)[0][-1, 1] for s in (0.02, -0.02))
+    # at the step of model_fidelity's step steer, its plant run's final vy
+    assert vy_anchor_targets.plant_final_vy(25.0, STEP_STEER) == plant_step_steer(25.0)[0][-1, 1]
+    up, down = (vy_anchor_targets.plant_final_vy(25.0, s) for s in (0.02, -0.02))
     assert vy_anchor_targets.plant_vy(25.0, 0.02) == pytest.approx((up - down) / 2.0)
     # at 10 m/s the plant is linear in the step; at 25 m/s its vy grows faster than the step
     assert vy_anchor_targets.plant_vy(10.0, 0.005) == pytest.approx(vy_anchor_targets.plant_vy(10.0, 0.02), rel=0.01)
