@@ -13,8 +13,9 @@ from models.koopman_metrics import Trajectory  # noqa: E402
 from models.koopman_train import TrainingSettings, settings_json, train  # noqa: E402
 from models.koopman_train_anchor import (ANCHOR_SPEEDS, ANCHOR_STEP, ANCHOR_STEPS, GENTLE_GRIP,  # noqa: E402
                                         VY_LENGTH, VY_SPEED_STEP, AnchorTargets, GainAnchor, anchor_targets,
-                                        lateral_velocity_targets, slip_free_distance, slip_free_point_fit,
-                                        vy_grip_limit)
+                                        anchor_step_response, lateral_velocity_targets, slip_free_distance,
+                                        slip_free_point_fit)
+from models.local_lateral_fit import local_fit  # noqa: E402
 from test_koopman_symmetric import INPUTS, KNOTS, STATES, _random_net, _scalings  # noqa: E402
 from test_koopman_train_anchor import _runs as anchor_runs  # noqa: E402
 
@@ -92,11 +93,12 @@ def _step_vy(speed: float, step: float) -> float:
 def test_the_vy_fits_take_the_samples_up_to_the_steps_own_grip_use() -> None:
     """Where vy stops being linear in the step, the targets move from the small-signal
     response (the gentle samples') to the step's own: the fit at each speed takes the
-    samples below the step's lateral acceleration, recorded in the targets."""
+    samples below the step's lateral acceleration, not those beyond it, whose vy grows
+    further (a fit on every sample overshoots the step's)."""
     rng = np.random.default_rng(4)
     runs = []
-    for speed in ANCHOR_SPEEDS:  # the steer's amplitude grows over the run, past the step's
-        steer = np.linspace(0.001, 0.03, 2000) * np.sin(np.cumsum(rng.uniform(0.05, 0.3, 2000)))
+    for speed in ANCHOR_SPEEDS:  # the steer's amplitude grows over the run to 3 x the step's
+        steer = np.linspace(0.001, 0.06, 2000) * np.sin(np.cumsum(rng.uniform(0.05, 0.3, 2000)))
         x, states = np.zeros(3), []
         for k in range(2000):
             states.append([speed, *x])
@@ -104,16 +106,22 @@ def test_the_vy_fits_take_the_samples_up_to_the_steps_own_grip_use() -> None:
         runs.append(Trajectory(f"v{speed:g}", np.array(states), np.c_[np.full(2000, 100.0), steer], STATES, INPUTS))
     targets = anchor_targets(runs)
     vy_targets = lateral_velocity_targets(targets)
-    limits = vy_grip_limit(targets.speeds, targets.yaw_rates)
-    assert targets.lateral_grip_limits.tolist() == limits.tolist()
-    assert np.all(limits >= GENTLE_GRIP) and limits[-1] > 3 * GENTLE_GRIP  # the step at 30 m/s: about 0.36 g
-    assert vy_targets.as_json()["fitted_grip_limits"] == [round(float(v), 6) for v in limits]
+    # the step's lateral acceleration (v r / g of the yaw target), at least the gentle bound
+    assert targets.lateral_grip_limits == pytest.approx(np.maximum(GENTLE_GRIP, targets.speeds * targets.yaw_rates / 9.81))
+    assert targets.lateral_grip_limits[-1] > 3 * GENTLE_GRIP  # the step at 30 m/s: about 0.36 g
+    assert vy_targets.as_json()["fitted_grip_limits"] == [round(float(v), 6) for v in targets.lateral_grip_limits]
     assert np.all(targets.lateral_samples >= targets.samples)  # a superset of the gentle samples
-    for speed in (20.0, 24.0, 28.0, 30.0):
+    high = targets.speeds >= 20.0
+    assert np.all(targets.lateral_samples[high] < 1999)  # and not every sample: some lie beyond the step's
+    every_sample = [np.ones(2000, dtype=bool) for _ in runs]
+    for speed in (20.0, 24.0, 28.0):
         target = float(np.interp(speed, vy_targets.speeds, vy_targets.lateral_velocities))
         step, small_signal = _step_vy(speed, ANCHOR_STEP), _step_vy(speed, 1e-4)
-        print(f"{speed:g} m/s: step {step:+.4f}, small signal {small_signal:+.4f}, target {target:+.4f} m/s")
-        assert abs(target - step) < 0.8 * abs(small_signal - step)
+        overshoot = anchor_step_response(local_fit(runs, every_sample, speed)[0], speed, 100.0)[1]
+        print(f"{speed:g} m/s: step {step:+.4f}, small signal {small_signal:+.4f}, target {target:+.4f}, "
+              f"every sample {overshoot:+.4f} m/s")
+        assert abs(target - step) < 0.4 * abs(small_signal - step)
+        assert abs(overshoot - step) > 0.6 * abs(small_signal - step)
 
 
 def test_the_slip_free_point_fit_recovers_its_parameters_and_refuses_a_wrong_trend() -> None:
