@@ -89,6 +89,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         folders = [f for f in sorted(glob.glob(pattern)) if Path(f).is_dir()]
         if not sep or not folders:
             parser.error(f"--group {spec!r}: give LABEL=GLOB matching model_fidelity output folders")
+        if label in groups:
+            parser.error(f"--group {label!r} given twice")
         reports = [Path(f) / "model_fidelity.json" for f in folders]
         missing = [str(r) for r in reports if not r.is_file()]
         if missing:

@@ -24,6 +24,7 @@ writes nothing: the table goes to standard output.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -32,7 +33,7 @@ import numpy as np
 
 from models.koopman_data import load_trajectories
 from models.koopman_train_anchor import (ANCHOR_STEP, GENTLE_GRIP, anchor_step_response, anchor_targets,
-                                        lateral_velocity_targets, slip_free_distance, slip_free_point_fit)
+                                        lateral_velocity_targets)
 from models.local_lateral_fit import INPUTS, STATES, band_segments, friction_of_runs, local_fit, signals
 from models.data import speed_hold_torque
 from models.vehicle import FourWheelVehicle, PlantModel, VehicleCommand
@@ -76,10 +77,12 @@ def rows(data: Path) -> list[dict[str, float]]:
     vy_targets = lateral_velocity_targets(targets)
     grip_use = [signals(run, friction.get(run.name, 1.0)).combined_grip for run in runs]
     gentle = [use < GENTLE_GRIP for use in grip_use]
-    # the smoothing of lateral_velocity_targets on the gentle fits (vy / r = b - c v^2)
+    # the same smoothing (lateral_velocity_targets) on the gentle fits, the targets until 2026-12-08
     responses = np.array([anchor_step_response(local_fit(runs, gentle, float(v))[0], float(v), float(t))
                           for v, t in zip(targets.speeds, targets.torques)])
-    gentle_point = slip_free_point_fit(targets.speeds, responses[:, 1] / responses[:, 2], np.sqrt(targets.samples))
+    gentle_targets = lateral_velocity_targets(dataclasses.replace(
+        targets, fitted_lateral_velocities=responses[:, 1], lateral_fit_yaw_rates=responses[:, 2],
+        lateral_samples=targets.samples))
     out = []
     for speed in SPEEDS:
         limit = float(np.interp(speed, targets.speeds, targets.lateral_grip_limits))
@@ -93,7 +96,7 @@ def rows(data: Path) -> list[dict[str, float]]:
                     "plant_small": plant_vy(speed, SMALL_FRACTION * ANCHOR_STEP), "gentle": fitted["gentle"],
                     "amplitude": fitted["amplitude"], "grip_limit": limit,
                     "target": float(np.interp(speed, vy_targets.speeds, vy_targets.lateral_velocities)),
-                    "gentle_target": float(targets.yaw_rate_at(speed) * slip_free_distance(*gentle_point, speed))})
+                    "gentle_target": float(np.interp(speed, gentle_targets.speeds, gentle_targets.lateral_velocities))})
     return out
 
 

@@ -61,5 +61,8 @@ def test_bad_groups_and_references_are_named(tmp_path: Path, capsys: pytest.Capt
     _write(tmp_path / "f", _report(dict.fromkeys(PLANT_VY, 0.0), 0.0, 0.1))
     table1 = tmp_path / "table1.json"
     table1.write_text(json.dumps({"rows": [{"label": "lift", "seeds": []}]}))
+    with pytest.raises(SystemExit):
+        fidelity_summary.main(["--group", f"x={tmp_path}/f", "--group", f"x={tmp_path}/f"])
+    assert "--group 'x' given twice" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="not a row"):
         fidelity_summary.main(["--group", f"x={tmp_path}/f", "--reference", "nope", "--table1", str(table1)])

@@ -96,11 +96,17 @@ def _project(root: Path) -> None:
                      modules=["studies.study"], root=root)
 
 
-def test_only_product_code_changes_of_non_machine_studies_are_candidates(tmp_path: Path) -> None:
+def _commented(tmp_path: Path) -> tuple[Path, Path]:
+    """A project at base and its copy now whose product code differs by a comment."""
     base, now = tmp_path / "base", tmp_path / "now"
     _project(base)
     shutil.copytree(base, now)
     (now / "controller" / "law.py").write_text("GAIN = 2  # same law, new comment\n")
+    return base, now
+
+
+def test_only_product_code_changes_of_non_machine_studies_are_candidates(tmp_path: Path) -> None:
+    base, now = _commented(tmp_path)
     chosen, refused = restamp.candidates(base, now, SMOKED)
     assert [c.path for c in chosen] == ["results/data.md", "results/other.md", "results/table.md"]
     assert chosen[0].changed == ("controller/law.py",)
@@ -115,10 +121,7 @@ def test_only_product_code_changes_of_non_machine_studies_are_candidates(tmp_pat
 
 
 def test_excluded_files_are_left_stale(tmp_path: Path) -> None:
-    base, now = tmp_path / "base", tmp_path / "now"
-    _project(base)
-    shutil.copytree(base, now)
-    (now / "controller" / "law.py").write_text("GAIN = 2  # same law, new comment\n")
+    base, now = _commented(tmp_path)
     chosen, _ = restamp.candidates(base, now, SMOKED)
     kept, left = restamp.excluded_candidates(chosen, ["results/ta*", "results/none.md"])
     assert [c.path for c in kept] == ["results/data.md", "results/other.md"]
